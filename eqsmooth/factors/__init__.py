@@ -1,0 +1,18 @@
+"""Factors and noise models."""
+
+from ._builtin import (
+    BetweenFactor as BetweenFactor,
+    FunctionFactor as FunctionFactor,
+    PriorFactor as PriorFactor,
+)
+from ._factor import AbstractFactor as AbstractFactor, shared_field as shared_field
+from ._noise import (
+    AbstractNoiseModel as AbstractNoiseModel,
+    CauchyNoise as CauchyNoise,
+    DiagonalNoise as DiagonalNoise,
+    HuberNoise as HuberNoise,
+    IsotropicNoise as IsotropicNoise,
+    SqrtInformationNoise as SqrtInformationNoise,
+)
+from ._variables import Var as Var
+from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout

@@ -1,0 +1,106 @@
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+from ..manifold import is_group, local
+from ._factor import AbstractFactor, shared_field
+from ._noise import AbstractNoiseModel
+from ._variables import Var
+
+
+class PriorFactor(AbstractFactor):
+    """Prior on any state: residual `x ⊖ value` (tangent coordinates).
+
+    **Arguments:**
+
+    - `variable`: a [`eqsmooth.factors.Var`][] with `n` rows.
+    - `value`: the prior mean, the state pytree stacked with a leading axis `n`.
+    - `noise`: noise model on the tangent residual.
+    """
+
+    variables: tuple[Var, ...]
+    value: PyTree
+    noise: AbstractNoiseModel
+
+    def __init__(self, variable: Var, value: PyTree, noise: AbstractNoiseModel):
+        self.variables = (variable,)
+        self.value = value
+        self.noise = noise
+
+    def residual(self, x: PyTree) -> Float[Array, " m"]:
+        return local(self.value, x)
+
+
+def _between(a: PyTree, b: PyTree) -> PyTree:
+    def leaf(u, v):
+        return u.inverse() @ v if is_group(u) else jnp.asarray(v) - jnp.asarray(u)
+
+    return jax.tree_util.tree_map(leaf, a, b, is_leaf=is_group)
+
+
+class BetweenFactor(AbstractFactor):
+    """Relative measurement between two states: residual `(a⁻¹ b) ⊖ measurement`.
+
+    For group leaves `a⁻¹ b` is the relative transform; for array leaves it is
+    the difference `b − a`. The classic pose-graph edge.
+
+    **Arguments:**
+
+    - `a`, `b`: [`eqsmooth.factors.Var`][]s with `n` rows each.
+    - `measurement`: the measured relative state, stacked with leading axis `n`.
+    - `noise`: noise model on the tangent residual.
+    """
+
+    variables: tuple[Var, ...]
+    measurement: PyTree
+    noise: AbstractNoiseModel
+
+    def __init__(self, a: Var, b: Var, measurement: PyTree, noise: AbstractNoiseModel):
+        self.variables = (a, b)
+        self.measurement = measurement
+        self.noise = noise
+
+    def residual(self, a: PyTree, b: PyTree) -> Float[Array, " m"]:
+        return local(self.measurement, _between(a, b))
+
+
+class FunctionFactor(AbstractFactor):
+    """A factor made from a user function `fn(*states, data, params) -> residual`.
+
+    **Arguments:**
+
+    - `fn`: returns the unwhitened 1-D residual of ONE row; receives the
+        row's states (one per variable), that row's `data` and the shared
+        `params`. It must be a hashable callable (a function, not a lambda
+        re-created on every call, to avoid recompilation).
+    - `variables`: tuple of [`eqsmooth.factors.Var`][].
+    - `noise`: noise model.
+    - `data`: per-row pytree (leaves with leading axis `n`), or `None`.
+    - `params`: pytree shared by all rows (learnable), or `None`.
+    """
+
+    fn: Callable = eqx.field(static=True)
+    variables: tuple[Var, ...]
+    noise: AbstractNoiseModel
+    data: PyTree
+    params: PyTree = shared_field()
+
+    def __init__(
+        self,
+        fn: Callable,
+        variables: tuple[Var, ...],
+        noise: AbstractNoiseModel,
+        data: PyTree = None,
+        params: PyTree = None,
+    ):
+        self.fn = fn
+        self.variables = tuple(variables)
+        self.noise = noise
+        self.data = data
+        self.params = params
+
+    def residual(self, *states: PyTree) -> Float[Array, " m"]:
+        return jnp.asarray(self.fn(*states, self.data, self.params))

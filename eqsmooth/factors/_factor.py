@@ -1,0 +1,176 @@
+import abc
+import dataclasses
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+from ..manifold import retract, tangent_dim
+from ._noise import AbstractNoiseModel
+from ._variables import Var
+
+
+_SHARED = "eqsmooth_shared"
+
+
+def shared_field(**kwargs: Any) -> Any:
+    """An `eqx.field` whose value is shared by every row of a stacked factor.
+
+    Array leaves of a stacked factor normally carry a leading axis with one
+    entry per row. Leaves under a field declared with `shared_field()` are
+    instead used as they are by every row: learnable physical coefficients,
+    neural network weights, and so on.
+    """
+    metadata = dict(kwargs.pop("metadata", {}))
+    metadata[_SHARED] = True
+    return eqx.field(metadata=metadata, **kwargs)
+
+
+class AbstractFactor(eqx.Module):
+    """A stack of `n` factors of one type, evaluated row by row with `vmap`.
+
+    Subclasses declare their data as fields: array leaves have a leading axis
+    of length `n` (one entry per row) unless the field is declared with
+    [`eqsmooth.factors.shared_field`][]. They implement `residual`, which
+    receives ONE row's states (unbatched) for the variables listed in
+    `variables`, in that order, and returns the unwhitened residual of that
+    row as a 1-D array.
+
+    **Fields every factor has:**
+
+    - `variables`: a tuple of [`eqsmooth.factors.Var`][], one per touched
+        variable, each with `n` indices.
+    - `noise`: an [`eqsmooth.factors.AbstractNoiseModel`][] for the stack.
+    """
+
+    variables: eqx.AbstractVar[tuple[Var, ...]]
+    noise: eqx.AbstractVar[AbstractNoiseModel]
+
+    @abc.abstractmethod
+    def residual(self, *states: PyTree) -> Float[Array, " m"]:
+        """Unwhitened residual of one row, given that row's states."""
+
+    def __check_init__(self):
+        name = type(self).__name__
+        if not isinstance(self.variables, tuple) or not all(
+            isinstance(v, Var) for v in self.variables
+        ):
+            raise TypeError(f"{name}.variables must be a tuple of Var")
+        if len(self.variables) == 0:
+            raise ValueError(f"{name}.variables must not be empty")
+        n = len(self.variables[0])
+        for v in self.variables:
+            if len(v) != n:
+                raise ValueError(
+                    f"{name}: all variables must have the same number of rows; "
+                    f"got {[len(u) for u in self.variables]}"
+                )
+        if not isinstance(self.noise, AbstractNoiseModel):
+            raise TypeError(
+                f"{name}.noise must be an AbstractNoiseModel, got "
+                f"{type(self.noise).__name__}"
+            )
+
+    @property
+    def num_rows(self) -> int:
+        """Number of stacked rows `n`."""
+        return len(self.variables[0])
+
+
+def _row_axes(factor: AbstractFactor) -> AbstractFactor:
+    """A prefix of `factor` for `filter_vmap`: 0 for per-row fields, None else."""
+    axes = object.__new__(type(factor))
+    for f in dataclasses.fields(factor):
+        if f.metadata.get("static", False):
+            continue
+        per_row = f.name not in ("variables", "noise") and not f.metadata.get(
+            _SHARED, False
+        )
+        object.__setattr__(axes, f.name, 0 if per_row else None)
+    return axes
+
+
+def check_row_leaves(factor: AbstractFactor) -> None:
+    """Raise if a per-row leaf of `factor` lacks the leading axis of length n."""
+    name = type(factor).__name__
+    n = factor.num_rows
+    for f in dataclasses.fields(factor):
+        if (
+            f.metadata.get("static", False)
+            or f.name in ("variables", "noise")
+            or f.metadata.get(_SHARED, False)
+        ):
+            continue
+        for leaf in jax.tree_util.tree_leaves(getattr(factor, f.name)):
+            if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != n):
+                raise ValueError(
+                    f"{name}.{f.name}: per-row leaf of shape {leaf.shape} must have "
+                    f"a leading axis of length {n} (the number of factor rows); "
+                    "declare shared parameters with eqsmooth.factors.shared_field()"
+                )
+
+
+def _row_call(factor, *states):
+    return factor.residual(*states)
+
+
+def evaluate_rows(
+    factor: AbstractFactor, states: tuple[PyTree, ...]
+) -> Float[Array, "n m"]:
+    """Residuals of all rows, `(n, m)`, given per-row stacked states."""
+    axes = _row_axes(factor)
+    fn = eqx.filter_vmap(_row_call, in_axes=(axes,) + (0,) * len(states))
+    return fn(factor, *states)
+
+
+def linearize_rows(
+    factor: AbstractFactor, states: tuple[PyTree, ...]
+) -> tuple[Float[Array, "n m"], tuple[Float[Array, "n m _d"], ...]]:
+    """Residuals `(n, m)` and Jacobians `(n, m, d_k)` w.r.t. right perturbations.
+
+    The Jacobian block k is `∂ r(x_1, ..., x_k ⊕ δ, ...) / ∂ δ` at `δ = 0`,
+    computed with forward-mode autodiff, one `jacfwd` over the concatenated
+    tangent of all touched variables per row, vmapped over rows.
+    """
+    name = type(factor).__name__
+    dims = [tangent_dim(s, batch_ndim=1) for s in states]
+
+    def one_row(f, *xs):
+        dtype = jnp.result_type(*jax.tree_util.tree_leaves(xs))
+
+        def r_of(delta):
+            pieces = jnp.split(delta, _cumsum(dims)[:-1]) if len(dims) > 1 else [delta]
+            moved = [retract(x, d) if dd else x for x, d, dd in zip(xs, pieces, dims)]
+            r = f.residual(*moved)
+            if r.ndim != 1:
+                raise ValueError(
+                    f"{name}.residual must return a 1-D array, got shape {r.shape}"
+                )
+            return r
+
+        zero = jnp.zeros(sum(dims), dtype=dtype)
+        r, jac = _value_and_jacfwd(r_of, zero)
+        blocks = jnp.split(jac, _cumsum(dims)[:-1], axis=1) if len(dims) > 1 else [jac]
+        return r, tuple(blocks)
+
+    axes = _row_axes(factor)
+    fn = eqx.filter_vmap(one_row, in_axes=(axes,) + (0,) * len(states))
+    return fn(factor, *states)
+
+
+def _cumsum(dims: list[int]) -> list[int]:
+    out, total = [], 0
+    for d in dims:
+        total += d
+        out.append(total)
+    return out
+
+
+def _value_and_jacfwd(fn, x):
+    # One linearisation, then push the identity through the JVP with vmap.
+    r, jvp = jax.linearize(fn, x)
+    eye = jnp.eye(x.shape[0], dtype=x.dtype)
+    jac = jax.vmap(jvp, in_axes=1, out_axes=1)(eye)
+    return r, jac

@@ -1,0 +1,339 @@
+import abc
+from typing import Any, ClassVar, Self, overload
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+
+from ._utils import as_float_array, broadcast_batch
+
+
+class AbstractLieGroup(eqx.Module):
+    """Base class of the matrix Lie groups [`eqsmooth.lie.SO2`][],
+    [`eqsmooth.lie.SE2`][], [`eqsmooth.lie.SO3`][] and [`eqsmooth.lie.SE3`][].
+
+    A group element stores one array of parameters whose last axis has size
+    `parameters_dim`; any leading axes are batch axes, and every operation broadcasts
+    over them. Tangent vectors have shape `(*batch, tangent_dim)`.
+    """
+
+    tangent_dim: eqx.AbstractClassVar[int]
+    """Dimension of the tangent space (the Lie algebra)."""
+    parameters_dim: eqx.AbstractClassVar[int]
+    """Size of the last axis of the parameter array."""
+    matrix_dim: eqx.AbstractClassVar[int]
+    """Size of the square matrix returned by `as_matrix`."""
+    space_dim: eqx.AbstractClassVar[int]
+    """Dimension of the points the group acts on."""
+
+    # ---------------------------------------------------------------- abstract API
+
+    @abc.abstractmethod
+    def parameters(self) -> Float[Array, "*batch p"]:
+        """The underlying parameter array, of shape `(*batch, parameters_dim)`."""
+
+    @classmethod
+    @abc.abstractmethod
+    def identity(
+        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
+    ) -> Self:
+        """The identity element.
+
+        **Arguments:**
+
+        - `batch_shape`: leading batch axes of the result.
+        - `dtype`: floating dtype of the parameters (default: JAX's default float).
+
+        **Returns:**
+
+        The identity, with parameters of shape `(*batch_shape, parameters_dim)`.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def exp(cls, tangent: Float[ArrayLike, "*batch d"]) -> Self:
+        """Exponential map from tangent vectors to group elements.
+
+        **Arguments:**
+
+        - `tangent`: array of shape `(*batch, tangent_dim)`.
+
+        **Returns:**
+
+        The group element `exp(hat(tangent))`.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def from_matrix(cls, matrix: Float[ArrayLike, "*batch n n"]) -> Self:
+        """Build an element from its homogeneous matrix.
+
+        **Arguments:**
+
+        - `matrix`: array of shape `(*batch, matrix_dim, matrix_dim)`.
+
+        **Returns:**
+
+        The group element. Matrices slightly off the group are projected onto it.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def sample_uniform(
+        cls,
+        key: PRNGKeyArray,
+        batch_shape: tuple[int, ...] = (),
+        dtype: DTypeLike | None = None,
+    ) -> Self:
+        """Draw random elements: rotations uniformly (Haar measure), translations
+        uniformly in `[-1, 1]` per coordinate.
+
+        **Arguments:**
+
+        - `key`: a JAX PRNG key.
+        - `batch_shape`: leading batch axes of the result.
+        - `dtype`: floating dtype of the parameters (default: JAX's default float).
+
+        **Returns:**
+
+        A batch of random group elements.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def hat(cls, tangent: Float[ArrayLike, "*batch d"]) -> Float[Array, "*batch n n"]:
+        """Map a tangent vector to the corresponding Lie algebra matrix.
+
+        **Arguments:**
+
+        - `tangent`: array of shape `(*batch, tangent_dim)`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, matrix_dim, matrix_dim)`.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def vee(cls, matrix: Float[ArrayLike, "*batch n n"]) -> Float[Array, "*batch d"]:
+        """Inverse of [`hat`][eqsmooth.lie.AbstractLieGroup.hat].
+
+        **Arguments:**
+
+        - `matrix`: Lie algebra matrices of shape `(*batch, matrix_dim, matrix_dim)`.
+
+        **Returns:**
+
+        Tangent vectors of shape `(*batch, tangent_dim)`.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def right_jacobian(
+        cls, tangent: Float[ArrayLike, "*batch d"]
+    ) -> Float[Array, "*batch d d"]:
+        """Right Jacobian `Jr` of the exponential map.
+
+        It satisfies `exp(xi + delta) ~= exp(xi) @ exp(Jr(xi) @ delta)` for small
+        `delta`.
+
+        **Arguments:**
+
+        - `tangent`: the point `xi`, of shape `(*batch, tangent_dim)`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, tangent_dim, tangent_dim)`.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def right_jacobian_inv(
+        cls, tangent: Float[ArrayLike, "*batch d"]
+    ) -> Float[Array, "*batch d d"]:
+        """Inverse of the right Jacobian, computed in closed form.
+
+        **Arguments:**
+
+        - `tangent`: the point `xi`, of shape `(*batch, tangent_dim)`. For rotations
+            the inverse exists for angles below `2 pi`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, tangent_dim, tangent_dim)`.
+        """
+
+    @abc.abstractmethod
+    def log(self) -> Float[Array, "*batch d"]:
+        """Logarithm map, the inverse of [`exp`][eqsmooth.lie.AbstractLieGroup.exp].
+
+        Rotation angles are returned in `[0, pi]` (SO(3), SE(3)) or `(-pi, pi]`
+        (SO(2), SE(2)). The result does not depend on the norm of the
+        rotation parameters, so slightly unnormalized elements give sensible results.
+
+        **Returns:**
+
+        Tangent vectors of shape `(*batch, tangent_dim)`.
+        """
+
+    @abc.abstractmethod
+    def inverse(self) -> Self:
+        """The group inverse."""
+
+    @abc.abstractmethod
+    def compose(self, other: Self) -> Self:
+        """Group product `self @ other` (batch axes broadcast).
+
+        **Arguments:**
+
+        - `other`: an element of the same group.
+
+        **Returns:**
+
+        The composition, applying `other` first and then `self` to points.
+        """
+
+    @abc.abstractmethod
+    def apply(self, points: Float[ArrayLike, "*batch s"]) -> Float[Array, "*batch s"]:
+        """Act on points (batch axes broadcast).
+
+        **Arguments:**
+
+        - `points`: array of shape `(*batch, space_dim)`.
+
+        **Returns:**
+
+        Transformed points, same shape as the broadcast input.
+        """
+
+    @abc.abstractmethod
+    def adjoint(self) -> Float[Array, "*batch d d"]:
+        """Adjoint matrix `Ad(g)`, such that `exp(Ad(g) @ xi) = g @ exp(xi) @ g^-1`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, tangent_dim, tangent_dim)`.
+        """
+
+    @abc.abstractmethod
+    def as_matrix(self) -> Float[Array, "*batch n n"]:
+        """Homogeneous matrix of shape `(*batch, matrix_dim, matrix_dim)`."""
+
+    @abc.abstractmethod
+    def normalize(self) -> Self:
+        """Project the rotation parameters back to unit norm (use after long
+        chains of compositions, which slowly accumulate rounding drift)."""
+
+    # ---------------------------------------------------------- shared behaviour
+
+    @classmethod
+    def left_jacobian(
+        cls, tangent: Float[ArrayLike, "*batch d"]
+    ) -> Float[Array, "*batch d d"]:
+        """Left Jacobian `Jl(xi) = Jr(-xi)` of the exponential map.
+
+        It satisfies `exp(xi + delta) ~= exp(Jl(xi) @ delta) @ exp(xi)`.
+
+        **Arguments:**
+
+        - `tangent`: the point `xi`, of shape `(*batch, tangent_dim)`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, tangent_dim, tangent_dim)`.
+        """
+        return cls.right_jacobian(-as_float_array(tangent))
+
+    @classmethod
+    def left_jacobian_inv(
+        cls, tangent: Float[ArrayLike, "*batch d"]
+    ) -> Float[Array, "*batch d d"]:
+        """Inverse of the left Jacobian, `Jl(xi)^-1 = Jr(-xi)^-1`.
+
+        **Arguments:**
+
+        - `tangent`: the point `xi`, of shape `(*batch, tangent_dim)`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, tangent_dim, tangent_dim)`.
+        """
+        return cls.right_jacobian_inv(-as_float_array(tangent))
+
+    def jlog(self) -> Float[Array, "*batch d d"]:
+        """Jacobian of the logarithm under a right perturbation.
+
+        This is `d log(self @ exp(delta)) / d delta` at `delta = 0`, which equals
+        `right_jacobian_inv(self.log())`.
+
+        **Returns:**
+
+        Matrices of shape `(*batch, tangent_dim, tangent_dim)`.
+        """
+        return self.right_jacobian_inv(self.log())
+
+    def interpolate(self, other: Self, alpha: Float[ArrayLike, "*#batch"]) -> Self:
+        """Geodesic interpolation `self @ exp(alpha * log(self^-1 @ other))`.
+
+        **Arguments:**
+
+        - `other`: the end point (an element of the same group).
+        - `alpha`: interpolation parameter; `0` gives `self`, `1` gives `other`.
+            A scalar or an array broadcasting against the batch axes.
+
+        **Returns:**
+
+        The interpolated element.
+        """
+        delta = self.inverse().compose(other).log()
+        alpha = as_float_array(alpha, dtype=delta.dtype)
+        alpha, delta = broadcast_batch(alpha[..., None], delta)
+        return self.compose(self.exp(alpha * delta))
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Leading batch axes of the parameters."""
+        return self.parameters().shape[:-1]
+
+    @property
+    def dtype(self) -> Any:
+        """Floating dtype of the parameters."""
+        return self.parameters().dtype
+
+    def __getitem__(self, index: Any) -> Self:
+        """Index the batch axes (the parameter axis is never indexed)."""
+        if not isinstance(index, tuple):
+            index = (index,)
+        params = self.parameters()[(*index, slice(None))]
+        return type(self)(params)
+
+    @overload
+    def __matmul__(self, other: Self) -> Self: ...
+
+    @overload
+    def __matmul__(
+        self, other: Float[ArrayLike, "*batch s"]
+    ) -> Float[Array, "*batch s"]: ...
+
+    def __matmul__(self, other):
+        """`g @ h` composes two elements; `g @ points` applies `g` to points."""
+        if isinstance(other, AbstractLieGroup):
+            if type(other) is not type(self):
+                raise TypeError(
+                    f"Cannot compose {type(self).__name__} with "
+                    f"{type(other).__name__}."
+                )
+            return self.compose(other)
+        return self.apply(other)
+
+
+def check_parameters(name: str, params: Array, size: int) -> None:
+    """Shared `__check_init__` body: trace-time checks of the parameter array."""
+    if params.ndim < 1 or params.shape[-1] != size:
+        raise ValueError(
+            f"{name} parameters must have shape (*batch, {size}), got {params.shape}."
+        )
+    if not jnp.issubdtype(params.dtype, jnp.floating):
+        raise TypeError(
+            f"{name} parameters must have a floating dtype, got {params.dtype}."
+        )

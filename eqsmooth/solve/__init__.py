@@ -1,0 +1,20 @@
+"""Linearisation, linear solvers and nonlinear least-squares solvers."""
+
+from ._block_tridiagonal import BlockTridiagonal as BlockTridiagonal
+from ._dense import DenseCholesky as DenseCholesky
+from ._gauss_newton import FixedStepGaussNewton as FixedStepGaussNewton, GaussNewton as GaussNewton
+from ._least_squares import (
+    AbstractLeastSquaresSolver as AbstractLeastSquaresSolver,
+    LeastSquaresState as LeastSquaresState,
+    least_squares as least_squares,
+)
+from ._levenberg_marquardt import LevenbergMarquardt as LevenbergMarquardt
+from ._linear_solver import AbstractLinearSolver as AbstractLinearSolver
+from ._linearization import (
+    FactorLinearization as FactorLinearization,
+    Linearization as Linearization,
+    linearize as linearize,
+)
+from ._marginals import marginal_covariances as marginal_covariances
+from ._pcg import PCG as PCG
+from ._solution import RESULTS as RESULTS, Solution as Solution

@@ -1,0 +1,176 @@
+"""The whitened, block-sparse linearisation every linear solver consumes."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PyTree
+
+from ..factors import FactorGraph, GroupLayout, Var
+from ..factors._factor import linearize_rows
+from ..manifold import retract
+
+
+Tangent = dict[str, Float[Array, "_N _d"]]
+
+
+class FactorLinearization(eqx.Module):
+    """One factor stack linearised: whitened residual and Jacobian blocks.
+
+    `residual` has shape `(n, m)`; `jacobians[k]` has shape `(n, m, d_k)` and
+    multiplies the tangent of variable `variables[k].ids[i]` for row `i`. Both
+    include the noise whitening and the IRLS weight `√ρ'` of robust models.
+    """
+
+    residual: Float[Array, "n m"]
+    jacobians: tuple[Float[Array, "n m _d"], ...]
+    variables: tuple[Var, ...]
+
+
+class Linearization(eqx.Module):
+    """The Gauss-Newton model of a graph at a linearisation point.
+
+    The linear least-squares problem is `min_δ ½‖J δ + r‖²` with `δ` a
+    tangent dict `{group: (N_g, d_g)}`; `cost` is the true (robust) cost at
+    the linearisation point.
+    """
+
+    factors: tuple[FactorLinearization, ...]
+    layout: tuple[GroupLayout, ...] = eqx.field(static=True)
+    cost: Float[Array, ""]
+
+    @property
+    def dtype(self):
+        return self.factors[0].residual.dtype
+
+    @property
+    def num_tangent(self) -> int:
+        return sum(g.count * g.dim for g in self.layout)
+
+
+def linearize(graph: FactorGraph, values: dict[str, PyTree]) -> Linearization:
+    """Linearise `graph` at `values` (whitened, robust-weighted Jacobian blocks)."""
+    layout = graph.validate(values)
+    out = []
+    cost = jnp.zeros((), dtype=_values_dtype(values))
+    for f in graph.factors:
+        states = graph.states_of(f, values)
+        r, jacs = linearize_rows(f, states)
+        n, m = r.shape
+        f.noise.check_shapes(type(f).__name__, n, m)
+        rw = f.noise.whiten(r)
+        jw = tuple(f.noise.whiten(j) for j in jacs)
+        s = jnp.sum(rw * rw, axis=1)
+        rho, drho = f.noise.rho(s)
+        cost = cost + 0.5 * jnp.sum(rho).astype(cost.dtype)
+        w = jnp.sqrt(drho)
+        rw = rw * w[:, None]
+        jw = tuple(j * w[:, None, None] for j in jw)
+        out.append(FactorLinearization(rw, jw, f.variables))
+    return Linearization(tuple(out), layout, cost)
+
+
+def _values_dtype(values):
+    leaves = jax.tree_util.tree_leaves(values)
+    return jnp.result_type(*[leaf.dtype for leaf in leaves])
+
+
+def zeros_tangent(lin: Linearization) -> Tangent:
+    return {g.name: jnp.zeros((g.count, g.dim), lin.dtype) for g in lin.layout}
+
+
+def apply_jacobian(lin: Linearization, delta: Tangent) -> tuple[Array, ...]:
+    """`J δ`, one `(n, m)` array per factor stack."""
+    out = []
+    for fl in lin.factors:
+        acc = jnp.zeros_like(fl.residual)
+        for j, var in zip(fl.jacobians, fl.variables):
+            acc = acc + jnp.einsum("nmd,nd->nm", j, delta[var.group][var.ids])
+        out.append(acc)
+    return tuple(out)
+
+
+def apply_transpose(lin: Linearization, rows: tuple[Array, ...]) -> Tangent:
+    """`Jᵀ y` for per-stack row vectors `y` of shape `(n, m)`."""
+    out = zeros_tangent(lin)
+    for fl, y in zip(lin.factors, rows):
+        for j, var in zip(fl.jacobians, fl.variables):
+            contrib = jnp.einsum("nmd,nm->nd", j, y)
+            out[var.group] = out[var.group].at[var.ids].add(contrib)
+    return out
+
+
+def gradient(lin: Linearization) -> Tangent:
+    """`Jᵀ r`: the gradient of the cost in tangent coordinates."""
+    return apply_transpose(lin, tuple(fl.residual for fl in lin.factors))
+
+
+def normal_matvec(lin: Linearization, delta: Tangent) -> Tangent:
+    """`JᵀJ δ` without forming `JᵀJ`."""
+    return apply_transpose(lin, apply_jacobian(lin, delta))
+
+
+def block_diagonal(lin: Linearization) -> Tangent:
+    """Diagonal blocks of `JᵀJ`: `{group: (N_g, d_g, d_g)}`."""
+    out = {
+        g.name: jnp.zeros((g.count, g.dim, g.dim), lin.dtype) for g in lin.layout
+    }
+    for fl in lin.factors:
+        for j, var in zip(fl.jacobians, fl.variables):
+            out[var.group] = out[var.group].at[var.ids].add(
+                jnp.einsum("nmd,nme->nde", j, j)
+            )
+    return out
+
+
+def flatten_tangent(lin: Linearization, delta: Tangent) -> Float[Array, " N"]:
+    """Group-major flat vector (groups in sorted order, variables, coordinates)."""
+    return jnp.concatenate([delta[g.name].reshape(-1) for g in lin.layout])
+
+
+def unflatten_tangent(lin: Linearization, flat: Float[Array, " N"]) -> Tangent:
+    out, start = {}, 0
+    for g in lin.layout:
+        size = g.count * g.dim
+        out[g.name] = flat[start : start + size].reshape(g.count, g.dim)
+        start += size
+    return out
+
+
+def group_offsets(lin: Linearization) -> dict[str, int]:
+    offsets, start = {}, 0
+    for g in lin.layout:
+        offsets[g.name] = start
+        start += g.count * g.dim
+    return offsets
+
+
+def dense_jacobian(lin: Linearization) -> tuple[Float[Array, "M N"], Float[Array, " M"]]:
+    """Materialise `J` (group-major columns) and `r`: for small graphs and tests."""
+    offsets = group_offsets(lin)
+    dims = {g.name: g.dim for g in lin.layout}
+    blocks, rs = [], []
+    for fl in lin.factors:
+        n, m = fl.residual.shape
+        rows = jnp.zeros((n, m, lin.num_tangent), lin.dtype)
+        for j, var in zip(fl.jacobians, fl.variables):
+            d = dims[var.group]
+            cols = offsets[var.group] + var.ids[:, None] * d + np.arange(d)[None]
+            rows = _scatter_cols(rows, j, cols)
+        blocks.append(rows.reshape(n * m, lin.num_tangent))
+        rs.append(fl.residual.reshape(-1))
+    return jnp.concatenate(blocks), jnp.concatenate(rs)
+
+
+def _scatter_cols(rows, j, cols):
+    # rows: (n, m, N); j: (n, m, d); cols: (n, d) absolute column indices.
+    n = rows.shape[0]
+    return rows.at[jnp.arange(n)[:, None], :, cols].add(jnp.swapaxes(j, 1, 2))
+
+
+def retract_values(values: dict[str, PyTree], delta: Tangent) -> dict[str, PyTree]:
+    """Apply `x ⊕ δ` to every variable of every group."""
+    return {
+        name: retract(group, delta[name].astype(_values_dtype(group)))
+        for name, group in values.items()
+    }
