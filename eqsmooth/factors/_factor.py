@@ -84,6 +84,7 @@ def _row_axes(factor: AbstractFactor) -> AbstractFactor:
     axes = object.__new__(type(factor))
     for f in dataclasses.fields(factor):
         if f.metadata.get("static", False):
+            object.__setattr__(axes, f.name, getattr(factor, f.name))
             continue
         per_row = f.name not in ("variables", "noise") and not f.metadata.get(
             _SHARED, False

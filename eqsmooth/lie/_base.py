@@ -1,11 +1,16 @@
 import abc
-from typing import Any, ClassVar, Self, overload
+from typing import Any, overload, TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
 
 from ._utils import as_float_array, broadcast_batch
+
+
+# Stands for "the concrete group of `self`" (beartype rejects `typing.Self` on
+# individually decorated methods, which is how the jaxtyping import hook checks).
+_G = TypeVar("_G", bound="AbstractLieGroup")
 
 
 class AbstractLieGroup(eqx.Module):
@@ -35,8 +40,8 @@ class AbstractLieGroup(eqx.Module):
     @classmethod
     @abc.abstractmethod
     def identity(
-        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
-    ) -> Self:
+        cls: type[_G], batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
+    ) -> _G:
         """The identity element.
 
         **Arguments:**
@@ -51,7 +56,7 @@ class AbstractLieGroup(eqx.Module):
 
     @classmethod
     @abc.abstractmethod
-    def exp(cls, tangent: Float[ArrayLike, "*batch d"]) -> Self:
+    def exp(cls: type[_G], tangent: Float[ArrayLike, "*batch d"]) -> _G:
         """Exponential map from tangent vectors to group elements.
 
         **Arguments:**
@@ -65,7 +70,7 @@ class AbstractLieGroup(eqx.Module):
 
     @classmethod
     @abc.abstractmethod
-    def from_matrix(cls, matrix: Float[ArrayLike, "*batch n n"]) -> Self:
+    def from_matrix(cls: type[_G], matrix: Float[ArrayLike, "*batch n n"]) -> _G:
         """Build an element from its homogeneous matrix.
 
         **Arguments:**
@@ -80,11 +85,11 @@ class AbstractLieGroup(eqx.Module):
     @classmethod
     @abc.abstractmethod
     def sample_uniform(
-        cls,
+        cls: type[_G],
         key: PRNGKeyArray,
         batch_shape: tuple[int, ...] = (),
         dtype: DTypeLike | None = None,
-    ) -> Self:
+    ) -> _G:
         """Draw random elements: rotations uniformly (Haar measure), translations
         uniformly in `[-1, 1]` per coordinate.
 
@@ -177,11 +182,11 @@ class AbstractLieGroup(eqx.Module):
         """
 
     @abc.abstractmethod
-    def inverse(self) -> Self:
+    def inverse(self: _G) -> _G:
         """The group inverse."""
 
     @abc.abstractmethod
-    def compose(self, other: Self) -> Self:
+    def compose(self: _G, other: _G) -> _G:
         """Group product `self @ other` (batch axes broadcast).
 
         **Arguments:**
@@ -220,7 +225,7 @@ class AbstractLieGroup(eqx.Module):
         """Homogeneous matrix of shape `(*batch, matrix_dim, matrix_dim)`."""
 
     @abc.abstractmethod
-    def normalize(self) -> Self:
+    def normalize(self: _G) -> _G:
         """Project the rotation parameters back to unit norm (use after long
         chains of compositions, which slowly accumulate rounding drift)."""
 
@@ -272,7 +277,7 @@ class AbstractLieGroup(eqx.Module):
         """
         return self.right_jacobian_inv(self.log())
 
-    def interpolate(self, other: Self, alpha: Float[ArrayLike, "*#batch"]) -> Self:
+    def interpolate(self: _G, other: _G, alpha: Float[ArrayLike, "*#batch"]) -> _G:
         """Geodesic interpolation `self @ exp(alpha * log(self^-1 @ other))`.
 
         **Arguments:**
@@ -300,7 +305,7 @@ class AbstractLieGroup(eqx.Module):
         """Floating dtype of the parameters."""
         return self.parameters().dtype
 
-    def __getitem__(self, index: Any) -> Self:
+    def __getitem__(self: _G, index: Any) -> _G:
         """Index the batch axes (the parameter axis is never indexed)."""
         if not isinstance(index, tuple):
             index = (index,)
@@ -308,7 +313,7 @@ class AbstractLieGroup(eqx.Module):
         return type(self)(params)
 
     @overload
-    def __matmul__(self, other: Self) -> Self: ...
+    def __matmul__(self: _G, other: _G) -> _G: ...
 
     @overload
     def __matmul__(
@@ -320,8 +325,7 @@ class AbstractLieGroup(eqx.Module):
         if isinstance(other, AbstractLieGroup):
             if type(other) is not type(self):
                 raise TypeError(
-                    f"Cannot compose {type(self).__name__} with "
-                    f"{type(other).__name__}."
+                    f"Cannot compose {type(self).__name__} with {type(other).__name__}."
                 )
             return self.compose(other)
         return self.apply(other)

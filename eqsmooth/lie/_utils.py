@@ -10,6 +10,7 @@ taken is evaluated at a harmless dummy input, so its derivative can never be
 
 import math
 from collections.abc import Callable, Sequence
+from fractions import Fraction
 
 import jax
 import jax.numpy as jnp
@@ -30,27 +31,15 @@ def as_float_array(x, dtype=None) -> Array:
     return x
 
 
-def series_threshold(dtype) -> float:
-    """Angle below which the Taylor series of the coefficients below are used.
-
-    The closed forms lose about `eps / theta**4` relative precision (the worst case is
-    `se3_a3`), while the series truncated after the `t**4` term err by roughly
-    `5e-10 * theta**10`. Balancing the two gives `theta ~ 6 * eps**(1/14)`: about 0.46
-    for float64 and 1.9 for float32.
-    """
+def _threshold(coeffs: Sequence[float], dtype, limit: float) -> float:
+    """Largest angle at which the first term left out of a truncated series,
+    `coeffs[n] * theta**(2n)`, is below `eps` relative to the leading term; capped
+    at `limit`, beyond which Horner's rule on the alternating series starts losing
+    digits to cancellation itself."""
     eps = float(jnp.finfo(dtype).eps)
-    return min(6.0 * eps ** (1 / 14), 2.5)
-
-
-def atan_threshold(dtype) -> float:
-    """Ratio `x` below which `atan(x) / x` is evaluated by its Taylor series.
-
-    That series (`sum_k (-x**2)**k / (2k + 1)`, truncated after 8 terms) converges
-    slowly, so it is cut where its first neglected term `x**16 / 17` reaches `eps`:
-    about 0.12 for float64 and 0.44 for float32.
-    """
-    eps = float(jnp.finfo(dtype).eps)
-    return (17.0 * eps) ** (1 / 16)
+    n = len(coeffs) - 1
+    ratio = eps * abs(coeffs[0]) / abs(coeffs[n])
+    return min(ratio ** (1 / (2 * n)), limit)
 
 
 def _horner(coeffs: Sequence[float], t: Array) -> Array:
@@ -80,37 +69,65 @@ def series_or_closed_form(
     return jnp.where(small, series, closed)
 
 
-# Taylor coefficients (in powers of t = theta**2) of the coefficients below; each
-# series is truncated after the t**4 term.
-_SINC = (1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880)
-_A = (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800)
-_B = (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800)
-_C = (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160)
-_SE3_A2 = (1 / 24, -1 / 720, 1 / 40320, -1 / 3628800, 1 / 479001600)
-_SE3_A3 = (1 / 120, -1 / 2520, 1 / 120960, -1 / 9979200, 1 / 1245404160)
-_COS_HALF = (1.0, -1 / 8, 1 / 384, -1 / 46080, 1 / 10321920)
-_SINC_HALF_OVER_2 = (1 / 2, -1 / 48, 1 / 3840, -1 / 645120, 1 / 185794560)
+def _bernoulli(n: int) -> list[Fraction]:
+    b = [Fraction(1)]
+    for m in range(1, n + 1):
+        b.append(-sum(math.comb(m + 1, k) * b[k] for k in range(m)) / (m + 1))
+    return b
+
+
+# Taylor coefficients in powers of t = theta**2. Each series keeps _TERMS terms and
+# carries one more coefficient, used only to choose the switching angle. They are
+# generated exactly from the series of sin, cos and x cot(x).
+_TERMS = 10
+_K = range(_TERMS + 1)
+_F = math.factorial
+_BERN = _bernoulli(2 * _TERMS + 2)
+
+
+def _coeffs(term) -> tuple[float, ...]:
+    return tuple(float(term(k)) for k in _K)
+
+
+_SINC = _coeffs(lambda k: Fraction((-1) ** k, _F(2 * k + 1)))
+_A = _coeffs(lambda k: Fraction((-1) ** k, _F(2 * k + 2)))
+_B = _coeffs(lambda k: Fraction((-1) ** k, _F(2 * k + 3)))
+# 1 - x cot(x) = -sum_{n>=1} (-1)^n B_2n (2x)^2n / (2n)!, with x = theta / 2.
+_C = _coeffs(lambda k: (-1) ** k * _BERN[2 * k + 2] / _F(2 * k + 2))
+_SE3_A2 = _coeffs(lambda k: Fraction((-1) ** k, _F(2 * k + 4)))
+_SE3_A3 = _coeffs(lambda k: Fraction((-1) ** k * (k + 1), _F(2 * k + 5)))
+_COS_HALF = _coeffs(lambda k: Fraction((-1) ** k, _F(2 * k) * 4**k))
+_SIN_HALF_OVER = _coeffs(
+    lambda k: Fraction((-1) ** k, 2 ** (2 * k + 1) * _F(2 * k + 1))
+)
+_ATAN_OVER_X = _coeffs(lambda k: Fraction((-1) ** k, 2 * k + 1))
+
+
+def _series_or_closed_form(
+    t: Array, coeffs: Sequence[float], closed_form: Callable[[Array], Array]
+) -> Array:
+    # Below about 2 rad the series, evaluated by Horner's rule, is at least as
+    # accurate as any of the closed forms, which cancel up to eps / theta**4.
+    threshold = _threshold(coeffs, t.dtype, limit=2.0)
+    return series_or_closed_form(t, threshold, coeffs[:-1], closed_form)
 
 
 def sinc(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`sin(theta) / theta` as a function of `t = theta**2`."""
-    thr = series_threshold(t.dtype)
-    return series_or_closed_form(t, thr, _SINC, lambda th: jnp.sin(th) / th)
+    return _series_or_closed_form(t, _SINC, lambda th: jnp.sin(th) / th)
 
 
 def coef_a(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`(1 - cos(theta)) / theta**2` as a function of `t = theta**2`."""
-    thr = series_threshold(t.dtype)
     # 2 sin^2(theta/2) avoids the cancellation in 1 - cos(theta).
-    return series_or_closed_form(
-        t, thr, _A, lambda th: 2.0 * jnp.square(jnp.sin(0.5 * th) / th)
+    return _series_or_closed_form(
+        t, _A, lambda th: 2.0 * jnp.square(jnp.sin(0.5 * th) / th)
     )
 
 
 def coef_b(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`(theta - sin(theta)) / theta**3` as a function of `t = theta**2`."""
-    thr = series_threshold(t.dtype)
-    return series_or_closed_form(t, thr, _B, lambda th: (th - jnp.sin(th)) / th**3)
+    return _series_or_closed_form(t, _B, lambda th: (th - jnp.sin(th)) / th**3)
 
 
 def coef_c(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
@@ -118,35 +135,30 @@ def coef_c(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
 
     This is the coefficient of `hat(w)**2` in the inverse SO(3) Jacobians. Written
     with `cot(theta/2)` it is regular at `theta = pi` (unlike the textbook form with
-    `(1 + cos) / sin`) and singular only at `theta = 2 pi`.
+    `(1 + cos) / sin`, which is 0/0 there) and singular only at `theta = 2 pi`.
     """
-    thr = series_threshold(t.dtype)
 
     def closed(th):
         half = 0.5 * th
         return (1.0 - half * jnp.cos(half) / jnp.sin(half)) / jnp.square(th)
 
-    return series_or_closed_form(t, thr, _C, closed)
+    return _series_or_closed_form(t, _C, closed)
 
 
 def se3_a2(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`(theta**2 + 2 cos(theta) - 2) / (2 theta**4)` as a function of `t`."""
-    thr = series_threshold(t.dtype)
-    return series_or_closed_form(
+    return _series_or_closed_form(
         t,
-        thr,
         _SE3_A2,
         lambda th: (jnp.square(th) + 2.0 * jnp.cos(th) - 2.0) / (2.0 * th**4),
     )
 
 
 def se3_a3(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
-    """`(2 theta - 3 sin(theta) + theta cos(theta)) / (2 theta**5)` as a function of
-    `t`."""
-    thr = series_threshold(t.dtype)
-    return series_or_closed_form(
+    """`(2 theta - 3 sin(theta) + theta cos(theta)) / (2 theta**5)` as a function
+    of `t`."""
+    return _series_or_closed_form(
         t,
-        thr,
         _SE3_A3,
         lambda th: (2.0 * th - 3.0 * jnp.sin(th) + th * jnp.cos(th)) / (2.0 * th**5),
     )
@@ -154,19 +166,12 @@ def se3_a3(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
 
 def cos_half(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`cos(theta / 2)` as a function of `t = theta**2`."""
-    thr = series_threshold(t.dtype)
-    return series_or_closed_form(t, thr, _COS_HALF, lambda th: jnp.cos(0.5 * th))
+    return _series_or_closed_form(t, _COS_HALF, lambda th: jnp.cos(0.5 * th))
 
 
 def sin_half_over(t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`sin(theta / 2) / theta` as a function of `t = theta**2`."""
-    thr = series_threshold(t.dtype)
-    return series_or_closed_form(
-        t, thr, _SINC_HALF_OVER_2, lambda th: jnp.sin(0.5 * th) / th
-    )
-
-
-_ATAN_OVER_X = tuple((-1.0) ** k / (2 * k + 1) for k in range(8))
+    return _series_or_closed_form(t, _SIN_HALF_OVER, lambda th: jnp.sin(0.5 * th) / th)
 
 
 def quat_log_scale(
@@ -177,16 +182,18 @@ def quat_log_scale(
     `s = 2 atan2(|v|, |w|) sign(w) / |v|`, the sign choosing the representative with
     `w >= 0` so that the angle lies in `[0, pi]`. The result depends only on the
     direction of `(w, v)`, not on its norm. Near the identity (`|v| << |w|`) it is
-    evaluated as `(2 / w) * atan(x) / x` with `x = |v| / |w|` by Taylor series,
-    which avoids the square root of zero; near `pi` (`w -> 0`) `atan2` stays
-    accurate and its derivative finite.
+    evaluated as `(2 / w) atan(x) / x` with `x = |v| / |w|` by Taylor series, which
+    avoids the square root of zero; near `pi` (`w -> 0`) `atan2` stays accurate and
+    its derivative finite. (At exactly `pi` the logarithm is discontinuous: `w = 0`
+    is sent to `+pi`.)
     """
-    thr = atan_threshold(w.dtype)
-    w_sq = jnp.square(w)
-    small = v_sq < thr**2 * w_sq
+    # atan(x)/x converges slowly (radius 1): this switches at x ~ 0.19 in float64 and
+    # ~ 0.49 in float32.
+    threshold = _threshold(_ATAN_OVER_X, w.dtype, limit=0.5)
+    small = v_sq < threshold**2 * jnp.square(w)
     w_series = jnp.where(small, w, 1.0)
     x_sq = jnp.where(small, v_sq, 0.0) / jnp.square(w_series)
-    series = 2.0 * _horner(_ATAN_OVER_X, x_sq) / w_series
+    series = 2.0 * _horner(_ATAN_OVER_X[:-1], x_sq) / w_series
     v_sq_closed = jnp.where(small, 1.0, v_sq)
     norm_v = jnp.sqrt(v_sq_closed)
     sign = jnp.where(w < 0, -1.0, 1.0).astype(w.dtype)
@@ -208,7 +215,3 @@ def matvec(m: Array, v: Array) -> Array:
 def stack_matrix(rows: Sequence[Sequence[Array]]) -> Array:
     """Build a `(*batch, n, m)` matrix from nested lists of `(*batch,)` arrays."""
     return jnp.stack([jnp.stack(list(row), axis=-1) for row in rows], axis=-2)
-
-
-def pi_like(x: Array) -> Array:
-    return jnp.asarray(math.pi, dtype=x.dtype)

@@ -1,0 +1,172 @@
+"""Time per Gauss-Newton iteration on smoothing chains, per linear solver.
+
+Two problems (see /work/shared/DESIGN.md "Benchmarks convention"):
+
+- `disk`: the paper's disk dynamics with drag, 4-D Euclidean state
+  (p, v), position measurements;
+- `se2vel`: a planar car, state (SE(2) pose, 2-D body velocity) as two
+  variable groups, constant-velocity dynamics, velocity and GPS-like
+  position measurements, a prior on the first pose (block size 5).
+
+One "iteration" = linearise every factor + solve the normal equations +
+retract, jitted. `median_s` is the median over repeats after warm-up;
+`compile_s` is first call minus median; `temp_bytes` is XLA's temporary
+buffer estimate for the compiled iteration.
+
+    python benchmarks/chain.py                 # T = 1e2 .. 1e5
+    python benchmarks/chain.py --quick         # T = 1e2, 1e3 (CI)
+    python benchmarks/chain.py --json benchmarks/results/chain.json
+"""
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from _common import markdown_table, time_fn, write_json
+
+import eqsmooth as eqs
+from eqsmooth.solve._linearization import linearize, retract_values
+
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _disk_dyn(a, b, data, params):
+    p, v = a[:2], a[2:]
+    return b - jnp.concatenate([p + v, v - 0.05 * p - 0.0075 * jnp.sign(v) * v * v])
+
+
+def _disk_meas(x, data, params):
+    return x[:2] - data
+
+
+def disk_problem(T: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)
+    meas = jnp.asarray(rng.normal(scale=20.0, size=(T, 2)))
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _disk_dyn,
+                (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 2.0, 2.0])),
+            ),
+            eqs.FunctionFactor(
+                _disk_meas, (eqs.Var("x", t),), eqs.IsotropicNoise.from_sigma(5.0),
+                data=meas,
+            ),
+        ]
+    )
+    values = {"x": jnp.concatenate([meas, jnp.zeros((T, 2))], axis=1)}
+    return graph, values
+
+
+DT = 0.1
+
+
+def _car_dyn(pose_a, vel_a, pose_b, vel_b, data, params):
+    twist = jnp.stack([vel_a[0] * DT, jnp.zeros_like(vel_a[0]), vel_a[1] * DT])
+    pred = pose_a @ eqs.SE2.exp(twist)
+    return jnp.concatenate([(pred.inverse() @ pose_b).log(), vel_b - vel_a])
+
+
+def _car_vel(vel, data, params):
+    return vel - data
+
+
+def _car_gps(pose, data, params):
+    return pose.translation() - data
+
+
+def se2vel_problem(T: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)
+    vel = jnp.asarray(np.stack([5 + rng.normal(size=T), 0.3 * np.sin(t / 50)], 1))
+    gps = jnp.asarray(rng.normal(scale=1.0, size=(T, 2))) + jnp.cumsum(vel[:, :1], 0) * DT
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _car_dyn,
+                (eqs.Var("pose", t[:-1]), eqs.Var("vel", t[:-1]),
+                 eqs.Var("pose", t[1:]), eqs.Var("vel", t[1:])),
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.05, 0.05, 0.01, 0.5, 0.1])),
+            ),
+            eqs.FunctionFactor(_car_vel, (eqs.Var("vel", t),),
+                               eqs.IsotropicNoise.from_sigma(0.5), data=vel),
+            eqs.FunctionFactor(_car_gps, (eqs.Var("pose", t),),
+                               eqs.IsotropicNoise.from_sigma(2.0), data=gps),
+            eqs.PriorFactor(eqs.Var("pose", [0]), eqs.SE2.identity((1,)),
+                            eqs.IsotropicNoise(100.0)),
+        ]
+    )
+    values = {"pose": eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3)))),
+              "vel": vel}
+    return graph, values
+
+
+def make_iteration(linear_solver):
+    @jax.jit
+    def iteration(graph, values):
+        lin = linearize(graph, values)
+        delta, result = linear_solver.solve(lin, None)
+        return retract_values(values, delta), lin.cost
+
+    return iteration
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--sizes", type=int, nargs="*", default=None)
+    args = parser.parse_args(argv)
+    sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
+    solvers = {
+        "BlockTridiagonal": eqs.BlockTridiagonal(),
+        "PCG": eqs.PCG(),
+        "DenseCholesky": eqs.DenseCholesky(),
+    }
+    records = []
+    for problem, build in [("disk", disk_problem), ("se2vel", se2vel_problem)]:
+        for T in sizes:
+            graph, values = build(T)
+            for name, ls in solvers.items():
+                if name == "DenseCholesky" and T > 1000:
+                    continue
+                if name == "PCG" and T > 10_000 and args.quick:
+                    continue
+                it = make_iteration(ls)
+                mem = it.lower(graph, values).compile().memory_analysis()
+                first, median, _ = time_fn(it, graph, values, repeats=7 if T < 1e5 else 5)
+                rec = {
+                    "benchmark": "chain",
+                    "config": {"problem": problem, "T": T, "solver": name,
+                               "dtype": "float64"},
+                    "problem": problem, "T": T, "solver": name,
+                    "median_s": median,
+                    "median_ms": median * 1e3,
+                    "compile_s": first - median,
+                    "temp_MiB": getattr(mem, "temp_size_in_bytes", 0) / 2**20,
+                }
+                records.append(rec)
+                print(f"{problem:7s} T={T:<7d} {name:17s} {median*1e3:9.2f} ms/iter "
+                      f"compile {first - median:6.2f} s", flush=True)
+    # linear-scaling ratio of the structured solver
+    for problem in ("disk", "se2vel"):
+        by_T = {r["T"]: r["median_s"] for r in records
+                if r["problem"] == problem and r["solver"] == "BlockTridiagonal"}
+        if 10_000 in by_T and 100_000 in by_T:
+            ratio = by_T[100_000] / by_T[10_000]
+            print(f"{problem}: t(1e5)/t(1e4) = {ratio:.2f} (BlockTridiagonal)")
+            for r in records:
+                if r["problem"] == problem and r["solver"] == "BlockTridiagonal" and r["T"] == 100_000:
+                    r["ratio_1e5_over_1e4"] = ratio
+    print()
+    print(markdown_table(records, ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]))
+    if args.json:
+        write_json(args.json, records)
+
+
+if __name__ == "__main__":
+    main()

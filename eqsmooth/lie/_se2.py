@@ -1,0 +1,254 @@
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+
+from ._base import AbstractLieGroup, check_parameters
+from ._so2 import SO2
+from ._utils import (
+    as_float_array,
+    broadcast_batch,
+    coef_a,
+    coef_b,
+    coef_c,
+    default_float_dtype,
+    sinc,
+    stack_matrix,
+)
+
+
+class SE2(AbstractLieGroup):
+    """Rigid motions of the plane.
+
+    Parameters are `(cos, sin, x, y)`: a unit complex number for the rotation and the
+    translation. Tangent vectors are `(vx, vy, omega)`, translation part first.
+    [`log`][eqsmooth.lie.SE2.log] ignores the norm of `(cos, sin)`; the other
+    operations assume unit norm.
+    """
+
+    unit_complex_xy: Float[Array, "*batch 4"]
+    """`(cos, sin, x, y)`, shape `(*batch, 4)`."""
+
+    tangent_dim: ClassVar[int] = 3
+    parameters_dim: ClassVar[int] = 4
+    matrix_dim: ClassVar[int] = 3
+    space_dim: ClassVar[int] = 2
+
+    def __init__(self, unit_complex_xy: Float[ArrayLike, "*batch 4"]):
+        """**Arguments:**
+
+        - `unit_complex_xy`: `(cos, sin, x, y)`, shape `(*batch, 4)`.
+        """
+        self.unit_complex_xy = as_float_array(unit_complex_xy)
+
+    def __check_init__(self):
+        check_parameters("SE2", self.unit_complex_xy, 4)
+
+    # ---------------------------------------------------------------- constructors
+
+    @classmethod
+    def from_rotation_and_translation(
+        cls, rotation: SO2, translation: Float[ArrayLike, "*#batch 2"]
+    ) -> "SE2":
+        """Build a rigid motion `p -> rotation @ p + translation`.
+
+        **Arguments:**
+
+        - `rotation`: an [`eqsmooth.lie.SO2`][].
+        - `translation`: array of shape `(*batch, 2)`; batch axes broadcast against
+            those of `rotation`.
+
+        **Returns:**
+
+        The rigid motion.
+        """
+        z, t = broadcast_batch(rotation.unit_complex, as_float_array(translation))
+        return cls(jnp.concatenate([z, t], axis=-1))
+
+    @classmethod
+    def from_xy_theta(
+        cls,
+        x: Float[ArrayLike, "*#batch"],
+        y: Float[ArrayLike, "*#batch"],
+        theta: Float[ArrayLike, "*#batch"],
+    ) -> "SE2":
+        """Build a pose from its position and heading.
+
+        This is not `exp` of `(x, y, theta)`: the translation is `(x, y)` exactly.
+
+        **Arguments:**
+
+        - `x`, `y`: position, arrays broadcasting to `(*batch,)`.
+        - `theta`: heading in radians, broadcasting to `(*batch,)`.
+
+        **Returns:**
+
+        The pose.
+        """
+        x, y, theta = jnp.broadcast_arrays(
+            as_float_array(x), as_float_array(y), as_float_array(theta)
+        )
+        return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1))
+
+    @classmethod
+    def identity(
+        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
+    ) -> "SE2":
+        dtype = default_float_dtype() if dtype is None else dtype
+        return cls(
+            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4))
+        )
+
+    @classmethod
+    def exp(cls, tangent: Float[ArrayLike, "*batch 3"]) -> "SE2":
+        tangent = as_float_array(tangent)
+        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
+        t = jnp.square(theta)
+        a = sinc(t)
+        b = theta * coef_a(t)
+        x = a * vx - b * vy
+        y = b * vx + a * vy
+        return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1))
+
+    @classmethod
+    def from_matrix(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> "SE2":
+        matrix = as_float_array(matrix)
+        return cls.from_rotation_and_translation(
+            SO2.from_matrix(matrix[..., :2, :2]), matrix[..., :2, 2]
+        )
+
+    @classmethod
+    def sample_uniform(
+        cls,
+        key: PRNGKeyArray,
+        batch_shape: tuple[int, ...] = (),
+        dtype: DTypeLike | None = None,
+    ) -> "SE2":
+        dtype = default_float_dtype() if dtype is None else dtype
+        key_rot, key_trans = jax.random.split(key)
+        translation = jax.random.uniform(
+            key_trans, (*batch_shape, 2), dtype=dtype, minval=-1.0, maxval=1.0
+        )
+        return cls.from_rotation_and_translation(
+            SO2.sample_uniform(key_rot, batch_shape, dtype), translation
+        )
+
+    # ------------------------------------------------------------- Lie algebra
+
+    @classmethod
+    def hat(cls, tangent: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        tangent = as_float_array(tangent)
+        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
+        zero = jnp.zeros_like(theta)
+        return stack_matrix([[zero, -theta, vx], [theta, zero, vy], [zero, zero, zero]])
+
+    @classmethod
+    def vee(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+        matrix = as_float_array(matrix)
+        return jnp.stack(
+            [matrix[..., 0, 2], matrix[..., 1, 2], matrix[..., 1, 0]], axis=-1
+        )
+
+    @classmethod
+    def right_jacobian(
+        cls, tangent: Float[ArrayLike, "*batch 3"]
+    ) -> Float[Array, "*batch 3 3"]:
+        # Sola, Deray and Atchuthan, "A micro Lie theory for state estimation in
+        # robotics" (2018), appendix on SE(2).
+        tangent = as_float_array(tangent)
+        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
+        t = jnp.square(theta)
+        a = sinc(t)
+        coef_1mcos = coef_a(t)  # (1 - cos) / theta^2
+        b = theta * coef_1mcos  # (1 - cos) / theta
+        p = theta * coef_b(t)  # (theta - sin) / theta^2
+        zero = jnp.zeros_like(theta)
+        one = jnp.ones_like(theta)
+        return stack_matrix(
+            [
+                [a, b, vx * p - vy * coef_1mcos],
+                [-b, a, vx * coef_1mcos + vy * p],
+                [zero, zero, one],
+            ]
+        )
+
+    @classmethod
+    def right_jacobian_inv(
+        cls, tangent: Float[ArrayLike, "*batch 3"]
+    ) -> Float[Array, "*batch 3 3"]:
+        # Block inverse of right_jacobian: the 2x2 block [[a, b], [-b, a]] has inverse
+        # [[h, -theta/2], [theta/2, h]] with h = (theta/2) cot(theta/2) = 1 - t C(t).
+        tangent = as_float_array(tangent)
+        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
+        t = jnp.square(theta)
+        h = 1.0 - t * coef_c(t)
+        half = 0.5 * theta
+        coef_1mcos = coef_a(t)
+        p = theta * coef_b(t)
+        m0 = vx * p - vy * coef_1mcos
+        m1 = vx * coef_1mcos + vy * p
+        zero = jnp.zeros_like(theta)
+        one = jnp.ones_like(theta)
+        return stack_matrix(
+            [
+                [h, -half, -(h * m0 - half * m1)],
+                [half, h, -(half * m0 + h * m1)],
+                [zero, zero, one],
+            ]
+        )
+
+    # ---------------------------------------------------------------- operations
+
+    def parameters(self) -> Float[Array, "*batch 4"]:
+        return self.unit_complex_xy
+
+    def rotation(self) -> SO2:
+        """The rotation part, an [`eqsmooth.lie.SO2`][]."""
+        return SO2(self.unit_complex_xy[..., :2])
+
+    def translation(self) -> Float[Array, "*batch 2"]:
+        """The translation part, shape `(*batch, 2)`."""
+        return self.unit_complex_xy[..., 2:]
+
+    def log(self) -> Float[Array, "*batch 3"]:
+        c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
+        theta = jnp.arctan2(s, c)
+        t = jnp.square(theta)
+        # Inverse of the V matrix of exp: [[h, theta/2], [-theta/2, h]] with
+        # h = (theta/2) cot(theta/2), finite up to and including theta = pi.
+        h = 1.0 - t * coef_c(t)
+        half = 0.5 * theta
+        return jnp.stack([h * x + half * y, -half * x + h * y, theta], axis=-1)
+
+    def inverse(self) -> "SE2":
+        c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
+        return SE2(jnp.stack([c, -s, -c * x - s * y, s * x - c * y], axis=-1))
+
+    def compose(self, other: "SE2") -> "SE2":
+        a, b = broadcast_batch(self.unit_complex_xy, other.unit_complex_xy)
+        rotation = SO2(a[..., :2])
+        z = rotation.compose(SO2(b[..., :2])).unit_complex
+        t = rotation.apply(b[..., 2:]) + a[..., 2:]
+        return SE2(jnp.concatenate([z, t], axis=-1))
+
+    def apply(self, points: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 2"]:
+        params, p = broadcast_batch(self.unit_complex_xy, as_float_array(points))
+        return SO2(params[..., :2]).apply(p) + params[..., 2:]
+
+    def adjoint(self) -> Float[Array, "*batch 3 3"]:
+        c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
+        zero = jnp.zeros_like(c)
+        one = jnp.ones_like(c)
+        return stack_matrix([[c, -s, y], [s, c, -x], [zero, zero, one]])
+
+    def as_matrix(self) -> Float[Array, "*batch 3 3"]:
+        c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
+        zero = jnp.zeros_like(c)
+        one = jnp.ones_like(c)
+        return stack_matrix([[c, -s, x], [s, c, y], [zero, zero, one]])
+
+    def normalize(self) -> "SE2":
+        return SE2.from_rotation_and_translation(
+            self.rotation().normalize(), self.translation()
+        )

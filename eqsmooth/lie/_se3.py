@@ -1,0 +1,229 @@
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+
+from ._base import AbstractLieGroup, check_parameters
+from ._so3 import skew, SO3
+from ._utils import (
+    as_float_array,
+    broadcast_batch,
+    coef_a,
+    coef_b,
+    coef_c,
+    default_float_dtype,
+    se3_a2,
+    se3_a3,
+)
+
+
+def _q_matrix(rho: Array, omega: Array) -> Array:
+    """Off-diagonal block of the left Jacobian of SE(3) at `(rho, omega)`.
+
+    Barfoot, "State Estimation for Robotics" (2017), section 7.1.5.
+    """
+    t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
+    p = skew(rho)
+    w = skew(omega)
+    wp = w @ p
+    pw = p @ w
+    wpw = wp @ w
+    ww = w @ w
+    return (
+        0.5 * p
+        + coef_b(t) * (wp + pw + wpw)
+        + se3_a2(t) * (ww @ p + pw @ w - 3.0 * wpw)
+        + se3_a3(t) * (wpw @ w + w @ wpw)
+    )
+
+
+def _block(top_left: Array, top_right: Array, bottom_right: Array) -> Array:
+    zero = jnp.zeros_like(top_left)
+    return jnp.concatenate(
+        [
+            jnp.concatenate([top_left, top_right], axis=-1),
+            jnp.concatenate([zero, bottom_right], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+class SE3(AbstractLieGroup):
+    """Rigid motions of space.
+
+    Parameters are `(qw, qx, qy, qz, x, y, z)`: a quaternion for the rotation (see
+    [`eqsmooth.lie.SO3`][]) and the translation. Tangent vectors are
+    `(vx, vy, vz, wx, wy, wz)`, translation part first.
+    """
+
+    wxyz_xyz: Float[Array, "*batch 7"]
+    """`(qw, qx, qy, qz, x, y, z)`, shape `(*batch, 7)`."""
+
+    tangent_dim: ClassVar[int] = 6
+    parameters_dim: ClassVar[int] = 7
+    matrix_dim: ClassVar[int] = 4
+    space_dim: ClassVar[int] = 3
+
+    def __init__(self, wxyz_xyz: Float[ArrayLike, "*batch 7"]):
+        """**Arguments:**
+
+        - `wxyz_xyz`: `(qw, qx, qy, qz, x, y, z)`, shape `(*batch, 7)`.
+        """
+        self.wxyz_xyz = as_float_array(wxyz_xyz)
+
+    def __check_init__(self):
+        check_parameters("SE3", self.wxyz_xyz, 7)
+
+    # ---------------------------------------------------------------- constructors
+
+    @classmethod
+    def from_rotation_and_translation(
+        cls, rotation: SO3, translation: Float[ArrayLike, "*#batch 3"]
+    ) -> "SE3":
+        """Build a rigid motion `p -> rotation @ p + translation`.
+
+        **Arguments:**
+
+        - `rotation`: an [`eqsmooth.lie.SO3`][].
+        - `translation`: array of shape `(*batch, 3)`; batch axes broadcast against
+            those of `rotation`.
+
+        **Returns:**
+
+        The rigid motion.
+        """
+        q, t = broadcast_batch(rotation.wxyz, as_float_array(translation))
+        return cls(jnp.concatenate([q, t], axis=-1))
+
+    @classmethod
+    def identity(
+        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
+    ) -> "SE3":
+        dtype = default_float_dtype() if dtype is None else dtype
+        params = jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype)
+        return cls(jnp.broadcast_to(params, (*batch_shape, 7)))
+
+    @classmethod
+    def exp(cls, tangent: Float[ArrayLike, "*batch 6"]) -> "SE3":
+        tangent = as_float_array(tangent)
+        rho, omega = tangent[..., :3], tangent[..., 3:]
+        t = jnp.sum(jnp.square(omega), axis=-1, keepdims=True)
+        # translation = Jl(omega) @ rho, written with cross products.
+        w_rho = jnp.cross(omega, rho)
+        translation = rho + coef_a(t) * w_rho + coef_b(t) * jnp.cross(omega, w_rho)
+        return cls(jnp.concatenate([SO3.exp(omega).wxyz, translation], axis=-1))
+
+    @classmethod
+    def from_matrix(cls, matrix: Float[ArrayLike, "*batch 4 4"]) -> "SE3":
+        matrix = as_float_array(matrix)
+        return cls.from_rotation_and_translation(
+            SO3.from_matrix(matrix[..., :3, :3]), matrix[..., :3, 3]
+        )
+
+    @classmethod
+    def sample_uniform(
+        cls,
+        key: PRNGKeyArray,
+        batch_shape: tuple[int, ...] = (),
+        dtype: DTypeLike | None = None,
+    ) -> "SE3":
+        dtype = default_float_dtype() if dtype is None else dtype
+        key_rot, key_trans = jax.random.split(key)
+        translation = jax.random.uniform(
+            key_trans, (*batch_shape, 3), dtype=dtype, minval=-1.0, maxval=1.0
+        )
+        return cls.from_rotation_and_translation(
+            SO3.sample_uniform(key_rot, batch_shape, dtype), translation
+        )
+
+    # ------------------------------------------------------------- Lie algebra
+
+    @classmethod
+    def hat(cls, tangent: Float[ArrayLike, "*batch 6"]) -> Float[Array, "*batch 4 4"]:
+        tangent = as_float_array(tangent)
+        top = jnp.concatenate([skew(tangent[..., 3:]), tangent[..., :3, None]], axis=-1)
+        bottom = jnp.zeros_like(top[..., :1, :])
+        return jnp.concatenate([top, bottom], axis=-2)
+
+    @classmethod
+    def vee(cls, matrix: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 6"]:
+        m = as_float_array(matrix)
+        return jnp.concatenate([m[..., :3, 3], SO3.vee(m[..., :3, :3])], axis=-1)
+
+    @classmethod
+    def right_jacobian(
+        cls, tangent: Float[ArrayLike, "*batch 6"]
+    ) -> Float[Array, "*batch 6 6"]:
+        # Jr(xi) = Jl(-xi) = [[Jr(omega), Q(-rho, -omega)], [0, Jr(omega)]].
+        tangent = as_float_array(tangent)
+        rho, omega = tangent[..., :3], tangent[..., 3:]
+        jr = SO3.right_jacobian(omega)
+        return _block(jr, _q_matrix(-rho, -omega), jr)
+
+    @classmethod
+    def right_jacobian_inv(
+        cls, tangent: Float[ArrayLike, "*batch 6"]
+    ) -> Float[Array, "*batch 6 6"]:
+        tangent = as_float_array(tangent)
+        rho, omega = tangent[..., :3], tangent[..., 3:]
+        jr_inv = SO3.right_jacobian_inv(omega)
+        q = _q_matrix(-rho, -omega)
+        return _block(jr_inv, -(jr_inv @ q @ jr_inv), jr_inv)
+
+    # ---------------------------------------------------------------- operations
+
+    def parameters(self) -> Float[Array, "*batch 7"]:
+        return self.wxyz_xyz
+
+    def rotation(self) -> SO3:
+        """The rotation part, an [`eqsmooth.lie.SO3`][]."""
+        return SO3(self.wxyz_xyz[..., :4])
+
+    def translation(self) -> Float[Array, "*batch 3"]:
+        """The translation part, shape `(*batch, 3)`."""
+        return self.wxyz_xyz[..., 4:]
+
+    def log(self) -> Float[Array, "*batch 6"]:
+        omega = self.rotation().log()
+        translation = self.translation()
+        t = jnp.sum(jnp.square(omega), axis=-1, keepdims=True)
+        # rho = Jl(omega)^-1 @ translation, written with cross products.
+        w_t = jnp.cross(omega, translation)
+        rho = translation - 0.5 * w_t + coef_c(t) * jnp.cross(omega, w_t)
+        return jnp.concatenate([rho, omega], axis=-1)
+
+    def inverse(self) -> "SE3":
+        rotation_inv = self.rotation().inverse()
+        return SE3(
+            jnp.concatenate(
+                [rotation_inv.wxyz, -rotation_inv.apply(self.translation())], axis=-1
+            )
+        )
+
+    def compose(self, other: "SE3") -> "SE3":
+        a, b = broadcast_batch(self.wxyz_xyz, other.wxyz_xyz)
+        rotation = SO3(a[..., :4])
+        q = rotation.compose(SO3(b[..., :4])).wxyz
+        t = rotation.apply(b[..., 4:]) + a[..., 4:]
+        return SE3(jnp.concatenate([q, t], axis=-1))
+
+    def apply(self, points: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3"]:
+        params, p = broadcast_batch(self.wxyz_xyz, as_float_array(points))
+        return SO3(params[..., :4]).apply(p) + params[..., 4:]
+
+    def adjoint(self) -> Float[Array, "*batch 6 6"]:
+        r = self.rotation().as_matrix()
+        return _block(r, skew(self.translation()) @ r, r)
+
+    def as_matrix(self) -> Float[Array, "*batch 4 4"]:
+        r = self.rotation().as_matrix()
+        top = jnp.concatenate([r, self.translation()[..., None]], axis=-1)
+        bottom = jnp.zeros_like(top[..., :1, :])
+        bottom = bottom.at[..., 0, 3].set(1.0)
+        return jnp.concatenate([top, bottom], axis=-2)
+
+    def normalize(self) -> "SE3":
+        return SE3.from_rotation_and_translation(
+            self.rotation().normalize(), self.translation()
+        )

@@ -1,0 +1,83 @@
+"""Tiny problems shared by the tests (import inside tests, after the hook)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tree_allclose(x, y, *, rtol=1e-7, atol=1e-9):
+    return eqx.tree_equal(x, y, typematch=True, rtol=rtol, atol=atol) is True
+
+
+def _dyn(a, b, data, params):
+    # Nonlinear 2-D transition with a shared learnable coefficient.
+    return b - (a + 0.1 * jnp.sin(a) * params)
+
+
+def _meas(x, data, params):
+    return x - data
+
+
+def random_chain(seed: int, T: int = 6, dim: int = 2, robust: bool = False):
+    """A nonlinear Euclidean chain (graph, initial values, truth)."""
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(seed)
+    truth = jnp.asarray(np.cumsum(rng.normal(size=(T, dim)), axis=0))
+    meas = truth + 0.1 * jnp.asarray(rng.normal(size=(T, dim)))
+    t = np.arange(T)
+    noise = eqs.IsotropicNoise.from_sigma(0.3)
+    meas_noise = eqs.DiagonalNoise.from_sigmas(jnp.full((dim,), 0.2))
+    if robust:
+        meas_noise = eqs.HuberNoise(meas_noise, 1.0)
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _dyn,
+                (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+                noise,
+                params=jnp.asarray(0.5),
+            ),
+            eqs.FunctionFactor(_meas, (eqs.Var("x", t),), meas_noise, data=meas),
+        ]
+    )
+    init = {"x": meas + 0.5}
+    return graph, init, truth
+
+
+def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
+    """A noisy SE(2) loop with odometry and one loop closure; anchored."""
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(seed)
+    angles = np.linspace(0, 2 * np.pi, N, endpoint=False)
+    xs = np.stack([np.cos(angles), np.sin(angles), angles + np.pi / 2], axis=1)
+    truth = eqs.SE2.from_xy_theta(
+        jnp.asarray(xs[:, 0]), jnp.asarray(xs[:, 1]), jnp.asarray(xs[:, 2])
+    )
+    a = np.concatenate([np.arange(N - 1), [N - 1]])
+    b = np.concatenate([np.arange(1, N), [0]])
+    rel = truth[a].inverse() @ truth[b]
+    meas = rel @ eqs.SE2.exp(jnp.asarray(noise_scale * rng.normal(size=(N, 3))))
+    graph = eqs.FactorGraph(
+        [
+            eqs.BetweenFactor(
+                eqs.Var("pose", a),
+                eqs.Var("pose", b),
+                meas,
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05])),
+            ),
+            eqs.PriorFactor(
+                eqs.Var("pose", [0]), truth[np.array([0])], eqs.IsotropicNoise(1e3)
+            ),
+        ]
+    )
+    init = {
+        "pose": truth @ eqs.SE2.exp(jnp.asarray(0.2 * rng.normal(size=(N, 3))))
+    }
+    return graph, init, truth
+
+
+def key(seed: int = 0):
+    return jax.random.key(seed)
