@@ -3,7 +3,7 @@ from typing import Any, overload, TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
 from ._utils import as_float_array, broadcast_batch
 
@@ -199,7 +199,7 @@ class AbstractLieGroup(eqx.Module):
         """
 
     @abc.abstractmethod
-    def apply(self, points: Float[ArrayLike, "*batch s"]) -> Float[Array, "*batch s"]:
+    def apply(self, points: Float[ArrayLike, "... s"]) -> Float[Array, "... s"]:
         """Act on points (batch axes broadcast).
 
         **Arguments:**
@@ -277,7 +277,7 @@ class AbstractLieGroup(eqx.Module):
         """
         return self.right_jacobian_inv(self.log())
 
-    def interpolate(self: _G, other: _G, alpha: Float[ArrayLike, "*#batch"]) -> _G:
+    def interpolate(self: _G, other: _G, alpha: Real[ArrayLike, "*#batch"]) -> _G:
         """Geodesic interpolation `self @ exp(alpha * log(self^-1 @ other))`.
 
         **Arguments:**
@@ -316,9 +316,7 @@ class AbstractLieGroup(eqx.Module):
     def __matmul__(self: _G, other: _G) -> _G: ...
 
     @overload
-    def __matmul__(
-        self, other: Float[ArrayLike, "*batch s"]
-    ) -> Float[Array, "*batch s"]: ...
+    def __matmul__(self, other: Float[ArrayLike, "... s"]) -> Float[Array, "... s"]: ...
 
     def __matmul__(self, other):
         """`g @ h` composes two elements; `g @ points` applies `g` to points."""

@@ -2,7 +2,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
 from ._base import AbstractLieGroup, check_parameters
 from ._so2 import SO2
@@ -23,8 +23,7 @@ class SE2(AbstractLieGroup):
 
     Parameters are `(cos, sin, x, y)`: a unit complex number for the rotation and the
     translation. Tangent vectors are `(vx, vy, omega)`, translation part first.
-    [`log`][eqsmooth.lie.SE2.log] ignores the norm of `(cos, sin)`; the other
-    operations assume unit norm.
+    `log` ignores the norm of `(cos, sin)`; the other operations assume unit norm.
     """
 
     unit_complex_xy: Float[Array, "*batch 4"]
@@ -49,7 +48,7 @@ class SE2(AbstractLieGroup):
 
     @classmethod
     def from_rotation_and_translation(
-        cls, rotation: SO2, translation: Float[ArrayLike, "*#batch 2"]
+        cls, rotation: SO2, translation: Real[ArrayLike, "*#batch 2"]
     ) -> "SE2":
         """Build a rigid motion `p -> rotation @ p + translation`.
 
@@ -63,15 +62,18 @@ class SE2(AbstractLieGroup):
 
         The rigid motion.
         """
-        z, t = broadcast_batch(rotation.unit_complex, as_float_array(translation))
+        z, t = broadcast_batch(
+            rotation.unit_complex,
+            as_float_array(translation, like=rotation.unit_complex),
+        )
         return cls(jnp.concatenate([z, t], axis=-1))
 
     @classmethod
     def from_xy_theta(
         cls,
-        x: Float[ArrayLike, "*#batch"],
-        y: Float[ArrayLike, "*#batch"],
-        theta: Float[ArrayLike, "*#batch"],
+        x: Real[ArrayLike, "*#batch"],
+        y: Real[ArrayLike, "*#batch"],
+        theta: Real[ArrayLike, "*#batch"],
     ) -> "SE2":
         """Build a pose from its position and heading.
 
@@ -232,7 +234,7 @@ class SE2(AbstractLieGroup):
         t = rotation.apply(b[..., 2:]) + a[..., 2:]
         return SE2(jnp.concatenate([z, t], axis=-1))
 
-    def apply(self, points: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 2"]:
+    def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
         params, p = broadcast_batch(self.unit_complex_xy, as_float_array(points))
         return SO2(params[..., :2]).apply(p) + params[..., 2:]
 

@@ -2,7 +2,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
 from ._base import AbstractLieGroup, check_parameters
 from ._so3 import skew, SO3
@@ -79,7 +79,7 @@ class SE3(AbstractLieGroup):
 
     @classmethod
     def from_rotation_and_translation(
-        cls, rotation: SO3, translation: Float[ArrayLike, "*#batch 3"]
+        cls, rotation: SO3, translation: Real[ArrayLike, "*#batch 3"]
     ) -> "SE3":
         """Build a rigid motion `p -> rotation @ p + translation`.
 
@@ -93,7 +93,9 @@ class SE3(AbstractLieGroup):
 
         The rigid motion.
         """
-        q, t = broadcast_batch(rotation.wxyz, as_float_array(translation))
+        q, t = broadcast_batch(
+            rotation.wxyz, as_float_array(translation, like=rotation.wxyz)
+        )
         return cls(jnp.concatenate([q, t], axis=-1))
 
     @classmethod
@@ -208,7 +210,7 @@ class SE3(AbstractLieGroup):
         t = rotation.apply(b[..., 4:]) + a[..., 4:]
         return SE3(jnp.concatenate([q, t], axis=-1))
 
-    def apply(self, points: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3"]:
+    def apply(self, points: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
         params, p = broadcast_batch(self.wxyz_xyz, as_float_array(points))
         return SO3(params[..., :4]).apply(p) + params[..., 4:]
 

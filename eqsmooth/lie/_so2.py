@@ -2,7 +2,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
 from ._base import AbstractLieGroup, check_parameters
 from ._utils import (
@@ -17,8 +17,8 @@ class SO2(AbstractLieGroup):
     """Rotations of the plane.
 
     Parameters are a unit complex number `(cos, sin)`; the tangent space is the
-    rotation angle (dimension 1). [`log`][eqsmooth.lie.SO2.log] uses `atan2` and so
-    ignores the norm of the parameters; the other operations assume unit norm.
+    rotation angle (dimension 1). `log` uses `atan2` and so ignores the norm of the
+    parameters; the other operations assume unit norm.
     """
 
     unit_complex: Float[Array, "*batch 2"]
@@ -42,7 +42,7 @@ class SO2(AbstractLieGroup):
     # ---------------------------------------------------------------- constructors
 
     @classmethod
-    def from_radians(cls, theta: Float[ArrayLike, "*batch"]) -> "SO2":
+    def from_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO2":
         """Rotation by `theta` radians (counter-clockwise).
 
         **Arguments:**
@@ -141,7 +141,7 @@ class SO2(AbstractLieGroup):
         c2, s2 = b[..., 0], b[..., 1]
         return SO2(jnp.stack([c1 * c2 - s1 * s2, s1 * c2 + c1 * s2], axis=-1))
 
-    def apply(self, points: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 2"]:
+    def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
         z, p = broadcast_batch(self.unit_complex, as_float_array(points))
         c, s = z[..., 0], z[..., 1]
         x, y = p[..., 0], p[..., 1]

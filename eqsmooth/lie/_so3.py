@@ -2,7 +2,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
 from ._base import AbstractLieGroup, check_parameters
 from ._utils import (
@@ -35,10 +35,9 @@ class SO3(AbstractLieGroup):
 
     Parameters are a quaternion `(w, x, y, z)` (scalar first); the tangent space is
     the rotation vector (axis times angle, dimension 3). `q` and `-q` are the same
-    rotation. [`log`][eqsmooth.lie.SO3.log], [`as_matrix`][eqsmooth.lie.SO3.as_matrix]
-    and [`apply`][eqsmooth.lie.SO3.apply] do not depend on the norm of the quaternion;
-    [`compose`][eqsmooth.lie.SO3.compose] and [`inverse`][eqsmooth.lie.SO3.inverse]
-    preserve unit norm but do not restore it.
+    rotation. `log`, `as_matrix` and `apply` do not depend on the norm of the
+    quaternion; `compose` and `inverse` preserve unit norm but do not restore it
+    (see `normalize`).
     """
 
     wxyz: Float[Array, "*batch 4"]
@@ -62,21 +61,21 @@ class SO3(AbstractLieGroup):
     # ---------------------------------------------------------------- constructors
 
     @classmethod
-    def from_x_radians(cls, theta: Float[ArrayLike, "*batch"]) -> "SO3":
+    def from_x_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO3":
         """Rotation by `theta` radians about the x axis."""
         theta = as_float_array(theta)
         zero = jnp.zeros_like(theta)
         return cls.exp(jnp.stack([theta, zero, zero], axis=-1))
 
     @classmethod
-    def from_y_radians(cls, theta: Float[ArrayLike, "*batch"]) -> "SO3":
+    def from_y_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO3":
         """Rotation by `theta` radians about the y axis."""
         theta = as_float_array(theta)
         zero = jnp.zeros_like(theta)
         return cls.exp(jnp.stack([zero, theta, zero], axis=-1))
 
     @classmethod
-    def from_z_radians(cls, theta: Float[ArrayLike, "*batch"]) -> "SO3":
+    def from_z_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO3":
         """Rotation by `theta` radians about the z axis."""
         theta = as_float_array(theta)
         zero = jnp.zeros_like(theta)
@@ -85,9 +84,9 @@ class SO3(AbstractLieGroup):
     @classmethod
     def from_rpy_radians(
         cls,
-        roll: Float[ArrayLike, "*#batch"],
-        pitch: Float[ArrayLike, "*#batch"],
-        yaw: Float[ArrayLike, "*#batch"],
+        roll: Real[ArrayLike, "*#batch"],
+        pitch: Real[ArrayLike, "*#batch"],
+        yaw: Real[ArrayLike, "*#batch"],
     ) -> "SO3":
         """Rotation from roll, pitch and yaw: `Rz(yaw) @ Ry(pitch) @ Rx(roll)`.
 
@@ -225,7 +224,7 @@ class SO3(AbstractLieGroup):
         v = w1[..., None] * v2 + w2[..., None] * v1 + jnp.cross(v1, v2)
         return SO3(jnp.concatenate([w[..., None], v], axis=-1))
 
-    def apply(self, points: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3"]:
+    def apply(self, points: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
         q, p = broadcast_batch(self.wxyz, as_float_array(points))
         w, v = q[..., :1], q[..., 1:]
         # p + (2 / |q|^2) (w (v x p) + v x (v x p)): exact for any nonzero scale.

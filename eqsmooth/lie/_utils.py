@@ -23,11 +23,18 @@ def default_float_dtype() -> np.dtype:
     return np.dtype(jax.dtypes.canonicalize_dtype(jnp.float64))
 
 
-def as_float_array(x, dtype=None) -> Array:
-    """Convert `x` to a floating JAX array, keeping its dtype if already floating."""
+def as_float_array(x, dtype=None, like: Array | None = None) -> Array:
+    """Convert `x` to a strongly typed floating JAX array, keeping its dtype if
+    already floating. Non-floating input becomes `like.dtype` if given, else JAX's
+    default float.
+    """
     x = jnp.asarray(x, dtype=dtype)
     if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(default_float_dtype())
+        x = x.astype(default_float_dtype() if like is None else like.dtype)
+    elif x.weak_type:
+        # Python scalars give weakly typed arrays; store a concrete dtype instead, so
+        # that group parameters never change dtype (or jit cache entry) silently.
+        x = x.astype(x.dtype)
     return x
 
 
