@@ -30,7 +30,9 @@ def machine() -> dict:
         pass
     try:
         git = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
             cwd=Path(__file__).parent,
         ).stdout.strip()
     except OSError:

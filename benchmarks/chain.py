@@ -53,7 +53,9 @@ def disk_problem(T: int, seed: int = 0):
                 eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 2.0, 2.0])),
             ),
             eqs.FunctionFactor(
-                _disk_meas, (eqs.Var("x", t),), eqs.IsotropicNoise.from_sigma(5.0),
+                _disk_meas,
+                (eqs.Var("x", t),),
+                eqs.IsotropicNoise.from_sigma(5.0),
                 data=meas,
             ),
         ]
@@ -83,25 +85,42 @@ def se2vel_problem(T: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     t = np.arange(T)
     vel = jnp.asarray(np.stack([5 + rng.normal(size=T), 0.3 * np.sin(t / 50)], 1))
-    gps = jnp.asarray(rng.normal(scale=1.0, size=(T, 2))) + jnp.cumsum(vel[:, :1], 0) * DT
+    gps = (
+        jnp.asarray(rng.normal(scale=1.0, size=(T, 2))) + jnp.cumsum(vel[:, :1], 0) * DT
+    )
     graph = eqs.FactorGraph(
         [
             eqs.FunctionFactor(
                 _car_dyn,
-                (eqs.Var("pose", t[:-1]), eqs.Var("vel", t[:-1]),
-                 eqs.Var("pose", t[1:]), eqs.Var("vel", t[1:])),
+                (
+                    eqs.Var("pose", t[:-1]),
+                    eqs.Var("vel", t[:-1]),
+                    eqs.Var("pose", t[1:]),
+                    eqs.Var("vel", t[1:]),
+                ),
                 eqs.DiagonalNoise.from_sigmas(jnp.array([0.05, 0.05, 0.01, 0.5, 0.1])),
             ),
-            eqs.FunctionFactor(_car_vel, (eqs.Var("vel", t),),
-                               eqs.IsotropicNoise.from_sigma(0.5), data=vel),
-            eqs.FunctionFactor(_car_gps, (eqs.Var("pose", t),),
-                               eqs.IsotropicNoise.from_sigma(2.0), data=gps),
-            eqs.PriorFactor(eqs.Var("pose", [0]), eqs.SE2.identity((1,)),
-                            eqs.IsotropicNoise(100.0)),
+            eqs.FunctionFactor(
+                _car_vel,
+                (eqs.Var("vel", t),),
+                eqs.IsotropicNoise.from_sigma(0.5),
+                data=vel,
+            ),
+            eqs.FunctionFactor(
+                _car_gps,
+                (eqs.Var("pose", t),),
+                eqs.IsotropicNoise.from_sigma(2.0),
+                data=gps,
+            ),
+            eqs.PriorFactor(
+                eqs.Var("pose", [0]), eqs.SE2.identity((1,)), eqs.IsotropicNoise(100.0)
+            ),
         ]
     )
-    values = {"pose": eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3)))),
-              "vel": vel}
+    values = {
+        "pose": eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3)))),
+        "vel": vel,
+    }
     return graph, values
 
 
@@ -138,32 +157,54 @@ def main(argv=None):
                     continue
                 it = make_iteration(ls)
                 mem = it.lower(graph, values).compile().memory_analysis()
-                first, median, _ = time_fn(it, graph, values, repeats=7 if T < 1e5 else 5)
+                first, median, _ = time_fn(
+                    it, graph, values, repeats=7 if T < 1e5 else 5
+                )
                 rec = {
                     "benchmark": "chain",
-                    "config": {"problem": problem, "T": T, "solver": name,
-                               "dtype": "float64"},
-                    "problem": problem, "T": T, "solver": name,
+                    "config": {
+                        "problem": problem,
+                        "T": T,
+                        "solver": name,
+                        "dtype": "float64",
+                    },
+                    "problem": problem,
+                    "T": T,
+                    "solver": name,
                     "median_s": median,
                     "median_ms": median * 1e3,
                     "compile_s": first - median,
                     "temp_MiB": getattr(mem, "temp_size_in_bytes", 0) / 2**20,
                 }
                 records.append(rec)
-                print(f"{problem:7s} T={T:<7d} {name:17s} {median*1e3:9.2f} ms/iter "
-                      f"compile {first - median:6.2f} s", flush=True)
+                print(
+                    f"{problem:7s} T={T:<7d} {name:17s} {median * 1e3:9.2f} ms/iter "
+                    f"compile {first - median:6.2f} s",
+                    flush=True,
+                )
     # linear-scaling ratio of the structured solver
     for problem in ("disk", "se2vel"):
-        by_T = {r["T"]: r["median_s"] for r in records
-                if r["problem"] == problem and r["solver"] == "BlockTridiagonal"}
+        by_T = {
+            r["T"]: r["median_s"]
+            for r in records
+            if r["problem"] == problem and r["solver"] == "BlockTridiagonal"
+        }
         if 10_000 in by_T and 100_000 in by_T:
             ratio = by_T[100_000] / by_T[10_000]
             print(f"{problem}: t(1e5)/t(1e4) = {ratio:.2f} (BlockTridiagonal)")
             for r in records:
-                if r["problem"] == problem and r["solver"] == "BlockTridiagonal" and r["T"] == 100_000:
+                if (
+                    r["problem"] == problem
+                    and r["solver"] == "BlockTridiagonal"
+                    and r["T"] == 100_000
+                ):
                     r["ratio_1e5_over_1e4"] = ratio
     print()
-    print(markdown_table(records, ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]))
+    print(
+        markdown_table(
+            records, ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]
+        )
+    )
     if args.json:
         write_json(args.json, records)
 

@@ -102,7 +102,11 @@ def main(argv=None):
             # Initialise at the measurements with zero velocity.
             init = {"x": jnp.concatenate([m, jnp.zeros_like(m)], axis=1)}
             sol = eqs.least_squares(graph, init, solver, max_steps=20, throw=False)
-            return sol.value["x"], sol.stats["num_steps"], sol.result == eqs.RESULTS.successful
+            return (
+                sol.value["x"],
+                sol.stats["num_steps"],
+                sol.result == eqs.RESULTS.successful,
+            )
 
         return jax.vmap(one)(meas)
 
@@ -115,7 +119,9 @@ def main(argv=None):
     def rmse(a, b):
         return float(jnp.sqrt(jnp.mean((a - b) ** 2)))
 
-    print(f"{args.seqs} sequences x {args.steps} steps{' (quick)' if args.quick else ''}")
+    print(
+        f"{args.seqs} sequences x {args.steps} steps{' (quick)' if args.quick else ''}"
+    )
     print("| estimate | position RMSE (px, per coordinate) |")
     print("|---|---|")
     print(f"| raw measurements | {rmse(meas, states[..., :2]):.3f} |")

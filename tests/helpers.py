@@ -73,9 +73,7 @@ def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
             ),
         ]
     )
-    init = {
-        "pose": truth @ eqs.SE2.exp(jnp.asarray(0.2 * rng.normal(size=(N, 3))))
-    }
+    init = {"pose": truth @ eqs.SE2.exp(jnp.asarray(0.2 * rng.normal(size=(N, 3))))}
     return graph, init, truth
 
 

@@ -69,7 +69,9 @@ def test_noise_whitening_and_logdet():
 def test_noise_rejects_bad_values():
     import eqsmooth as eqs
 
-    with pytest.raises(ValueError, match="IsotropicNoise.sqrt_precision must be positive"):
+    with pytest.raises(
+        ValueError, match="IsotropicNoise.sqrt_precision must be positive"
+    ):
         eqs.IsotropicNoise(-1.0)
     with pytest.raises(ValueError, match="sigmas must be positive"):
         eqs.DiagonalNoise.from_sigmas(jnp.array([1.0, 0.0]))
@@ -126,30 +128,53 @@ def test_graph_errors_name_the_culprit():
 
     t = np.arange(3)
     graph = eqs.FactorGraph(
-        [eqs.FunctionFactor(res, (eqs.Var("x", [0, 1, 5]),), eqs.IsotropicNoise(1.0),
-                            data=jnp.zeros((3, 2)))]
+        [
+            eqs.FunctionFactor(
+                res,
+                (eqs.Var("x", [0, 1, 5]),),
+                eqs.IsotropicNoise(1.0),
+                data=jnp.zeros((3, 2)),
+            )
+        ]
     )
-    with pytest.raises(ValueError, match=r"FunctionFactor: variable 0 \(group 'x'\) has indices \[5\]"):
+    with pytest.raises(
+        ValueError, match=r"FunctionFactor: variable 0 \(group 'x'\) has indices \[5\]"
+    ):
         graph.cost({"x": jnp.zeros((3, 2))})
     with pytest.raises(ValueError, match="group 'y'"):
         graph.cost({"y": jnp.zeros((3, 2))})
     bad = eqs.FactorGraph(
-        [eqs.FunctionFactor(res, (eqs.Var("x", t),), eqs.IsotropicNoise(1.0),
-                            data=jnp.zeros((4, 2)))]
+        [
+            eqs.FunctionFactor(
+                res, (eqs.Var("x", t),), eqs.IsotropicNoise(1.0), data=jnp.zeros((4, 2))
+            )
+        ]
     )
-    with pytest.raises(ValueError, match=r"FunctionFactor.data: per-row leaf of shape \(4, 2\)"):
+    with pytest.raises(
+        ValueError, match=r"FunctionFactor.data: per-row leaf of shape \(4, 2\)"
+    ):
         bad.cost({"x": jnp.zeros((3, 2))})
     wrong_noise = eqs.FactorGraph(
-        [eqs.FunctionFactor(res, (eqs.Var("x", t),), eqs.DiagonalNoise(jnp.ones(5)),
-                            data=jnp.zeros((3, 2)))]
+        [
+            eqs.FunctionFactor(
+                res,
+                (eqs.Var("x", t),),
+                eqs.DiagonalNoise(jnp.ones(5)),
+                data=jnp.zeros((3, 2)),
+            )
+        ]
     )
     from eqsmooth.solve import linearize
 
-    with pytest.raises(ValueError, match=r"FunctionFactor: DiagonalNoise.sqrt_precision has shape \(5,\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"FunctionFactor: DiagonalNoise.sqrt_precision has shape \(5,\)",
+    ):
         linearize(wrong_noise, {"x": jnp.zeros((3, 2))})
     with pytest.raises(ValueError, match="same number of rows"):
-        eqs.FunctionFactor(res, (eqs.Var("x", [0]), eqs.Var("x", [0, 1])),
-                           eqs.IsotropicNoise(1.0))
+        eqs.FunctionFactor(
+            res, (eqs.Var("x", [0]), eqs.Var("x", [0, 1])), eqs.IsotropicNoise(1.0)
+        )
 
 
 def test_shared_field_gradient_and_nll():
@@ -176,7 +201,9 @@ def test_shared_field_gradient_and_nll():
         - (n1 * m * np.log(1 / 0.3) + n2 * m * np.log(1 / 0.2))
         + 0.5 * (n1 + n2) * m * np.log(2 * np.pi)
     )
-    np.testing.assert_allclose(graph.negative_log_likelihood(values), expected, rtol=1e-10)
+    np.testing.assert_allclose(
+        graph.negative_log_likelihood(values), expected, rtol=1e-10
+    )
 
 
 def test_linearisation_matches_autodiff_on_se2():

@@ -18,8 +18,9 @@ def _solvers():
 
 @pytest.mark.parametrize("name", ["gn-tridiag", "lm-tridiag", "lm-dense", "lm-pcg"])
 def test_chain_converges_to_stationary_point(name):
-    import eqsmooth as eqs
     from helpers import random_chain
+
+    import eqsmooth as eqs
 
     graph, init, _ = random_chain(0, robust=(name == "lm-dense"))
     sol = eqs.least_squares(graph, init, _solvers()[name], max_steps=50)
@@ -32,14 +33,20 @@ def test_chain_converges_to_stationary_point(name):
 
 
 def test_all_solvers_agree_on_se2_loop():
-    import eqsmooth as eqs
     from helpers import se2_loop
+
+    import eqsmooth as eqs
 
     graph, init, truth = se2_loop(1)
     ref = eqs.least_squares(graph, init, eqs.LevenbergMarquardt(eqs.DenseCholesky()))
-    for solver in [eqs.GaussNewton(eqs.DenseCholesky()), eqs.LevenbergMarquardt(eqs.PCG())]:
+    for solver in [
+        eqs.GaussNewton(eqs.DenseCholesky()),
+        eqs.LevenbergMarquardt(eqs.PCG()),
+    ]:
         sol = eqs.least_squares(graph, init, solver)
-        np.testing.assert_allclose(sol.stats["final_cost"], ref.stats["final_cost"], rtol=1e-8)
+        np.testing.assert_allclose(
+            sol.stats["final_cost"], ref.stats["final_cost"], rtol=1e-8
+        )
         d = eqs.local(ref.value["pose"], sol.value["pose"], batch_ndim=1)
         assert float(jnp.max(jnp.abs(d))) < 1e-6
     # non-chain graph (loop closure) is refused by the chain solver
@@ -49,15 +56,18 @@ def test_all_solvers_agree_on_se2_loop():
 
 def test_lm_handles_gauge_freedom_gn_reports_it():
     """No prior: JᵀJ is singular. LM still converges; GN gives a result code."""
-    import eqsmooth as eqs
     from helpers import se2_loop
+
+    import eqsmooth as eqs
 
     graph, init, _ = se2_loop(2)
     free = eqs.FactorGraph(graph.factors[:1])
     sol = eqs.least_squares(free, init, eqs.LevenbergMarquardt(eqs.DenseCholesky()))
     assert sol.result == eqs.RESULTS.successful
     assert all(jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(sol.value))
-    gn = eqs.least_squares(free, init, eqs.GaussNewton(eqs.DenseCholesky()), throw=False)
+    gn = eqs.least_squares(
+        free, init, eqs.GaussNewton(eqs.DenseCholesky()), throw=False
+    )
     assert gn.result != eqs.RESULTS.successful
     assert all(jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(gn.value))
     with pytest.raises(eqx.EquinoxRuntimeError):
@@ -65,40 +75,50 @@ def test_lm_handles_gauge_freedom_gn_reports_it():
 
 
 def test_nan_measurement_gives_result_code():
-    import eqsmooth as eqs
     from helpers import random_chain
 
+    import eqsmooth as eqs
+
     graph, init, _ = random_chain(3)
-    bad = eqx.tree_at(lambda g: g.factors[1].data, graph,
-                      graph.factors[1].data.at[2, 0].set(jnp.nan))
-    sol = eqs.least_squares(bad, init, eqs.LevenbergMarquardt(eqs.BlockTridiagonal()),
-                            throw=False)
+    bad = eqx.tree_at(
+        lambda g: g.factors[1].data, graph, graph.factors[1].data.at[2, 0].set(jnp.nan)
+    )
+    sol = eqs.least_squares(
+        bad, init, eqs.LevenbergMarquardt(eqs.BlockTridiagonal()), throw=False
+    )
     assert sol.result == eqs.RESULTS.nonfinite_problem
     assert int(sol.stats["num_steps"]) == 0
 
 
 def test_max_steps_and_fixed_steps():
-    import eqsmooth as eqs
     from helpers import random_chain
 
+    import eqsmooth as eqs
+
     graph, init, _ = random_chain(4)
-    sol = eqs.least_squares(graph, init, eqs.GaussNewton(eqs.BlockTridiagonal()),
-                            max_steps=1, throw=False)
+    sol = eqs.least_squares(
+        graph, init, eqs.GaussNewton(eqs.BlockTridiagonal()), max_steps=1, throw=False
+    )
     assert sol.result == eqs.RESULTS.nonlinear_max_steps_reached
-    fixed = eqs.least_squares(graph, init, eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=3))
+    fixed = eqs.least_squares(
+        graph, init, eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=3)
+    )
     assert fixed.result == eqs.RESULTS.successful
     assert int(fixed.stats["num_steps"]) == 3
 
 
 def test_batched_solve_matches_individual():
-    import eqsmooth as eqs
     from helpers import random_chain
+
+    import eqsmooth as eqs
 
     solver = eqs.GaussNewton(eqs.BlockTridiagonal())
     problems = [random_chain(s) for s in range(3)]
     graphs = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[0] for p in problems])
     inits = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[1] for p in problems])
-    batched = eqx.filter_vmap(lambda g, v: eqs.least_squares(g, v, solver).value)(graphs, inits)
+    batched = eqx.filter_vmap(lambda g, v: eqs.least_squares(g, v, solver).value)(
+        graphs, inits
+    )
     for i, (g, v, _) in enumerate(problems):
         single = eqs.least_squares(g, v, solver).value
         np.testing.assert_allclose(batched["x"][i], single["x"], atol=1e-9)
@@ -106,8 +126,9 @@ def test_batched_solve_matches_individual():
 
 def test_unrolled_gradient_matches_finite_differences():
     """d(solution)/d(shared coefficient) through unrolled GN, float64 FD."""
-    import eqsmooth as eqs
     from helpers import random_chain
+
+    import eqsmooth as eqs
 
     graph, init, truth = random_chain(5)
     solver = eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=4)
@@ -141,8 +162,14 @@ def test_changing_data_does_not_recompile():
     def graph(seed):
         data = jnp.asarray(np.random.default_rng(seed).normal(size=(5, 2)))
         return eqs.FactorGraph(
-            [eqs.FunctionFactor(_counting_meas, (eqs.Var("x", t),),
-                                eqs.IsotropicNoise(1.0), data=data)]
+            [
+                eqs.FunctionFactor(
+                    _counting_meas,
+                    (eqs.Var("x", t),),
+                    eqs.IsotropicNoise(1.0),
+                    data=data,
+                )
+            ]
         )
 
     init = {"x": jnp.zeros((5, 2))}

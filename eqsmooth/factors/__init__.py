@@ -6,6 +6,7 @@ from ._builtin import (
     PriorFactor as PriorFactor,
 )
 from ._factor import AbstractFactor as AbstractFactor, shared_field as shared_field
+from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
     CauchyNoise as CauchyNoise,
@@ -15,4 +16,3 @@ from ._noise import (
     SqrtInformationNoise as SqrtInformationNoise,
 )
 from ._variables import Var as Var
-from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout

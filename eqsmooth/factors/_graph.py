@@ -80,7 +80,8 @@ class FactorGraph(eqx.Module):
         for f in factors:
             if not isinstance(f, AbstractFactor):
                 raise TypeError(
-                    f"FactorGraph takes AbstractFactor instances, got {type(f).__name__}"
+                    "FactorGraph takes AbstractFactor instances, got "
+                    f"{type(f).__name__}"
                 )
         if not factors:
             raise ValueError("FactorGraph needs at least one factor")
@@ -146,5 +147,3 @@ class FactorGraph(eqx.Module):
             total = total - f.noise.log_det_sqrt_information(n, m)
             total = total + 0.5 * n * m * jnp.log(2 * jnp.pi)
         return total
-
-

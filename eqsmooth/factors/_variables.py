@@ -59,9 +59,7 @@ class Var:
         arr = np.asarray(ids)
         if arr.ndim == 0:
             arr = arr[None]
-        if arr.ndim != 1 or not (
-            np.issubdtype(arr.dtype, np.integer) or arr.size == 0
-        ):
+        if arr.ndim != 1 or not (np.issubdtype(arr.dtype, np.integer) or arr.size == 0):
             raise ValueError(
                 f"Var({group!r}, ids): ids must be a 1-D integer array, got dtype "
                 f"{arr.dtype} and shape {arr.shape}"
