@@ -5,14 +5,17 @@ import numpy as np
 import pytest
 
 
+TIGHT = dict(ftol=1e-12, gtol=1e-8, xtol=1e-12)
+
+
 def _solvers():
     import eqsmooth as eqs
 
     return {
-        "gn-tridiag": eqs.GaussNewton(eqs.BlockTridiagonal()),
-        "lm-tridiag": eqs.LevenbergMarquardt(eqs.BlockTridiagonal()),
-        "lm-dense": eqs.LevenbergMarquardt(eqs.DenseCholesky()),
-        "lm-pcg": eqs.LevenbergMarquardt(eqs.PCG()),
+        "gn-tridiag": eqs.GaussNewton(eqs.BlockTridiagonal(), **TIGHT),
+        "lm-tridiag": eqs.LevenbergMarquardt(eqs.BlockTridiagonal(), **TIGHT),
+        "lm-dense": eqs.LevenbergMarquardt(eqs.DenseCholesky(), **TIGHT),
+        "lm-pcg": eqs.LevenbergMarquardt(eqs.PCG(), **TIGHT),
     }
 
 

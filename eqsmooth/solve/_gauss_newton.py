@@ -2,9 +2,9 @@ import equinox as eqx
 
 from ._least_squares import (
     AbstractLeastSquaresSolver,
-    LeastSquaresState,
     gauss_newton_step,
     initial_state,
+    LeastSquaresState,
 )
 from ._linear_solver import AbstractLinearSolver
 from ._solution import RESULTS
@@ -72,7 +72,9 @@ class FixedStepGaussNewton(AbstractLeastSquaresSolver):
 
     def __check_init__(self):
         if self.num_steps < 1:
-            raise ValueError(f"FixedStepGaussNewton.num_steps must be >= 1, got {self.num_steps}")
+            raise ValueError(
+                f"FixedStepGaussNewton.num_steps must be >= 1, got {self.num_steps}"
+            )
 
     def init(self, graph, values):
         return initial_state(graph, values, 0.0, -1.0)
@@ -85,5 +87,3 @@ class FixedStepGaussNewton(AbstractLeastSquaresSolver):
 
     def terminate(self, state, max_steps):
         return _terminate(state, max_steps, RESULTS.successful)
-
-

@@ -9,13 +9,13 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ..factors import FactorGraph
 from ._linear_solver import AbstractLinearSolver
 from ._linearization import (
-    Linearization,
-    Tangent,
     apply_jacobian,
     block_diagonal,
     gradient,
+    Linearization,
     linearize,
     retract_values,
+    Tangent,
 )
 from ._solution import RESULTS, Solution
 
@@ -192,9 +192,7 @@ def _least_squares(graph, values, solver, max_steps, unroll, throw, verbose):
         values, state, history = carry
         new_values, new_state = solver.step(graph, values, state)
         stop, result = solver.terminate(new_state, max_steps)
-        new_state = eqx.tree_at(
-            lambda s: (s.done, s.result), new_state, (stop, result)
-        )
+        new_state = eqx.tree_at(lambda s: (s.done, s.result), new_state, (stop, result))
         if verbose:
             jax.debug.print(
                 "step {step:4d}  cost {cost:.6e}  damping {lam:.2e}  |δ| {dx:.2e}",

@@ -3,13 +3,13 @@ import jax.numpy as jnp
 
 from ._gauss_newton import _terminate
 from ._least_squares import (
-    AbstractLeastSquaresSolver,
-    LeastSquaresState,
     _finite_lin,
     _sq_norm,
     _tree_where,
+    AbstractLeastSquaresSolver,
     converged_test,
     initial_state,
+    LeastSquaresState,
     marquardt_damping,
     predicted_decrease,
 )
@@ -66,10 +66,7 @@ class LevenbergMarquardt(AbstractLeastSquaresSolver):
         actual = lin.cost - trial_lin.cost
         gain = actual / jnp.where(predicted > 0, predicted, 1.0)
         accept = (
-            solved
-            & _finite_lin(trial_lin)
-            & (predicted > 0)
-            & (gain > self.min_gain)
+            solved & _finite_lin(trial_lin) & (predicted > 0) & (gain > self.min_gain)
         )
         converged = accept & converged_test(
             lin.cost, trial_lin, delta, self.ftol, self.gtol, self.xtol
@@ -79,8 +76,12 @@ class LevenbergMarquardt(AbstractLeastSquaresSolver):
         new_lam = jnp.where(accept, lam * shrink, lam * state.nu)
         new_lam = jnp.maximum(new_lam, jnp.finfo(lin.dtype).tiny)
         new_nu = jnp.where(accept, 2.0, 2.0 * state.nu)
-        # Nothing left to gain: no step of any size decreases the model.
-        stalled = solved & (predicted <= 0)
+        # Nothing left to gain: the model's predicted decrease is at the level of
+        # floating-point noise in the cost (or not positive), so no accepted
+        # step can be told apart from rounding. This is convergence.
+        eps = jnp.finfo(lin.dtype).eps
+        stalled = solved & (predicted <= 16 * eps * jnp.maximum(lin.cost, 1.0))
+        converged = converged | (stalled & ~accept)
         gave_up = new_lam > self.max_damping
         result = RESULTS.where(
             gave_up & ~stalled, RESULTS.linear_solve_failed, RESULTS.successful
