@@ -156,10 +156,10 @@ def main(argv=None):
                 if name == "PCG" and T > 10_000 and args.quick:
                     continue
                 it = make_iteration(ls)
-                mem = it.lower(graph, values).compile().memory_analysis()
                 first, median, _ = time_fn(
                     it, graph, values, repeats=7 if T < 1e5 else 5
                 )
+                mem = it.lower(graph, values).compile().memory_analysis()
                 rec = {
                     "benchmark": "chain",
                     "config": {

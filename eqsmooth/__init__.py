@@ -17,23 +17,23 @@ from .factors import (
     HuberNoise as HuberNoise,
     IsotropicNoise as IsotropicNoise,
     PriorFactor as PriorFactor,
+    shared_field as shared_field,
     SqrtInformationNoise as SqrtInformationNoise,
     Var as Var,
-    shared_field as shared_field,
 )
 from .lie import SE2 as SE2, SE3 as SE3, SO2 as SO2, SO3 as SO3
 from .manifold import local as local, retract as retract
 from .solve import (
-    PCG as PCG,
-    RESULTS as RESULTS,
     BlockTridiagonal as BlockTridiagonal,
     DenseCholesky as DenseCholesky,
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
-    LevenbergMarquardt as LevenbergMarquardt,
-    Solution as Solution,
     least_squares as least_squares,
+    LevenbergMarquardt as LevenbergMarquardt,
     marginal_covariances as marginal_covariances,
+    PCG as PCG,
+    RESULTS as RESULTS,
+    Solution as Solution,
 )
 
 

@@ -47,7 +47,9 @@ def test_retract_local_round_trip(seed):
     np.testing.assert_allclose(y2["bias"][0], y["bias"][0], atol=1e-12)
     # small δ: local(x, retract(x, δ)) == δ
     delta = 0.1 * jnp.asarray(np.random.default_rng(seed).normal(size=(3, 12)))
-    np.testing.assert_allclose(eqs.local(x, eqs.retract(x, delta), batch_ndim=1), delta, atol=1e-9)
+    np.testing.assert_allclose(
+        eqs.local(x, eqs.retract(x, delta), batch_ndim=1), delta, atol=1e-9
+    )
 
 
 def test_retract_checks_dimension():

@@ -2,11 +2,14 @@
 
 from ._block_tridiagonal import BlockTridiagonal as BlockTridiagonal
 from ._dense import DenseCholesky as DenseCholesky
-from ._gauss_newton import FixedStepGaussNewton as FixedStepGaussNewton, GaussNewton as GaussNewton
+from ._gauss_newton import (
+    FixedStepGaussNewton as FixedStepGaussNewton,
+    GaussNewton as GaussNewton,
+)
 from ._least_squares import (
     AbstractLeastSquaresSolver as AbstractLeastSquaresSolver,
-    LeastSquaresState as LeastSquaresState,
     least_squares as least_squares,
+    LeastSquaresState as LeastSquaresState,
 )
 from ._levenberg_marquardt import LevenbergMarquardt as LevenbergMarquardt
 from ._linear_solver import AbstractLinearSolver as AbstractLinearSolver

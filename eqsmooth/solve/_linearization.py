@@ -25,6 +25,7 @@ class FactorLinearization(eqx.Module):
     residual: Float[Array, "n m"]
     jacobians: tuple[Float[Array, "n m _d"], ...]
     variables: tuple[Var, ...]
+    name: str = eqx.field(static=True, default="")  # the factor type, for messages
 
 
 class Linearization(eqx.Module):
@@ -66,7 +67,7 @@ def linearize(graph: FactorGraph, values: dict[str, PyTree]) -> Linearization:
         w = jnp.sqrt(drho)
         rw = rw * w[:, None]
         jw = tuple(j * w[:, None, None] for j in jw)
-        out.append(FactorLinearization(rw, jw, f.variables))
+        out.append(FactorLinearization(rw, jw, f.variables, type(f).__name__))
     return Linearization(tuple(out), layout, cost)
 
 
@@ -110,15 +111,13 @@ def normal_matvec(lin: Linearization, delta: Tangent) -> Tangent:
     return apply_transpose(lin, apply_jacobian(lin, delta))
 
 
-def block_diagonal(lin: Linearization) -> Tangent:
+def block_diagonal(lin: Linearization) -> dict[str, Float[Array, "_N _d _d"]]:
     """Diagonal blocks of `JᵀJ`: `{group: (N_g, d_g, d_g)}`."""
-    out = {
-        g.name: jnp.zeros((g.count, g.dim, g.dim), lin.dtype) for g in lin.layout
-    }
+    out = {g.name: jnp.zeros((g.count, g.dim, g.dim), lin.dtype) for g in lin.layout}
     for fl in lin.factors:
         for j, var in zip(fl.jacobians, fl.variables):
-            out[var.group] = out[var.group].at[var.ids].add(
-                jnp.einsum("nmd,nme->nde", j, j)
+            out[var.group] = (
+                out[var.group].at[var.ids].add(jnp.einsum("nmd,nme->nde", j, j))
             )
     return out
 
@@ -145,7 +144,9 @@ def group_offsets(lin: Linearization) -> dict[str, int]:
     return offsets
 
 
-def dense_jacobian(lin: Linearization) -> tuple[Float[Array, "M N"], Float[Array, " M"]]:
+def dense_jacobian(
+    lin: Linearization,
+) -> tuple[Float[Array, "M N"], Float[Array, " M"]]:
     """Materialise `J` (group-major columns) and `r`: for small graphs and tests."""
     offsets = group_offsets(lin)
     dims = {g.name: g.dim for g in lin.layout}

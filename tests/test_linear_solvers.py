@@ -1,0 +1,383 @@
+"""Linear solvers of the Gauss-Newton model against a dense numpy reference."""
+
+import functools as ft
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+# ---------------------------------------------------------------------------
+# Problems (Euclidean states; built lazily so the jaxtyping hook sees eqsmooth)
+# ---------------------------------------------------------------------------
+
+
+def _dynamics(p, v, p1, v1, data, params):
+    # Nonlinear in v so that the Jacobians depend on the linearisation point.
+    return jnp.concatenate([p1 - p - 0.1 * jnp.sin(v) - data, v1 - v])
+
+
+def _measure(p, data, params):
+    return jnp.stack([p[0] * p[1], p[1]]) - data
+
+
+def _offset(x, data, params):
+    return x - data
+
+
+def chain_problem(seed: int, T: int = 6, dtype=jnp.float64):
+    """Groups "p" and "v" (dim 2 each, T steps): dynamics touching four variables,
+    unary measurements, priors on scattered steps, a reversed between factor."""
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)
+
+    def arr(*shape):
+        return jnp.asarray(rng.normal(size=shape), dtype)
+
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _dynamics,
+                (
+                    eqs.Var("p", t[:-1]),
+                    eqs.Var("v", t[:-1]),
+                    eqs.Var("p", t[1:]),
+                    eqs.Var("v", t[1:]),
+                ),
+                eqs.IsotropicNoise(jnp.asarray(3.0, dtype)),
+                data=arr(T - 1, 2),
+            ),
+            eqs.FunctionFactor(
+                _measure,
+                (eqs.Var("p", t),),
+                eqs.DiagonalNoise(jnp.asarray([2.0, 0.5], dtype)),
+                data=arr(T, 2),
+            ),
+            eqs.PriorFactor(
+                eqs.Var("v", [3, 0]),
+                arr(2, 2),
+                eqs.IsotropicNoise(jnp.asarray(1.0, dtype)),
+            ),
+            # (t+1, t): contributes to super-diagonal blocks through a transpose.
+            eqs.BetweenFactor(
+                eqs.Var("v", t[1:][::2]),
+                eqs.Var("v", t[:-1][::2]),
+                arr(len(t[1:][::2]), 2),
+                eqs.IsotropicNoise(jnp.asarray(0.7, dtype)),
+            ),
+        ]
+    )
+    values = {"p": arr(T, 2), "v": arr(T, 2)}
+    return graph, values
+
+
+def loop_problem(seed: int, N: int = 8):
+    """Not a chain: a cycle of between factors with loop closures and landmarks."""
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(seed)
+    a = np.concatenate([np.arange(N - 1), [0, 2]])
+    b = np.concatenate([np.arange(1, N), [5, 7]])
+    lm_x, lm_l = np.array([0, 3, 5, 6]), np.array([0, 1, 1, 0])
+    graph = eqs.FactorGraph(
+        [
+            eqs.BetweenFactor(
+                eqs.Var("x", a),
+                eqs.Var("x", b),
+                jnp.asarray(rng.normal(size=(len(a), 2))),
+                eqs.IsotropicNoise(2.0),
+            ),
+            eqs.FunctionFactor(
+                _offset,
+                (eqs.Var("x", [0]),),
+                eqs.IsotropicNoise(1.0),
+                data=jnp.zeros((1, 2)),
+            ),
+            eqs.BetweenFactor(
+                eqs.Var("x", lm_x),
+                eqs.Var("l", lm_l),
+                jnp.asarray(rng.normal(size=(4, 2))),
+                eqs.DiagonalNoise(jnp.asarray([1.0, 3.0])),
+            ),
+        ]
+    )
+    values = {
+        "x": jnp.asarray(rng.normal(size=(N, 2))),
+        "l": jnp.asarray(rng.normal(size=(2, 2))),
+    }
+    return graph, values
+
+
+def random_damping(lin, seed):
+    rng = np.random.default_rng(seed)
+    return {
+        g.name: jnp.asarray(rng.uniform(0.1, 1.0, size=(g.count, g.dim)), lin.dtype)
+        for g in lin.layout
+    }
+
+
+@eqx.filter_jit
+def _dense_jacobian(lin):
+    from eqsmooth.solve._linearization import dense_jacobian
+
+    return dense_jacobian(lin)
+
+
+def reference(lin, damping):
+    """Dense numpy solution of (JᵀJ + diag(damping)) δ = −Jᵀr, group-major."""
+    J, r = (np.asarray(a) for a in _dense_jacobian(lin))
+    H = J.T @ J
+    if damping is not None:
+        H = H + np.diag(flat(lin, damping))
+    return np.linalg.solve(H, -J.T @ r)
+
+
+def flat(lin, delta):
+    from eqsmooth.solve._linearization import flatten_tangent
+
+    return np.asarray(flatten_tangent(lin, delta))
+
+
+@eqx.filter_jit
+def _solve(solver, lin, damping):
+    return solver.solve(lin, damping)
+
+
+@eqx.filter_jit
+def _linearize(graph, values):
+    from eqsmooth.solve._linearization import linearize
+
+    return linearize(graph, values)
+
+
+def _solvers():
+    import eqsmooth as eqs
+
+    return {
+        "dense": eqs.DenseCholesky(),
+        "tridiag": eqs.BlockTridiagonal(),
+        "pcg": eqs.PCG(rtol=1e-13, atol=1e-14, max_steps=200),
+    }
+
+
+@ft.cache
+def _chain_lin(seed):
+    return _linearize(*chain_problem(seed))
+
+
+@ft.cache
+def _loop_lin(seed):
+    return _linearize(*loop_problem(seed))
+
+
+# ---------------------------------------------------------------------------
+# Agreement with the reference
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("damped", [False, True])
+@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg"])
+def test_chain_matches_reference(name, damped):
+    import eqsmooth as eqs
+
+    for seed in (0, 1):
+        lin = _chain_lin(seed)
+        damping = random_damping(lin, seed) if damped else None
+        delta, result = _solve(_solvers()[name], lin, damping)
+        assert result == eqs.RESULTS.successful
+        np.testing.assert_allclose(
+            flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
+        )
+
+
+@pytest.mark.parametrize(
+    "name, damped", [("dense", False), ("pcg", False), ("pcg", True)]
+)
+def test_graph_matches_reference(name, damped):
+    import eqsmooth as eqs
+
+    lin = _loop_lin(0)
+    damping = random_damping(lin, 3) if damped else None
+    delta, result = _solve(_solvers()[name], lin, damping)
+    assert result == eqs.RESULTS.successful
+    np.testing.assert_allclose(
+        flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
+    )
+
+
+def test_chain_float32_keeps_dtype():
+    import eqsmooth as eqs
+
+    lin = _linearize(*chain_problem(4, dtype=jnp.float32))
+    delta, result = _solve(eqs.BlockTridiagonal(), lin, None)
+    assert result == eqs.RESULTS.successful
+    assert all(v.dtype == jnp.float32 for v in delta.values())
+    np.testing.assert_allclose(flat(lin, delta), reference(lin, None), atol=1e-3)
+
+
+# ---------------------------------------------------------------------------
+# Structure errors and numerical failures
+# ---------------------------------------------------------------------------
+
+
+def test_block_tridiagonal_rejects_non_chain():
+    import eqsmooth as eqs
+
+    graph, values = chain_problem(0)
+    t = np.arange(6)
+    skip = eqs.BetweenFactor(
+        eqs.Var("p", t[:-2]), eqs.Var("p", t[2:]), jnp.zeros((4, 2)),
+        eqs.IsotropicNoise(1.0),
+    )  # fmt: skip
+    lin = _linearize(eqs.FactorGraph(list(graph.factors) + [skip]), values)
+    with pytest.raises(ValueError, match=r"BetweenFactor.*row 0 touches p\[0\], p\[2\]"):
+        _solve(eqs.BlockTridiagonal(), lin, None)
+    with pytest.raises(ValueError, match="same number of variables"):
+        _solve(eqs.BlockTridiagonal(), _loop_lin(0), None)
+
+
+def _gauge_free_chain(T=7):
+    import eqsmooth as eqs
+
+    t = np.arange(T)
+    rng = np.random.default_rng(0)
+    graph = eqs.FactorGraph(
+        [
+            eqs.BetweenFactor(
+                eqs.Var("x", t[:-1]),
+                eqs.Var("x", t[1:]),
+                jnp.asarray(rng.normal(size=(T - 1, 2))),
+                eqs.IsotropicNoise(10.0),
+            )
+        ]
+    )
+    return _linearize(graph, {"x": jnp.asarray(rng.normal(size=(T, 2)))})
+
+
+@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg"])
+def test_singular_system_reports_and_stays_finite(name):
+    import eqsmooth as eqs
+
+    lin = _gauge_free_chain()
+    delta, result = _solve(_solvers()[name], lin, None)
+    assert np.all(np.isfinite(flat(lin, delta)))
+    if name == "pcg":
+        # Consistent singular system: CG may converge to a solution; it must be one.
+        if result == eqs.RESULTS.successful:
+            J, r = (np.asarray(a) for a in _dense_jacobian(lin))
+            g = J.T @ (J @ flat(lin, delta) + r)
+            assert np.max(np.abs(g)) < 1e-8
+    else:
+        assert result != eqs.RESULTS.successful
+        assert np.all(flat(lin, delta) == 0)
+
+
+def test_pcg_out_of_steps_is_a_result_code():
+    import eqsmooth as eqs
+
+    lin = _loop_lin(0)
+    delta, result = _solve(eqs.PCG(max_steps=2), lin, None)
+    assert result == eqs.RESULTS.max_steps_reached
+    assert np.all(np.isfinite(flat(lin, delta)))
+
+
+# ---------------------------------------------------------------------------
+# The lineax operator and solver directly, on odd and even lengths
+# ---------------------------------------------------------------------------
+
+
+def _random_blocks(T, D, seed):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(T, 3 * D, D))
+    diag = np.einsum("tmd,tme->tde", X, X) + 2 * D * np.eye(D)
+    upper = rng.normal(size=(max(T - 1, 0), D, D))
+    return jnp.asarray(diag), jnp.asarray(upper)
+
+
+@pytest.mark.parametrize("T", [1, 2])
+def test_cyclic_reduction_operator(T):
+    # Longer chains (6 -> 3 -> 2 -> 1 blocks) are covered by the graph tests.
+    import lineax as lx
+
+    from eqsmooth.solve._block_tridiagonal import (
+        BlockCyclicReduction,
+        BlockTridiagonalOperator,
+    )
+
+    D = 3
+    diag, upper = _random_blocks(T, D, T)
+    op = BlockTridiagonalOperator(diag, upper)
+    dense = np.asarray(op.as_matrix())
+    np.testing.assert_allclose(dense, dense.T)
+    x = jnp.asarray(np.random.default_rng(1).normal(size=(T, D)))
+    np.testing.assert_allclose(np.asarray(op.mv(x)).ravel(), dense @ np.ravel(x))
+    np.testing.assert_allclose(np.asarray(lx.diagonal(op)), np.diag(dense))
+    assert lx.is_symmetric(op) and lx.is_positive_semidefinite(op)
+    sol = lx.linear_solve(op, x, BlockCyclicReduction())
+    np.testing.assert_allclose(
+        np.asarray(sol.value).ravel(), np.linalg.solve(dense, np.ravel(x)), atol=1e-12
+    )
+
+
+# ---------------------------------------------------------------------------
+# vmap and autodiff
+# ---------------------------------------------------------------------------
+
+
+def _stack(trees):
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
+
+
+@pytest.mark.parametrize("name", ["tridiag", "pcg"])
+def test_vmap_over_graphs(name):
+    import eqsmooth as eqs
+
+    problems = [chain_problem(seed) for seed in (5, 6, 7)]
+    graphs, values = zip(*problems)
+    solver = _solvers()[name]
+
+    @eqx.filter_jit
+    @eqx.filter_vmap
+    def batched(graph, vals):
+        return solver.solve(_linearize(graph, vals), None)
+
+    deltas, results = batched(_stack(graphs), _stack(values))
+    assert np.all(results == eqs.RESULTS.successful)
+    for i, (graph, vals) in enumerate(problems):
+        lin = _linearize(graph, vals)
+        ref = reference(lin, None)
+        got = flat(lin, {k: v[i] for k, v in deltas.items()})
+        np.testing.assert_allclose(got, ref, atol=1e-9)
+
+
+def test_grad_matches_finite_differences():
+    """Reverse mode through lineax's solve rule: w.r.t. data and values."""
+    import eqsmooth as eqs
+
+    graph, values = chain_problem(2)
+    rng = np.random.default_rng(0)
+    weights = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in values.items()}
+
+    def loss(solver, data, vals):
+        first = eqx.tree_at(lambda f: f.data, graph.factors[0], data)
+        g = eqs.FactorGraph((first,) + graph.factors[1:])
+        delta, _ = solver.solve(_linearize(g, vals), None)
+        return sum(jnp.sum(weights[k] * delta[k] ** 2) for k in delta)
+
+    loss = eqx.filter_jit(loss)
+    data = graph.factors[0].data
+    solver = eqs.BlockTridiagonal()
+    g_data, g_vals = eqx.filter_jit(jax.grad(loss, argnums=(1, 2)))(solver, data, values)
+    eps = 1e-6
+    for _ in range(2):
+        d_data = jnp.asarray(rng.normal(size=data.shape))
+        d_vals = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in values.items()}
+        plus = loss(solver, data + eps * d_data, {k: values[k] + eps * d_vals[k] for k in values})
+        minus = loss(solver, data - eps * d_data, {k: values[k] - eps * d_vals[k] for k in values})  # fmt: skip
+        fd = (plus - minus) / (2 * eps)
+        ad = jnp.sum(g_data * d_data) + sum(jnp.sum(g_vals[k] * d_vals[k]) for k in values)
+        np.testing.assert_allclose(float(ad), float(fd), rtol=1e-6, atol=1e-8)
