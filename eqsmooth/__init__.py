@@ -5,7 +5,13 @@ The most used names are re-exported here; the subpackages are
 [`eqsmooth.solve`][].
 """
 
-from . import factors as factors, lie as lie, manifold as manifold, solve as solve
+from . import (
+    factors as factors,
+    io as io,
+    lie as lie,
+    manifold as manifold,
+    solve as solve,
+)
 from .factors import (
     AbstractFactor as AbstractFactor,
     AbstractNoiseModel as AbstractNoiseModel,

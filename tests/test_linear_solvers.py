@@ -234,7 +234,9 @@ def test_block_tridiagonal_rejects_non_chain():
         eqs.IsotropicNoise(1.0),
     )  # fmt: skip
     lin = _linearize(eqs.FactorGraph(list(graph.factors) + [skip]), values)
-    with pytest.raises(ValueError, match=r"BetweenFactor.*row 0 touches p\[0\], p\[2\]"):
+    with pytest.raises(
+        ValueError, match=r"BetweenFactor.*row 0 touches p\[0\], p\[2\]"
+    ):
         _solve(eqs.BlockTridiagonal(), lin, None)
     with pytest.raises(ValueError, match="same number of variables"):
         _solve(eqs.BlockTridiagonal(), _loop_lin(0), None)
@@ -371,13 +373,25 @@ def test_grad_matches_finite_differences():
     loss = eqx.filter_jit(loss)
     data = graph.factors[0].data
     solver = eqs.BlockTridiagonal()
-    g_data, g_vals = eqx.filter_jit(jax.grad(loss, argnums=(1, 2)))(solver, data, values)
+    g_data, g_vals = eqx.filter_jit(jax.grad(loss, argnums=(1, 2)))(
+        solver, data, values
+    )
     eps = 1e-6
     for _ in range(2):
         d_data = jnp.asarray(rng.normal(size=data.shape))
         d_vals = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in values.items()}
-        plus = loss(solver, data + eps * d_data, {k: values[k] + eps * d_vals[k] for k in values})
-        minus = loss(solver, data - eps * d_data, {k: values[k] - eps * d_vals[k] for k in values})  # fmt: skip
+        plus = loss(
+            solver,
+            data + eps * d_data,
+            {k: values[k] + eps * d_vals[k] for k in values},
+        )
+        minus = loss(
+            solver,
+            data - eps * d_data,
+            {k: values[k] - eps * d_vals[k] for k in values},
+        )
         fd = (plus - minus) / (2 * eps)
-        ad = jnp.sum(g_data * d_data) + sum(jnp.sum(g_vals[k] * d_vals[k]) for k in values)
+        ad = jnp.sum(g_data * d_data) + sum(
+            jnp.sum(g_vals[k] * d_vals[k]) for k in values
+        )
         np.testing.assert_allclose(float(ad), float(fd), rtol=1e-6, atol=1e-8)

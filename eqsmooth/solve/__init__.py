@@ -1,6 +1,10 @@
 """Linearisation, linear solvers and nonlinear least-squares solvers."""
 
-from ._block_tridiagonal import BlockTridiagonal as BlockTridiagonal
+from ._block_tridiagonal import (
+    BlockCyclicReduction as BlockCyclicReduction,
+    BlockTridiagonal as BlockTridiagonal,
+    BlockTridiagonalOperator as BlockTridiagonalOperator,
+)
 from ._dense import DenseCholesky as DenseCholesky
 from ._gauss_newton import (
     FixedStepGaussNewton as FixedStepGaussNewton,

@@ -79,8 +79,8 @@ class _Placement:
 class _Term:
     """One `J_kᵀ J_l` product of a stack and where (and how) it is added."""
 
-    k: int
-    l: int
+    first: int  # index of J_k among the stack's variables
+    second: int  # index of J_l
     target: str  # "diag" or "upper"
     transpose: bool  # add (J_kᵀ J_l)ᵀ = J_lᵀ J_k instead
     row_group: int  # layout index of the block row (after any transpose)
@@ -101,15 +101,10 @@ class ChainPlan:
     gradient_terms: tuple[tuple[tuple[int, int, _Placement], ...], ...]
     hessian_terms: tuple[tuple[_Term, ...], ...]
 
-    def to_blocks(self, tangent: Tangent, layout: tuple[GroupLayout, ...]) -> Array:
-        """`{group: (T, d_g)}` to `(T, D)`."""
-        return jnp.concatenate([tangent[g.name] for g in layout], axis=1)
-
     def to_tangent(self, blocks: Array, layout: tuple[GroupLayout, ...]) -> Tangent:
         """`(T, D)` to `{group: (T, d_g)}`."""
         return {
-            g.name: blocks[:, off : off + g.dim]
-            for g, off in zip(layout, self.offsets)
+            g.name: blocks[:, off : off + g.dim] for g, off in zip(layout, self.offsets)
         }
 
 
@@ -168,22 +163,22 @@ def _chain_plan(
         terms = []
         for k, vk in enumerate(vars_):
             gk = group_index[vk.group]
-            for l in range(k, len(vars_)):
-                vl = vars_[l]
+            for j in range(k, len(vars_)):
+                vl = vars_[j]
                 gl = group_index[vl.group]
                 tk, tl = vk.ids, vl.ids
-                if l == k:
-                    terms.append(_Term(k, l, "diag", False, gk, gk, _full(tk)))
+                if j == k:
+                    terms.append(_Term(k, j, "diag", False, gk, gk, _full(tk)))
                     continue
                 same, up, down = tl == tk, tl == tk + 1, tk == tl + 1
                 if same.any():
                     placement = _subset(same, tk)
-                    terms.append(_Term(k, l, "diag", False, gk, gl, placement))
-                    terms.append(_Term(k, l, "diag", True, gl, gk, placement))
+                    terms.append(_Term(k, j, "diag", False, gk, gl, placement))
+                    terms.append(_Term(k, j, "diag", True, gl, gk, placement))
                 if up.any():
-                    terms.append(_Term(k, l, "upper", False, gk, gl, _subset(up, tk)))
+                    terms.append(_Term(k, j, "upper", False, gk, gl, _subset(up, tk)))
                 if down.any():
-                    terms.append(_Term(k, l, "upper", True, gl, gk, _subset(down, tl)))
+                    terms.append(_Term(k, j, "upper", True, gl, gk, _subset(down, tl)))
         gradient_terms.append(grads)
         hessian_terms.append(tuple(terms))
     return ChainPlan(
@@ -231,14 +226,20 @@ def assemble_chain(
             add(grad_acc, g, placement.place(jnp.einsum("nmd,nm->nd", jacs[k], r), T))
         products: dict[tuple[int, int], Array] = {}
         for term in terms:
-            key = (term.k, term.l)
+            key = (term.first, term.second)
             if key not in products:
-                products[key] = jnp.einsum("nmd,nme->nde", jacs[term.k], jacs[term.l])
+                products[key] = jnp.einsum(
+                    "nmd,nme->nde", jacs[term.first], jacs[term.second]
+                )
             p = products[key]
             if term.transpose:
                 p = jnp.swapaxes(p, 1, 2)
             if term.target == "diag":
-                add(diag_acc, (term.row_group, term.col_group), term.placement.place(p, T))
+                add(
+                    diag_acc,
+                    (term.row_group, term.col_group),
+                    term.placement.place(p, T),
+                )
             else:
                 add(
                     upper_acc,
@@ -445,12 +446,15 @@ def cyclic_reduction_factor(
         odd, even = A[1::2], A[0::2]
         b_left, b_right = Bp[0 : 2 * m : 2], Bp[1 : 2 * m : 2]
         chol = jnp.linalg.cholesky(odd)
-        left = _cho_solve(chol, _mT(b_left))
-        right = _cho_solve(chol, b_right)
+        # One solve and one product with both couplings side by side: batched
+        # tiny-matrix calls are dominated by per-call overhead on CPU.
+        both = _cho_solve(chol, jnp.concatenate([_mT(b_left), b_right], axis=2))
+        left, right = both[..., :D], both[..., D:]
         ok = ok & check(chol, scale[1::2])
         scale = scale[0::2]
-        A = even - _pad_end(b_left @ left, k) - _shift_down(_mT(b_right) @ right, k)
-        B = -(b_left @ right)[: k - 1]
+        prod = b_left @ both  # [B_{2j} A_o⁻¹ B_{2j}ᵀ, B_{2j} A_o⁻¹ B_{2j+1}]
+        A = even - _pad_end(prod[..., :D], k) - _shift_down(_mT(b_right) @ right, k)
+        B = -prod[: k - 1, :, D:]
         levels.append(_Level(chol, left, right))
     root = jnp.linalg.cholesky(A)
     ok = ok & check(root, scale)
@@ -511,7 +515,7 @@ def cyclic_reduction_inverse_blocks(
     diag = _cho_solve(state.root, eye[None])
     upper = jnp.zeros((0, D, D), diag.dtype)
     for n, level in zip(reversed(sizes), reversed(state.levels)):
-        m, k = n // 2, n - n // 2
+        m = n // 2
         Wl, Wr = level.left, level.right
         se = _pad_end(diag, m + 1)
         s0, s1 = se[:m], se[1 : m + 1]
@@ -557,9 +561,7 @@ class BlockCyclicReduction(lx.AbstractLinearSolver):
         del options
         x = cyclic_reduction_solve(state, vector)
         x = jnp.where(state.ok, x, jnp.zeros_like(x))
-        result = lx.RESULTS.where(
-            state.ok, lx.RESULTS.successful, lx.RESULTS.singular
-        )
+        result = lx.RESULTS.where(state.ok, lx.RESULTS.successful, lx.RESULTS.singular)
         return x, result, {}
 
     def transpose(self, state: CyclicReductionState, options: dict[str, Any]):
@@ -587,8 +589,11 @@ class BlockTridiagonal(AbstractLinearSolver):
     time step. The structure is checked once, at trace time; a graph that is
     not a chain raises a `ValueError` naming the first offending factor row.
 
-    Derivatives go through `lineax.linear_solve`, so reverse-mode costs one
-    more block-tridiagonal solve, and the solver `vmap`s over batches of graphs.
+    Derivatives go through `lineax.linear_solve`, so reverse mode costs one
+    more block-tridiagonal solve with the same factorisation, and the solver
+    `vmap`s over batches of graphs. (lineax raises at run time when a
+    derivative of a failed solve is requested: there is no result code to
+    carry it.)
     """
 
     def solve(

@@ -8,11 +8,11 @@ from jaxtyping import Array, Bool, Float
 
 from ._linear_solver import AbstractLinearSolver, pivot_tolerance
 from ._linearization import (
-    Linearization,
-    Tangent,
     flatten_tangent,
     gradient,
     group_offsets,
+    Linearization,
+    Tangent,
     unflatten_tangent,
 )
 from ._solution import RESULTS
@@ -34,10 +34,10 @@ def dense_normal_matrix(
             offsets[v.group] + v.ids[:, None] * dims[v.group] + np.arange(dims[v.group])
             for v in fl.variables
         ]
-        for k, jk in enumerate(fl.jacobians):
-            for l, jl in enumerate(fl.jacobians):
-                p = jnp.einsum("nmd,nme->nde", jk, jl)
-                H = H.at[idx[k][:, :, None], idx[l][:, None, :]].add(p)
+        for a, ja in enumerate(fl.jacobians):
+            for b, jb in enumerate(fl.jacobians):
+                p = jnp.einsum("nmd,nme->nde", ja, jb)
+                H = H.at[idx[a][:, :, None], idx[b][:, None, :]].add(p)
     if damping is not None:
         d = flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in damping.items()})
         H = H + jnp.diag(d)

@@ -9,15 +9,15 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._block_tridiagonal import (
-    BlockTridiagonal,
     assemble_chain,
+    BlockTridiagonal,
     chain_plan,
     cyclic_reduction_factor,
     cyclic_reduction_inverse_blocks,
 )
 from ._dense import dense_cholesky_ok, dense_normal_matrix
 from ._linear_solver import AbstractLinearSolver
-from ._linearization import Linearization, group_offsets
+from ._linearization import group_offsets, Linearization
 
 
 _SINGULAR = (
@@ -100,7 +100,9 @@ def _dense_marginals(lin, groups):
     for g in lin.layout:
         if g.name in groups:
             start = offsets[g.name]
-            block = inv[start : start + g.count * g.dim, start : start + g.count * g.dim]
+            block = inv[
+                start : start + g.count * g.dim, start : start + g.count * g.dim
+            ]
             block = block.reshape(g.count, g.dim, g.count, g.dim)
             i = np.arange(g.count)
             out[g.name] = block[i, :, i, :]

@@ -7,13 +7,20 @@ import lineax as lx
 from jaxtyping import Array, Float
 
 from ._linear_solver import AbstractLinearSolver, all_finite
-from ._linearization import Linearization, Tangent, block_diagonal, gradient
-from ._linearization import normal_matvec as _normal_matvec
+from ._linearization import (
+    block_diagonal,
+    gradient,
+    Linearization,
+    normal_matvec as _normal_matvec,
+    Tangent,
+)
 from ._solution import RESULTS
 
 
 def _structure(lin: Linearization):
-    return {g.name: jax.ShapeDtypeStruct((g.count, g.dim), lin.dtype) for g in lin.layout}
+    return {
+        g.name: jax.ShapeDtypeStruct((g.count, g.dim), lin.dtype) for g in lin.layout
+    }
 
 
 def _damped(lin: Linearization, damping: Tangent | None) -> Tangent | None:
@@ -109,6 +116,8 @@ class PCG(AbstractLinearSolver):
             throw=False,
         )
         finite = all_finite(list(sol.value.values()))
-        delta = {k: jnp.where(finite, v, jnp.zeros_like(v)) for k, v in sol.value.items()}
+        delta = {
+            k: jnp.where(finite, v, jnp.zeros_like(v)) for k, v in sol.value.items()
+        }
         result = lx.RESULTS.where(finite, sol.result, lx.RESULTS.singular)
         return delta, RESULTS.promote(result)
