@@ -1,0 +1,576 @@
+"""Reading and writing pose graphs in the g2o text format."""
+
+import collections
+import os
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from jaxtyping import Int, PyTree
+
+from ..factors import BetweenFactor, SqrtInformationNoise
+from ..lie import AbstractLieGroup, SE2, SE3
+from ._pose_graph import make_pose_graph, POSE, PoseGraph
+
+
+# tag -> (kind, role, number of fields after the tag)
+_TAGS = {
+    "VERTEX_SE2": ("se2", "vertex", 1 + 3),
+    "EDGE_SE2": ("se2", "edge", 2 + 3 + 6),
+    "VERTEX_SE3:QUAT": ("se3", "vertex", 1 + 7),
+    "EDGE_SE3:QUAT": ("se3", "edge", 2 + 7 + 21),
+    "FIX": (None, "fix", None),
+}
+_FIELDS = {
+    "VERTEX_SE2": "id x y theta",
+    "EDGE_SE2": "id1 id2 dx dy dtheta and 6 information entries",
+    "VERTEX_SE3:QUAT": "id x y z qx qy qz qw",
+    "EDGE_SE3:QUAT": "id1 id2 x y z qx qy qz qw and 21 information entries",
+}
+_VERTEX = {"se2": "VERTEX_SE2", "se3": "VERTEX_SE3:QUAT"}
+_EDGE = {"se2": "EDGE_SE2", "se3": "EDGE_SE3:QUAT"}
+_DIM = {"se2": 3, "se3": 6}
+# Scaling from g2o's SE(3) error (translation, quaternion vector part ≈ ω/2)
+# to eqsmooth's tangent (translation, ω): e_g2o ≈ D r.
+_HALF_ANGLE = np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+
+
+class _Lines:
+    """The lines of one tag: line numbers and token lists."""
+
+    def __init__(self):
+        self.linenos: list[int] = []
+        self.tokens: list[list[str]] = []
+
+    def __len__(self):
+        return len(self.linenos)
+
+
+def _fail(path, lineno, message):
+    where = f"{path}:{lineno}" if lineno is not None else str(path)
+    raise ValueError(f"{where}: {message}")
+
+
+def _tokenize(path: Path, skip_unsupported: bool) -> dict[str, _Lines]:
+    found: dict[str, _Lines] = collections.defaultdict(_Lines)
+    with open(path) as fh:
+        for lineno, line in enumerate(fh, 1):
+            tokens = line.split()
+            if not tokens or tokens[0].startswith("#"):
+                continue
+            tag = tokens[0]
+            if tag not in _TAGS:
+                if skip_unsupported:
+                    continue
+                _fail(
+                    path,
+                    lineno,
+                    f"unsupported tag {tag!r}; eqsmooth reads "
+                    f"{', '.join(_TAGS)} (pass skip_unsupported=True to ignore "
+                    "other lines)",
+                )
+            lines = found[tag]
+            lines.linenos.append(lineno)
+            lines.tokens.append(tokens)
+    return found
+
+
+def _numbers(path, tag: str, lines: _Lines, start: int, stop: int | None, dtype):
+    """Fields `start:stop` of every line as one array, or an error naming the line."""
+    rows = [t[start:stop] for t in lines.tokens]
+    try:
+        out = np.array(rows, dtype=dtype)
+    except (ValueError, OverflowError):
+        convert = int if dtype is np.int64 else float
+        for lineno, row in zip(lines.linenos, rows):
+            for tok in row:
+                try:
+                    convert(tok)
+                except (ValueError, OverflowError):
+                    what = "an integer id" if convert is int else "a number"
+                    _fail(path, lineno, f"{tag}: cannot read {tok!r} as {what}")
+        raise
+    if dtype is np.float64:
+        bad = ~np.all(np.isfinite(out), axis=1)
+        if bad.any():
+            k = int(np.argmax(bad))
+            _fail(path, lines.linenos[k], f"{tag}: non-finite number")
+    return out
+
+
+def _check_counts(path, tag: str, lines: _Lines) -> None:
+    expected = _TAGS[tag][2] + 1
+    counts = np.fromiter((len(t) for t in lines.tokens), np.int64, len(lines))
+    bad = counts != expected
+    if bad.any():
+        k = int(np.argmax(bad))
+        _fail(
+            path,
+            lines.linenos[k],
+            f"{tag} needs {expected - 1} fields ({_FIELDS[tag]}), got {counts[k] - 1}",
+        )
+
+
+def _unit_quaternions(path, tag, lines: _Lines, xyzw: np.ndarray) -> np.ndarray:
+    """`(qw, qx, qy, qz)`, normalised, from g2o's `(qx, qy, qz, qw)`."""
+    norm = np.linalg.norm(xyzw, axis=1)
+    bad = norm < 1e-6
+    if bad.any():
+        k = int(np.argmax(bad))
+        _fail(path, lines.linenos[k], f"{tag}: quaternion of norm {norm[k]:.3g}")
+    q = xyzw / norm[:, None]
+    return np.concatenate([q[:, 3:], q[:, :3]], axis=1)
+
+
+def _upper_to_full(upper: np.ndarray, d: int) -> np.ndarray:
+    rows, cols = np.triu_indices(d)
+    full = np.zeros((upper.shape[0], d, d))
+    full[:, rows, cols] = upper
+    full[:, cols, rows] = upper
+    return full
+
+
+def _se2_params(xyt: np.ndarray) -> np.ndarray:
+    return np.stack(
+        [np.cos(xyt[:, 2]), np.sin(xyt[:, 2]), xyt[:, 0], xyt[:, 1]], axis=1
+    )
+
+
+# ---------------------------------------------------------------- numpy pose algebra
+# Only used to build initial values when a file has no vertices.
+
+
+def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    pw, pv = p[0], p[1:]
+    qw, qv = q[0], q[1:]
+    return np.concatenate([[pw * qw - pv @ qv], pw * qv + qw * pv + np.cross(pv, qv)])
+
+
+def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    w, u = q[0], q[1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _compose(kind: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    if kind == "se2":
+        c1, s1, c2, s2 = a[0], a[1], b[0], b[1]
+        xy = a[2:] + np.array([c1 * b[2] - s1 * b[3], s1 * b[2] + c1 * b[3]])
+        return np.array([c1 * c2 - s1 * s2, s1 * c2 + c1 * s2, xy[0], xy[1]])
+    q = _quat_mul(a[:4], b[:4])
+    return np.concatenate([q / np.linalg.norm(q), a[4:] + _quat_rotate(a[:4], b[4:])])
+
+
+def _inverse(kind: str, a: np.ndarray) -> np.ndarray:
+    if kind == "se2":
+        c, s, x, y = a
+        return np.array([c, -s, -(c * x + s * y), s * x - c * y])
+    q = np.concatenate([a[:1], -a[1:4]])
+    return np.concatenate([q, -_quat_rotate(q, a[4:])])
+
+
+def _initial_from_edges(
+    path, kind: str, n: int, edges: np.ndarray, meas: np.ndarray, vertex_ids
+) -> np.ndarray:
+    """Initial poses by composing measurements: along the odometry chain if every
+    consecutive pair of poses has an edge, else along a breadth-first spanning tree.
+    Pose 0 is the identity."""
+    identity = np.array([1.0, 0, 0, 0]) if kind == "se2" else np.eye(1, 7)[0]
+    poses = np.empty((n, meas.shape[1]))
+    poses[0] = identity
+    forward = {}
+    for e, (i, j) in enumerate(edges):
+        forward.setdefault((int(i), int(j)), e)
+    if all((k, k + 1) in forward for k in range(n - 1)):
+        for k in range(n - 1):
+            poses[k + 1] = _compose(kind, poses[k], meas[forward[(k, k + 1)]])
+        return poses
+    neighbours: list[list[tuple[int, int, bool]]] = [[] for _ in range(n)]
+    for e, (i, j) in enumerate(edges):
+        neighbours[i].append((e, j, False))
+        neighbours[j].append((e, i, True))
+    seen = np.zeros(n, bool)
+    seen[0] = True
+    queue = collections.deque([0])
+    while queue:
+        i = queue.popleft()
+        for e, j, backwards in neighbours[i]:
+            if seen[j]:
+                continue
+            z = _inverse(kind, meas[e]) if backwards else meas[e]
+            poses[j] = _compose(kind, poses[i], z)
+            seen[j] = True
+            queue.append(j)
+    if not seen.all():
+        k = int(np.argmin(seen))
+        _fail(
+            path,
+            None,
+            f"the file has no vertices and vertex {int(vertex_ids[k])} is not "
+            f"connected to vertex {int(vertex_ids[0])} by edges, so its initial "
+            "value cannot be built",
+        )
+    return poses
+
+
+# ---------------------------------------------------------------------- load
+
+
+def _not_positive_definite(info: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    eig = np.linalg.eigvalsh(info)
+    return ~(eig[:, 0] > 1e-12 * np.abs(eig[:, -1])), eig[:, 0]
+
+
+def _checked_information(path, tag, lines, info, invalid: str) -> np.ndarray:
+    bad, smallest = _not_positive_definite(info)
+    if not bad.any():
+        return info
+    if invalid == "raise":
+        k = int(np.argmax(bad))
+        _fail(
+            path,
+            lines.linenos[k],
+            f"{tag}: information matrix is not positive definite (smallest "
+            f"eigenvalue {smallest[k]:.3g}); {int(bad.sum())} of {len(bad)} edges "
+            "have this problem (see load_g2o's invalid_information option)",
+        )
+    info = info.copy()
+    fixed = info[bad]
+    d = info.shape[-1]
+    if invalid == "block_diagonal":
+        h = d // 2 if d == 6 else 2  # SE(3): 3 + 3; SE(2): (x, y) + θ
+        fixed[:, :h, h:] = 0.0
+        fixed[:, h:, :h] = 0.0
+        still, _ = _not_positive_definite(fixed)
+    else:
+        still = np.ones(len(fixed), bool)
+    if still.any():
+        eig, vec = np.linalg.eigh(fixed[still])
+        floor = 1e-6 * np.max(np.abs(eig), axis=1, keepdims=True)
+        eig = np.maximum(eig, floor)
+        fixed[still] = np.einsum("nij,nj,nkj->nik", vec, eig, vec)
+    info[bad] = fixed
+    warnings.warn(
+        f"{path}: {int(bad.sum())} of {len(bad)} {tag} information matrices were not "
+        f"positive definite and were repaired (invalid_information={invalid!r})",
+        stacklevel=3,
+    )
+    return info
+
+
+def load_g2o(
+    path: str | os.PathLike,
+    *,
+    anchor: bool = True,
+    anchor_sqrt_information: float = 1e6,
+    se3_information: Literal["g2o", "gtsam"] = "g2o",
+    invalid_information: Literal["raise", "clip", "block_diagonal"] = "raise",
+    skip_unsupported: bool = False,
+    dtype=None,
+) -> PoseGraph:
+    """Read a 2-D or 3-D pose graph from a g2o text file.
+
+    Supported lines: `VERTEX_SE2 id x y theta`,
+    `EDGE_SE2 id1 id2 dx dy dtheta I11 I12 I13 I22 I23 I33`,
+    `VERTEX_SE3:QUAT id x y z qx qy qz qw`,
+    `EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw` followed by the 21 upper-triangular
+    information entries (row by row), `FIX id ...`, blank lines and `#`
+    comments. Quaternions are scalar-last in the file and are normalised.
+
+    Every edge becomes one row of a [`eqsmooth.factors.BetweenFactor`][] with
+    residual `log(z⁻¹ xᵢ⁻¹ xⱼ)` in eqsmooth's tangent coordinates
+    (translation first) and full square-root information.
+
+    **Information matrices.** g2o's SE(2) error is `(x, y, θ)` of
+    `z⁻¹ xᵢ⁻¹ xⱼ`, which agrees with the SE(2) logarithm to first order, so the
+    matrix is used as it is. g2o's SE(3) error is `(x, y, z, qx, qy, qz)`, whose
+    rotation part, the quaternion's vector part, is about half the rotation
+    angle `ω/2`. With `se3_information="g2o"` (the default) the file's matrix
+    `Λ` is converted to `D Λ D` with `D = diag(1, 1, 1, ½, ½, ½)`, so the cost
+    agrees with g2o's to first order. With `"gtsam"` the matrix is used as the
+    information of `(v, ω)` directly, as GTSAM's `readG2o` and Ceres's pose
+    graph example do (its rotation weights are 4 times larger).
+
+    **Vertex ids** need not be contiguous: pose `i` is the `i`-th smallest id
+    (`PoseGraph.vertex_ids` keeps the map). If the file has no vertex lines at
+    all (e.g. the SE-Sync versions of CSAIL, manhattan, kitti_00), the initial
+    values compose the measurements along the odometry chain `(i, i+1)` if it
+    is complete, else along a breadth-first spanning tree, starting from the
+    identity at the first pose.
+
+    **Gauge.** A pose graph's cost is invariant to moving every pose together,
+    so with `anchor=True` a [`eqsmooth.factors.PriorFactor`][] with isotropic
+    square-root information `anchor_sqrt_information` (σ = 10⁻⁶ by default)
+    holds the `FIX`ed poses, or the first pose if there is no `FIX` line, at
+    their initial values. It adds nothing to the initial cost.
+
+    **Arguments:**
+
+    - `path`: the file.
+    - `anchor`: add the gauge prior (see above).
+    - `anchor_sqrt_information`: its strength.
+    - `se3_information`: `"g2o"` or `"gtsam"` (see above; SE(3) only).
+    - `invalid_information`: what to do with information matrices that are
+        not positive definite (some real data sets, e.g. cubicle, have
+        thousands): `"raise"` (default); `"clip"` raises their eigenvalues to
+        at least 10⁻⁶ times the largest; `"block_diagonal"` drops their
+        translation–rotation cross terms (then clips if still needed).
+        Repairs emit a `UserWarning` with their count.
+    - `skip_unsupported`: ignore lines with other tags instead of raising.
+    - `dtype`: float dtype of the arrays (default: JAX's default float;
+        enable `jax_enable_x64` for real data sets).
+
+    **Returns:** a [`eqsmooth.io.PoseGraph`][].
+
+    **Raises:** `FileNotFoundError`, or `ValueError` naming the file and line
+    for an unsupported tag, a wrong number of fields, an unreadable number, a
+    repeated vertex, an edge to a vertex without a vertex line, a self-loop or
+    an information matrix that is not positive definite (with
+    `invalid_information="raise"`).
+    """
+    if invalid_information not in ("raise", "clip", "block_diagonal"):
+        raise ValueError(
+            "invalid_information must be 'raise', 'clip' or 'block_diagonal', got "
+            f"{invalid_information!r}"
+        )
+    if se3_information not in ("g2o", "gtsam"):
+        raise ValueError(
+            f"se3_information must be 'g2o' or 'gtsam', got {se3_information!r}"
+        )
+    path = Path(path)
+    found = _tokenize(path, skip_unsupported)
+    kinds = {_TAGS[t][0]: t for t in found if _TAGS[t][0] is not None}
+    if len(kinds) > 1:
+        a, b = kinds["se2"], kinds["se3"]
+        _fail(
+            path,
+            found[b].linenos[0],
+            f"mixes 2-D and 3-D poses ({a} on line {found[a].linenos[0]}, {b} here)",
+        )
+    if not kinds:
+        _fail(path, None, f"no pose vertices or edges ({', '.join(_FIELDS)})")
+    kind = next(iter(kinds))
+    vtag, etag = _VERTEX[kind], _EDGE[kind]
+    for tag in (vtag, etag):
+        if tag in found:
+            _check_counts(path, tag, found[tag])
+    if etag not in found:
+        _fail(path, None, f"has {vtag} lines but no {etag} lines")
+    elines = found[etag]
+
+    # Edges: ids, measurement, information.
+    eids = _numbers(path, etag, elines, 1, 3, np.int64)
+    enums = _numbers(path, etag, elines, 3, None, np.float64)
+    loops = eids[:, 0] == eids[:, 1]
+    if loops.any():
+        k = int(np.argmax(loops))
+        _fail(path, elines.linenos[k], f"{etag} connects vertex {eids[k, 0]} to itself")
+    if kind == "se2":
+        meas = _se2_params(enums[:, :3])
+        info = _upper_to_full(enums[:, 3:], 3)
+    else:
+        q = _unit_quaternions(path, etag, elines, enums[:, 3:7])
+        meas = np.concatenate([q, enums[:, :3]], axis=1)
+        info = _upper_to_full(enums[:, 7:], 6)
+        if se3_information == "g2o":
+            info = info * _HALF_ANGLE[:, None] * _HALF_ANGLE[None, :]
+    info = _checked_information(path, etag, elines, info, invalid_information)
+
+    # Vertices.
+    if vtag in found:
+        vlines = found[vtag]
+        vids = _numbers(path, vtag, vlines, 1, 2, np.int64)[:, 0]
+        vnums = _numbers(path, vtag, vlines, 2, None, np.float64)
+        order = np.argsort(vids, kind="stable")
+        sorted_ids = vids[order]
+        dup = sorted_ids[1:] == sorted_ids[:-1]
+        if dup.any():
+            k = int(order[int(np.argmax(dup)) + 1])
+            _fail(path, vlines.linenos[k], f"{vtag}: vertex {vids[k]} defined twice")
+        if kind == "se2":
+            params = _se2_params(vnums)
+        else:
+            q = _unit_quaternions(path, vtag, vlines, vnums[:, 3:7])
+            params = np.concatenate([q, vnums[:, :3]], axis=1)
+        vertex_ids = sorted_ids
+        poses = params[order]
+        idx = np.searchsorted(vertex_ids, eids).clip(0, len(vertex_ids) - 1)
+        missing = vertex_ids[idx] != eids
+        if missing.any():
+            k = int(np.argmax(missing.any(axis=1)))
+            vid = eids[k][missing[k]][0]
+            _fail(
+                path,
+                elines.linenos[k],
+                f"{etag} refers to vertex {vid}, which has no {vtag} line",
+            )
+        edges = idx
+    else:
+        vertex_ids, edges = np.unique(eids, return_inverse=True)
+        edges = edges.reshape(eids.shape)
+        poses = _initial_from_edges(
+            path, kind, len(vertex_ids), edges, meas, vertex_ids
+        )
+
+    # FIX lines.
+    anchored = np.zeros((0,), np.int64)
+    if "FIX" in found:
+        flines = found["FIX"]
+        fixed = []
+        for lineno, tokens in zip(flines.linenos, flines.tokens):
+            if len(tokens) < 2:
+                _fail(path, lineno, "FIX needs at least one vertex id")
+            one = _Lines()
+            one.linenos, one.tokens = [lineno], [tokens]
+            for vid in _numbers(path, "FIX", one, 1, None, np.int64)[0]:
+                k = int(np.searchsorted(vertex_ids, vid))
+                if k >= len(vertex_ids) or vertex_ids[k] != vid:
+                    _fail(path, lineno, f"FIX refers to unknown vertex {vid}")
+                fixed.append(k)
+        anchored = np.unique(np.asarray(fixed, np.int64))
+
+    return make_pose_graph(
+        kind,
+        poses,
+        np.asarray(edges, np.int64),
+        meas,
+        info,
+        vertex_ids=vertex_ids,
+        anchor=anchor,
+        anchored=anchored,
+        anchor_sqrt_information=anchor_sqrt_information,
+        se3_information=se3_information,
+        dtype=dtype,
+    )
+
+
+# ---------------------------------------------------------------------- save
+
+
+def _fmt(rows: np.ndarray) -> list[str]:
+    # repr() is the shortest text that reads back to the same float.
+    return [" ".join(map(repr, r)) for r in rows.tolist()]
+
+
+def _vertex_rows(kind: str, params: np.ndarray) -> np.ndarray:
+    if kind == "se2":
+        theta = np.arctan2(params[:, 1], params[:, 0])
+        return np.stack([params[:, 2], params[:, 3], theta], axis=1)
+    q = params[:, :4]
+    return np.concatenate([params[:, 4:], q[:, 1:], q[:, :1]], axis=1)
+
+
+def _group_of(data) -> tuple[str, np.ndarray]:
+    if isinstance(data, SE2):
+        return "se2", np.asarray(data.unit_complex_xy, np.float64).reshape(-1, 4)
+    if isinstance(data, SE3):
+        return "se3", np.asarray(data.wxyz_xyz, np.float64).reshape(-1, 7)
+    raise TypeError(
+        "save_g2o writes SE2 or SE3 poses; got "
+        f"{type(data).__name__} (pass a PoseGraph, a values dict with a 'pose' "
+        "group, or a stacked SE2/SE3)"
+    )
+
+
+def save_g2o(
+    path: str | os.PathLike,
+    data: PoseGraph | dict | AbstractLieGroup,
+    *,
+    values: PyTree | None = None,
+    vertex_ids: Int[np.ndarray, " N"] | None = None,
+) -> None:
+    """Write poses (and edges) to a g2o text file, atomically.
+
+    The file is written to a temporary file in the same folder and then moved
+    over `path` with `os.replace`, so readers never see a partial file.
+
+    **Arguments:**
+
+    - `path`: the output file.
+    - `data`: a [`eqsmooth.io.PoseGraph`][] (vertices, `FIX` lines for its
+        anchored poses, and its edges with their information converted back to
+        the g2o convention it was read with), or just poses: a values dict
+        whose `"pose"` group (or only group) is a stacked
+        [`eqsmooth.lie.SE2`][]/[`eqsmooth.lie.SE3`][], or such a stack itself
+        (vertices only).
+    - `values`: poses to write instead of `data`'s own initial values (e.g.
+        `solution.value` after a solve): a values dict or a stacked group.
+    - `vertex_ids`: ids to write (default: the pose graph's ids, else `0..N-1`).
+    """
+    graph = None
+    if isinstance(data, PoseGraph):
+        graph = data
+        if values is None:
+            values = data.values
+        if vertex_ids is None:
+            vertex_ids = data.vertex_ids
+    elif values is None:
+        values = data
+    if isinstance(values, dict):
+        if POSE in values:
+            values = values[POSE]
+        elif len(values) == 1:
+            values = next(iter(values.values()))
+        else:
+            raise ValueError(
+                f"save_g2o: values has groups {sorted(values)}; expected a 'pose' "
+                "group or a single group"
+            )
+    kind, params = _group_of(values)
+    n = params.shape[0]
+    if vertex_ids is None:
+        vertex_ids = np.arange(n)
+    vertex_ids = np.asarray(vertex_ids, np.int64)
+    if vertex_ids.shape != (n,):
+        raise ValueError(
+            f"save_g2o: {n} poses but vertex_ids has shape {vertex_ids.shape}"
+        )
+    if graph is not None and (graph.kind != kind or graph.num_poses != n):
+        raise ValueError(
+            f"save_g2o: the pose graph has {graph.num_poses} {graph.kind} poses but "
+            f"the values have {n} {kind} poses"
+        )
+
+    out = [
+        f"{_VERTEX[kind]} {i} {row}"
+        for i, row in zip(vertex_ids.tolist(), _fmt(_vertex_rows(kind, params)))
+    ]
+    if graph is not None:
+        if len(graph.anchored):
+            out.append("FIX " + " ".join(map(str, vertex_ids[graph.anchored].tolist())))
+        out.extend(_edge_lines(graph, kind, vertex_ids))
+
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write("\n".join(out))
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _edge_lines(graph: PoseGraph, kind: str, vertex_ids: np.ndarray) -> list[str]:
+    factor: BetweenFactor = graph.between
+    noise = factor.noise
+    if not isinstance(noise, SqrtInformationNoise):
+        raise TypeError(
+            f"save_g2o: edges need a SqrtInformationNoise, got {type(noise).__name__}"
+        )
+    _, meas = _group_of(factor.measurement)
+    E, d = factor.num_rows, _DIM[kind]
+    R = np.broadcast_to(np.asarray(noise.sqrt_information, np.float64), (E, d, d))
+    info = np.swapaxes(R, 1, 2) @ R
+    if kind == "se3" and graph.se3_information == "g2o":
+        info = info / (_HALF_ANGLE[:, None] * _HALF_ANGLE[None, :])
+    rows, cols = np.triu_indices(d)
+    nums = np.concatenate([_vertex_rows(kind, meas), info[:, rows, cols]], axis=1)
+    a, b = factor.variables
+    ids = np.stack([vertex_ids[a.ids], vertex_ids[b.ids]], axis=1).tolist()
+    tag = _EDGE[kind]
+    return [f"{tag} {i} {j} {row}" for (i, j), row in zip(ids, _fmt(nums))]
