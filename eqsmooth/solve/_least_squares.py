@@ -108,8 +108,10 @@ def initial_state(
 def converged_test(
     old_cost, new_lin: Linearization, delta: Tangent, ftol, gtol, xtol
 ) -> Bool[Array, ""]:
-    tiny = jnp.finfo(new_lin.dtype).tiny
-    rel = jnp.abs(old_cost - new_lin.cost) / jnp.maximum(old_cost, tiny)
+    finfo = jnp.finfo(new_lin.dtype)
+    rel = jnp.abs(old_cost - new_lin.cost) / jnp.maximum(old_cost, finfo.tiny)
+    # A relative change below a few ulps is rounding: never ask for less.
+    ftol = jnp.where(ftol > 0, jnp.maximum(ftol, 4 * finfo.eps), ftol)
     gnorm = _max_abs(gradient(new_lin))
     xnorm = _max_abs(delta)
     return (rel <= ftol) | (gnorm <= gtol) | (xnorm <= xtol)
