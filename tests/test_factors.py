@@ -46,7 +46,9 @@ def test_noise_whitening_and_logdet():
     np.testing.assert_allclose(iso.whiten(r), r / 2)
     np.testing.assert_allclose(iso.log_det_sqrt_information(4, 3), 12 * np.log(0.5))
     per_row = eqs.IsotropicNoise(jnp.arange(1.0, 5.0))
-    np.testing.assert_allclose(per_row.whiten(r), np.asarray(r) * np.arange(1, 5)[:, None])
+    np.testing.assert_allclose(
+        per_row.whiten(r), np.asarray(r) * np.arange(1, 5)[:, None]
+    )
     diag = eqs.DiagonalNoise(jnp.array([1.0, 2.0, 3.0]))
     np.testing.assert_allclose(diag.whiten(r), np.asarray(r) * np.array([1, 2, 3]))
     cov = jnp.array([[2.0, 0.3, 0.1], [0.3, 1.0, 0.2], [0.1, 0.2, 0.5]])
@@ -141,7 +143,9 @@ def test_graph_errors_name_the_culprit():
         ValueError, match=r"FunctionFactor: variable 0 \(group 'x'\) has indices \[5\]"
     ):
         graph.cost({"x": jnp.zeros((3, 2))})
-    with pytest.raises(ValueError, match="refers to group 'x', which is not in the values"):
+    with pytest.raises(
+        ValueError, match="refers to group 'x', which is not in the values"
+    ):
         graph.cost({"y": jnp.zeros((3, 2))})
     bad = eqs.FactorGraph(
         [

@@ -453,12 +453,15 @@ def test_real_data_matches_gtsam(name, rtol):
     gtsam = pytest.importorskip(
         "gtsam", reason="GTSAM not installed (pip install gtsam)"
     )
-    from eqsmooth.io import to_gtsam
+    from eqsmooth.io import from_gtsam, to_gtsam
 
     pg, sol = _solved(name, 10)
     graph, initial = to_gtsam(pg)
     np.testing.assert_allclose(
         graph.error(initial), float(sol.stats["initial_cost"]), rtol=1e-10
+    )
+    np.testing.assert_allclose(
+        _cost(pg, from_gtsam(pg, initial)), graph.error(initial), rtol=1e-10
     )
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-10)
