@@ -107,6 +107,12 @@ def solve_with_table(pg, solver, max_steps):
     return values, state, times, result, initial_cost
 
 
+def _describe(result) -> str:
+    if bool(result == eqs.RESULTS.successful):
+        return "converged"
+    return str(result).split("<", 1)[-1].rstrip(">")
+
+
 def plot(pg, values, path: Path, title: str):
     import matplotlib
 
@@ -155,8 +161,9 @@ def main(argv=None):
     steady = float(np.median(rest)) if rest else first
     print(
         f"\n{int(state.step)} iterations ({int(state.num_accepted)} accepted), "
-        f"result: {result}; total {total:.1f} s, first iteration {first:.2f} s "
-        f"(with compilation), then {steady:.3f} s per iteration (median)"
+        f"result: {_describe(result)}; total {total:.1f} s, first iteration "
+        f"{first:.2f} s (with compilation), then {steady:.3f} s per iteration "
+        "(median)"
     )
 
     args.out.mkdir(parents=True, exist_ok=True)
