@@ -419,6 +419,7 @@ def _solve_file(name: str, max_steps: int):
 
 
 _SOLVED = {}
+_STEPS = {"intel.g2o": 6, "smallGrid3D.g2o": 20}
 
 
 def _solved(name: str, max_steps: int):
@@ -431,7 +432,7 @@ def _solved(name: str, max_steps: int):
     "name, factor", [("intel.g2o", 10.0), ("smallGrid3D.g2o", 300.0)]
 )
 def test_real_data_cost_decreases(name, factor):
-    pg, sol = _solved(name, 10)
+    pg, sol = _solved(name, _STEPS[name])
     initial, final = float(sol.stats["initial_cost"]), float(sol.stats["final_cost"])
     np.testing.assert_allclose(initial, _cost(pg, pg.values), rtol=1e-12)
     assert final < initial / factor, (initial, final)
@@ -441,7 +442,7 @@ _PCG_STALLS = pytest.mark.xfail(
     strict=False,
     reason="with PCG()'s defaults, CG on intel needs ~2000 iterations to meet "
     "lineax's componentwise tolerance, stops at max_steps=500 and LM rejects the "
-    "step; 10 LM steps end at cost 22.74 instead of 22.502",
+    "step; 6 LM steps end at cost 23.85 instead of 22.502",
 )
 
 
@@ -455,7 +456,7 @@ def test_real_data_matches_gtsam(name, rtol):
     )
     from eqsmooth.io import from_gtsam, to_gtsam
 
-    pg, sol = _solved(name, 10)
+    pg, sol = _solved(name, _STEPS[name])
     graph, initial = to_gtsam(pg)
     np.testing.assert_allclose(
         graph.error(initial), float(sol.stats["initial_cost"]), rtol=1e-10
