@@ -224,7 +224,7 @@ def _least_squares(graph, values, solver, max_steps, unroll, throw, verbose):
     values, state, history = carry
     steps = state.step
     history = jnp.where(jnp.arange(max_steps + 1) <= steps, history, state.lin.cost)
-    stopped, final_result = solver.terminate(state, max_steps)
+    _, final_result = solver.terminate(state, max_steps)
     result = RESULTS.where(
         state.result == RESULTS.successful, final_result, state.result
     )
@@ -237,7 +237,6 @@ def _least_squares(graph, values, solver, max_steps, unroll, throw, verbose):
     }
     if throw:
         values = result.error_if(values, result != RESULTS.successful)
-    del stopped
     return Solution(value=values, result=result, stats=stats, state=state)
 
 
