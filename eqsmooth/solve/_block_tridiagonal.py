@@ -107,6 +107,12 @@ class ChainPlan:
             g.name: blocks[:, off : off + g.dim] for g, off in zip(layout, self.offsets)
         }
 
+    def from_tangent(
+        self, tangent: Tangent, layout: tuple[GroupLayout, ...], dtype
+    ) -> Array:
+        """`{group: (T, d_g)}` to `(T, D)` (the inverse of `to_tangent`)."""
+        return jnp.concatenate([tangent[g.name].astype(dtype) for g in layout], axis=1)
+
 
 def _stack_name(lin: Linearization, index: int) -> str:
     name = getattr(lin.factors[index], "name", "")
@@ -597,10 +603,14 @@ class BlockTridiagonal(AbstractLinearSolver):
     """
 
     def solve(
-        self, lin: Linearization, damping: Tangent | None
+        self,
+        lin: Linearization,
+        damping: Tangent | None,
+        rhs: Tangent | None = None,
     ) -> tuple[Tangent, RESULTS]:
         plan = chain_plan(lin)
         diag, upper, grad = assemble_chain(lin, plan, damping)
+        b = -grad if rhs is None else plan.from_tangent(rhs, lin.layout, lin.dtype)
         operator = BlockTridiagonalOperator(diag, upper)
-        sol = lx.linear_solve(operator, -grad, BlockCyclicReduction(), throw=False)
+        sol = lx.linear_solve(operator, b, BlockCyclicReduction(), throw=False)
         return plan.to_tangent(sol.value, lin.layout), RESULTS.promote(sol.result)

@@ -64,10 +64,16 @@ class DenseCholesky(AbstractLinearSolver):
     """
 
     def solve(
-        self, lin: Linearization, damping: Tangent | None
+        self,
+        lin: Linearization,
+        damping: Tangent | None,
+        rhs: Tangent | None = None,
     ) -> tuple[Tangent, RESULTS]:
         H = dense_normal_matrix(lin, damping)
-        rhs = -flatten_tangent(lin, gradient(lin))
+        if rhs is None:
+            b = -flatten_tangent(lin, gradient(lin))
+        else:
+            b = flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in rhs.items()})
         operator = lx.MatrixLinearOperator(H, lx.positive_semidefinite_tag)
         solver = lx.Cholesky()
         stopped = lx.MatrixLinearOperator(
@@ -77,7 +83,7 @@ class DenseCholesky(AbstractLinearSolver):
         # lineax's Cholesky state is (upper factor, static flag); its pivots tell
         # a singular system apart from a merely ill-conditioned one.
         ok = dense_cholesky_ok(jax.lax.stop_gradient(H), state[0])
-        sol = lx.linear_solve(operator, rhs, solver, state=state, throw=False)
+        sol = lx.linear_solve(operator, b, solver, state=state, throw=False)
         x = jnp.where(ok, sol.value, jnp.zeros_like(sol.value))
         result = lx.RESULTS.where(ok, sol.result, lx.RESULTS.singular)
         return unflatten_tangent(lin, x), RESULTS.promote(result)

@@ -20,15 +20,20 @@ class AbstractLinearSolver(eqx.Module):
 
     @abc.abstractmethod
     def solve(
-        self, lin: Linearization, damping: Tangent | None
+        self,
+        lin: Linearization,
+        damping: Tangent | None,
+        rhs: Tangent | None = None,
     ) -> tuple[Tangent, RESULTS]:
-        """Solve `(JᵀJ + diag(damping)) δ = −Jᵀr`.
+        """Solve `(JᵀJ + diag(damping)) δ = −Jᵀr` (or `= rhs`).
 
         **Arguments:**
 
         - `lin`: the whitened Gauss-Newton model.
         - `damping`: a tangent dict `{group: (N_g, d_g)}` of non-negative values
             added to the diagonal (Levenberg-Marquardt), or `None` (Gauss-Newton).
+        - `rhs`: a tangent dict to use as right-hand side instead of `−Jᵀr`
+            (the implicit adjoint and preconditioners use this), or `None`.
 
         **Returns:**
 

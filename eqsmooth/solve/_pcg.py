@@ -87,7 +87,10 @@ class PCG(AbstractLinearSolver):
             raise ValueError(f"PCG needs max_steps >= 1, got {self.max_steps}")
 
     def solve(
-        self, lin: Linearization, damping: Tangent | None
+        self,
+        lin: Linearization,
+        damping: Tangent | None,
+        rhs: Tangent | None = None,
     ) -> tuple[Tangent, RESULTS]:
         damping = _damped(lin, damping)
         structure = _structure(lin)
@@ -106,7 +109,10 @@ class PCG(AbstractLinearSolver):
         psd = lx.positive_semidefinite_tag
         operator = lx.FunctionLinearOperator(matvec, structure, psd)
         preconditioner = lx.FunctionLinearOperator(precondition, structure, psd)
-        rhs = {k: -v for k, v in gradient(lin).items()}
+        if rhs is None:
+            rhs = {k: -v for k, v in gradient(lin).items()}
+        else:
+            rhs = {g.name: rhs[g.name].astype(lin.dtype) for g in lin.layout}
         solver = lx.CG(rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
         sol = lx.linear_solve(
             operator,
