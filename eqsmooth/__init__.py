@@ -34,12 +34,15 @@ from .solve import (
     DenseCholesky as DenseCholesky,
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
+    ImplicitAdjoint as ImplicitAdjoint,
     least_squares as least_squares,
     LevenbergMarquardt as LevenbergMarquardt,
     marginal_covariances as marginal_covariances,
     PCG as PCG,
     RESULTS as RESULTS,
     Solution as Solution,
+    TruncatedAdjoint as TruncatedAdjoint,
+    UnrolledAdjoint as UnrolledAdjoint,
 )
 
 

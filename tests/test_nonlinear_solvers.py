@@ -139,7 +139,9 @@ def test_unrolled_gradient_matches_finite_differences():
 
     def loss(p):
         g = eqx.tree_at(lambda g: g.factors[0].params, graph, p)
-        x = eqs.least_squares(g, {"x": truth}, solver, unroll=True).value["x"]
+        x = eqs.least_squares(
+            g, {"x": truth}, solver, adjoint=eqs.UnrolledAdjoint()
+        ).value["x"]
         return jnp.sum((x - truth) ** 2)
 
     p = jnp.asarray(0.7)

@@ -1,5 +1,11 @@
 """Linearisation, linear solvers and nonlinear least-squares solvers."""
 
+from ._adjoint import (
+    AbstractAdjoint as AbstractAdjoint,
+    ImplicitAdjoint as ImplicitAdjoint,
+    TruncatedAdjoint as TruncatedAdjoint,
+    UnrolledAdjoint as UnrolledAdjoint,
+)
 from ._block_tridiagonal import (
     BlockCyclicReduction as BlockCyclicReduction,
     BlockTridiagonal as BlockTridiagonal,
@@ -11,6 +17,7 @@ from ._gauss_newton import (
     GaussNewton as GaussNewton,
 )
 from ._least_squares import (
+    AbstractFixedStepSolver as AbstractFixedStepSolver,
     AbstractLeastSquaresSolver as AbstractLeastSquaresSolver,
     least_squares as least_squares,
     LeastSquaresState as LeastSquaresState,

@@ -1,6 +1,7 @@
 import equinox as eqx
 
 from ._least_squares import (
+    AbstractFixedStepSolver,
     AbstractLeastSquaresSolver,
     gauss_newton_step,
     initial_state,
@@ -51,12 +52,13 @@ class GaussNewton(AbstractLeastSquaresSolver):
         return _terminate(state, max_steps, RESULTS.nonlinear_max_steps_reached)
 
 
-class FixedStepGaussNewton(AbstractLeastSquaresSolver):
+class FixedStepGaussNewton(AbstractFixedStepSolver):
     """Exactly `num_steps` Gauss-Newton steps (the paper's unrolled solver).
 
     Reaching `num_steps` is success; no tolerance stops it early, so the
-    computation (and its gradient under `unroll=True`) is the same for every
-    input. Used by the surrogate loss (start at ground truth, K steps).
+    computation (and its gradient under
+    [`eqsmooth.solve.UnrolledAdjoint`][]) is the same for every input. Used
+    by the surrogate loss (start at ground truth, K steps).
 
     **Arguments:**
 

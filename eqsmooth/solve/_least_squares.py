@@ -7,6 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ..factors import FactorGraph
+from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._linear_solver import AbstractLinearSolver
 from ._linearization import (
     apply_jacobian,
@@ -24,7 +25,11 @@ Values = dict[str, PyTree]
 
 
 class LeastSquaresState(eqx.Module):
-    """State shared by the nonlinear least-squares solvers."""
+    """State shared by the nonlinear least-squares solvers.
+
+    Invariant the adjoints rely on: `lin` is the linearisation at the current
+    values.
+    """
 
     lin: Linearization
     step: Int[Array, ""]
@@ -61,6 +66,29 @@ class AbstractLeastSquaresSolver(eqx.Module):
         self, state: LeastSquaresState, max_steps: int
     ) -> tuple[Bool[Array, ""], RESULTS]:
         """Whether to stop, and with which result."""
+
+    def iteration_limit(self, max_steps: int) -> int:
+        """The static iteration limit of a solve called with `max_steps`.
+
+        `max_steps` itself, except for an
+        [`eqsmooth.solve.AbstractFixedStepSolver`][], which always runs its
+        `num_steps`. [`eqsmooth.solve.UnrolledAdjoint`][] scans this many
+        iterations.
+        """
+        if isinstance(self, AbstractFixedStepSolver):
+            return self.num_steps
+        return max_steps
+
+
+class AbstractFixedStepSolver(AbstractLeastSquaresSolver):
+    """A solver that always runs exactly `num_steps` iterations.
+
+    [`eqsmooth.solve.least_squares`][] ignores its `max_steps` argument for
+    these solvers (see
+    [`eqsmooth.solve.AbstractLeastSquaresSolver.iteration_limit`][]).
+    """
+
+    num_steps: eqx.AbstractVar[int]
 
 
 def _tree_where(pred, a, b):
@@ -143,7 +171,11 @@ def gauss_newton_step(
         nu=state.nu,
         done=converged | ~ok,
         result=result,
-        last_step_norm=jnp.sqrt(_sq_norm(delta)).astype(state.damping.dtype),
+        # Diagnostic only; stopped so that sqrt at a zero step never puts a
+        # NaN into masked iterations of an unrolled backward pass.
+        last_step_norm=lax.stop_gradient(
+            jnp.sqrt(_sq_norm(delta)).astype(state.damping.dtype)
+        ),
     )
     return values, state
 
@@ -154,7 +186,7 @@ def least_squares(
     solver: AbstractLeastSquaresSolver,
     *,
     max_steps: int = 100,
-    unroll: bool = False,
+    adjoint: AbstractAdjoint = ImplicitAdjoint(),
     throw: bool = True,
     verbose: bool = False,
 ) -> Solution:
@@ -168,9 +200,12 @@ def least_squares(
         `LevenbergMarquardt(PCG())`.
     - `max_steps`: iteration limit (ignored by `FixedStepGaussNewton`, which
         always runs its `num_steps`).
-    - `unroll`: run a `lax.scan` of `max_steps` masked iterations instead of a
-        `while_loop`, so that reverse-mode autodiff differentiates through the
-        iterations actually taken.
+    - `adjoint`: how reverse-mode autodiff differentiates the solve:
+        [`eqsmooth.solve.ImplicitAdjoint`][] (the default; implicit function
+        theorem at the solution), [`eqsmooth.solve.UnrolledAdjoint`][]
+        (through every iteration; the paper's K unrolled steps with
+        `FixedStepGaussNewton`) or [`eqsmooth.solve.TruncatedAdjoint`][]
+        (through the last few iterations). The forward result is the same.
     - `throw`: raise an `EquinoxRuntimeError` if the solve did not succeed;
         with `throw=False` read `Solution.result`.
     - `verbose`: print cost, damping and step norm at every iteration.
@@ -181,16 +216,23 @@ def least_squares(
         raise TypeError(
             f"solver must be an AbstractLeastSquaresSolver, got {type(solver).__name__}"
         )
-    return _least_squares(graph, values, solver, max_steps, unroll, throw, verbose)
+    if not isinstance(adjoint, AbstractAdjoint):
+        raise TypeError(
+            f"adjoint must be an AbstractAdjoint, got {type(adjoint).__name__}"
+        )
+    return _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose)
 
 
 @eqx.filter_jit
-def _least_squares(graph, values, solver, max_steps, unroll, throw, verbose):
-    max_steps = solver_max_steps(solver, max_steps)
-    state = solver.init(graph, values)
-    history = jnp.full((max_steps + 1,), state.lin.cost)
+def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose):
+    max_steps = solver.iteration_limit(max_steps)
 
-    def body(carry):
+    def init(graph, values):
+        state = solver.init(graph, values)
+        history = jnp.full((max_steps + 1,), state.lin.cost)
+        return values, state, history
+
+    def body(graph, carry):
         values, state, history = carry
         new_values, new_state = solver.step(graph, values, state)
         stop, result = solver.terminate(new_state, max_steps)
@@ -210,18 +252,9 @@ def _least_squares(graph, values, solver, max_steps, unroll, throw, verbose):
         _, state, _ = carry
         return ~state.done & (state.step < max_steps)
 
-    carry = (values, state, history)
-    if unroll:
-
-        def scan_body(carry, _):
-            new = body(carry)
-            keep = cond(carry)
-            return _tree_where(keep, new, carry), None
-
-        carry, _ = lax.scan(scan_body, carry, None, length=max_steps)
-    else:
-        carry = lax.while_loop(cond, body, carry)
-    values, state, history = carry
+    values, state, history = adjoint.apply(
+        init, body, cond, graph, values, solver.linear_solver, max_steps
+    )
     steps = state.step
     history = jnp.where(jnp.arange(max_steps + 1) <= steps, history, state.lin.cost)
     _, final_result = solver.terminate(state, max_steps)
@@ -238,14 +271,6 @@ def _least_squares(graph, values, solver, max_steps, unroll, throw, verbose):
     if throw:
         values = result.error_if(values, result != RESULTS.successful)
     return Solution(value=values, result=result, stats=stats, state=state)
-
-
-def solver_max_steps(solver, max_steps: int) -> int:
-    from ._gauss_newton import FixedStepGaussNewton
-
-    if isinstance(solver, FixedStepGaussNewton):
-        return solver.num_steps
-    return max_steps
 
 
 def marquardt_damping(lin: Linearization, lam, min_diag: float, max_diag: float):

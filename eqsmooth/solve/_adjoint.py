@@ -1,0 +1,349 @@
+"""How gradients flow through [`eqsmooth.solve.least_squares`][]: the adjoints.
+
+An adjoint decides how the iterations of a nonlinear solve are run, and
+therefore what reverse-mode autodiff differentiates:
+
+- [`eqsmooth.solve.UnrolledAdjoint`][]: a `lax.scan` over every iteration;
+    the exact derivative of what was computed.
+- [`eqsmooth.solve.TruncatedAdjoint`][]: only the last `k` iterations are
+    differentiated.
+- [`eqsmooth.solve.ImplicitAdjoint`][]: the implicit function theorem at the
+    solution, in tangent coordinates.
+
+The driver hands an adjoint three functions over the loop carry
+`(values, state, cost_history)`: `init(graph, values)`, `body(graph, carry)`
+and `cond(carry)`. The adjoints rely on one invariant of the solver states:
+`state.lin` is the linearisation at `values`.
+"""
+
+import abc
+from collections.abc import Callable
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, PyTree
+
+from ..factors import FactorGraph
+from ._linear_solver import AbstractLinearSolver
+from ._linearization import Linearization, linearize, retract_values, Tangent
+
+
+Values = dict[str, PyTree]
+Carry = tuple[Values, Any, Array]
+InitFn = Callable[[FactorGraph, Values], Carry]
+BodyFn = Callable[[FactorGraph, Carry], Carry]
+CondFn = Callable[[Carry], Bool[Array, ""]]
+
+
+def _tree_where(pred, a, b):
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def _stop(tree):
+    return jax.tree_util.tree_map(
+        lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, tree
+    )
+
+
+def _masked_scan(body: BodyFn, cond: CondFn, graph, carry: Carry, length: int):
+    """`length` iterations of `body`, each a no-op once `cond` is false."""
+
+    def scan_body(c, _):
+        return _tree_where(cond(c), body(graph, c), c), None
+
+    carry, _ = lax.scan(scan_body, carry, None, length=length)
+    return carry
+
+
+def _relinearize(graph: FactorGraph, carry: Carry) -> Carry:
+    values, state, history = carry
+    state = eqx.tree_at(lambda s: s.lin, state, linearize(graph, values))
+    return values, state, history
+
+
+class AbstractAdjoint(eqx.Module):
+    """How [`eqsmooth.solve.least_squares`][] is differentiated.
+
+    Pass an instance as `least_squares(..., adjoint=...)`. Every adjoint gives
+    the same forward result; they differ in what reverse-mode autodiff
+    computes and at which memory cost.
+    """
+
+    @abc.abstractmethod
+    def apply(
+        self,
+        init: InitFn,
+        body: BodyFn,
+        cond: CondFn,
+        graph: FactorGraph,
+        values: Values,
+        linear_solver: AbstractLinearSolver,
+        max_steps: int,
+    ) -> Carry:
+        """Run the solve and return the final carry `(values, state, history)`.
+
+        **Arguments:**
+
+        - `init`: `init(graph, values)` builds the initial carry.
+        - `body`: `body(graph, carry)` runs one iteration.
+        - `cond`: `cond(carry)` is false once the solver has stopped.
+        - `graph`, `values`: the problem and initial values.
+        - `linear_solver`: the solver's linear solver (for the implicit
+            adjoint's linear systems).
+        - `max_steps`: the static iteration limit.
+
+        **Returns:** the final carry.
+        """
+
+
+class UnrolledAdjoint(AbstractAdjoint):
+    """Differentiate through every iteration (a `lax.scan` of masked steps).
+
+    The loop always runs `max_steps` iterations of the solver's step; those
+    after the solver has stopped are masked out (computed, then discarded),
+    so prefer a small `max_steps` or
+    [`eqsmooth.solve.FixedStepGaussNewton`][], whose `num_steps` sets the
+    length. Reverse-mode autodiff then gives the exact derivative of what
+    was computed, including through the initial values. With
+    `FixedStepGaussNewton(num_steps=K)` started at the ground truth this is
+    the surrogate loss of Yi et al. (2021). Memory grows linearly with the
+    number of iterations. Forward mode (`jax.jvp`) works too.
+    """
+
+    def apply(self, init, body, cond, graph, values, linear_solver, max_steps):
+        return _masked_scan(body, cond, graph, init(graph, values), max_steps)
+
+
+class TruncatedAdjoint(AbstractAdjoint):
+    """Differentiate through the last `num_steps` iterations only.
+
+    The earlier iterations run in a `while_loop` with gradients stopped; the
+    last `num_steps` iterations taken by the solver are differentiated (their
+    linearisations use the live graph), so memory is that of `num_steps`
+    iterations. When the solver stops early (convergence), the last
+    iterations are recomputed from a ring buffer of the loop states, so the
+    forward result is the same as with any other adjoint. If the solve takes
+    at most `num_steps` iterations the gradient equals that of
+    [`eqsmooth.solve.UnrolledAdjoint`][], gradients with respect to the
+    initial values included; otherwise those are zero.
+
+    `num_steps=1` at a converged solution is the "one Gauss-Newton step from
+    the stopped solution" approximation of the implicit gradient.
+
+    **Arguments:**
+
+    - `num_steps`: `k >= 1`, the number of differentiated iterations.
+    """
+
+    num_steps: int = eqx.field(static=True, default=1)
+
+    def __check_init__(self):
+        if not isinstance(self.num_steps, int) or self.num_steps < 1:
+            raise ValueError(
+                "TruncatedAdjoint.num_steps must be an int >= 1, got "
+                f"{self.num_steps!r}"
+            )
+
+    def apply(self, init, body, cond, graph, values, linear_solver, max_steps):
+        k = self.num_steps
+        carry0 = init(graph, values)
+        free = max_steps - k
+        if free <= 0:
+            return _masked_scan(body, cond, graph, carry0, max_steps)
+        stopped_graph = _stop(graph)
+        start0 = _stop(carry0)
+        # A ring buffer of the last k (values, state) pairs, to restart from
+        # k iterations before the end when the solver stops early.
+        ring0 = jax.tree_util.tree_map(
+            lambda x: jnp.broadcast_to(x, (k,) + jnp.shape(x)), start0[:2]
+        )
+
+        def cond1(loop):
+            carry, _ = loop
+            return cond(carry) & (carry[1].step < free)
+
+        def body1(loop):
+            carry, ring = loop
+            slot = carry[1].step % k
+            ring = jax.tree_util.tree_map(
+                lambda r, x: r.at[slot].set(x), ring, carry[:2]
+            )
+            return body(stopped_graph, carry), ring
+
+        carry1, ring = lax.while_loop(cond1, body1, (start0, ring0))
+        n1 = carry1[1].step
+        stopped = ~cond(carry1)
+        restart = jnp.where(stopped, jnp.maximum(n1 - k, 0), n1)
+        from_ring = jax.tree_util.tree_map(lambda r: r[(n1 - k) % k], ring)
+        resumed = _tree_where(stopped, from_ring + (carry1[2],), carry1)
+        start = _tree_where(restart == 0, carry0, _stop(resumed))
+        start = _relinearize(graph, start)
+        return _masked_scan(body, cond, graph, start, k)
+
+
+_HESSIANS = ("exact", "gauss_newton")
+
+
+class ImplicitAdjoint(AbstractAdjoint):
+    """Differentiate the optimality condition at the solution (implicit function thm).
+
+    The forward pass is the solver's ordinary `while_loop`, run with gradients
+    stopped. Write the solution as `x = x* ⊕ δ(θ)` with `x*` the (stopped)
+    solution and `θ` every inexact array of the graph. The tangent gradient
+    `g(δ, θ) = ∇_δ C(x* ⊕ δ; θ)` of the cost vanishes at `δ = 0`, so
+    `dδ/dθ = −H⁻¹ ∂g/∂θ` with `H = ∇²_δ C` at `δ = 0`. Working in tangent
+    coordinates at `x*` matters: the same argument in the ambient coordinates
+    of Lie groups gives wrong gradients.
+
+    The backward pass (an `eqx.filter_custom_vjp`, so the forward pass costs
+    nothing extra) solves `H w = x̄` for the incoming cotangent and returns
+    `−(∂g/∂θ)ᵀ w`:
+
+    - `hessian="exact"`: `H` is the exact Hessian of the (robust) cost,
+        applied matrix-free as a forward-over-reverse product; the system is
+        solved by conjugate gradients preconditioned with the solver's own
+        structured solve of `JᵀJ`. Matches the derivative of the converged
+        minimiser for nonlinear problems with nonzero residuals. Each CG
+        iteration costs one Hessian product and one structured solve; for
+        small residuals a few iterations suffice.
+    - `hessian="gauss_newton"`: `H ≈ JᵀJ`, one structured solve. Exact for
+        linear problems and zero residuals, an approximation otherwise.
+
+    The gradient is exact only at a stationary point: run the solver to
+    convergence (not [`eqsmooth.solve.FixedStepGaussNewton`][], whose result
+    is not a minimiser). Gradients with respect to the initial values are
+    zero, and so are those of `Solution.stats` and `Solution.state`. Only
+    reverse mode is supported (`jax.grad`, `jax.vjp`), not `jax.jvp`.
+
+    **Arguments:**
+
+    - `hessian`: `"exact"` or `"gauss_newton"`.
+    - `rtol`, `atol`: CG stops when `‖H w − x̄‖₂ ≤ rtol ‖x̄‖₂ + atol` (`rtol`
+        is raised to `10 ε` of the dtype if smaller).
+    - `max_steps`: CG iteration limit; the last iterate is used if it is
+        reached.
+    """
+
+    hessian: Literal["exact", "gauss_newton"] = eqx.field(static=True, default="exact")
+    rtol: float = eqx.field(static=True, default=1e-10)
+    atol: float = eqx.field(static=True, default=0.0)
+    max_steps: int = eqx.field(static=True, default=50)
+
+    def __check_init__(self):
+        if self.hessian not in _HESSIANS:
+            raise ValueError(
+                f"ImplicitAdjoint.hessian must be one of {_HESSIANS}, got "
+                f"{self.hessian!r}"
+            )
+        if self.rtol < 0 or self.atol < 0:
+            raise ValueError(
+                f"ImplicitAdjoint needs rtol >= 0 and atol >= 0, got rtol={self.rtol}, "
+                f"atol={self.atol}"
+            )
+        if self.max_steps < 1:
+            raise ValueError(
+                f"ImplicitAdjoint.max_steps must be >= 1, got {self.max_steps}"
+            )
+
+    def apply(self, init, body, cond, graph, values, linear_solver, max_steps):
+        stopped_graph = _stop(graph)
+        carry = init(stopped_graph, _stop(values))
+        carry = lax.while_loop(cond, lambda c: body(stopped_graph, c), carry)
+        x_star, state, history = _stop(carry)
+        delta = _implicit_delta(graph, x_star, state.lin, self, linear_solver)
+        return retract_values(x_star, delta), state, history
+
+
+def _zeros(lin: Linearization) -> Tangent:
+    return {g.name: jnp.zeros((g.count, g.dim), lin.dtype) for g in lin.layout}
+
+
+def _dot(a: Tangent, b: Tangent):
+    return sum(jnp.sum(a[k] * b[k]) for k in a)
+
+
+def _axpy(alpha, x: Tangent, y: Tangent) -> Tangent:
+    return {k: alpha * x[k] + y[k] for k in x}
+
+
+def _tangent_gradient(graph: FactorGraph, x_star: Values, delta: Tangent) -> Tangent:
+    """`∇_δ C(x* ⊕ δ)`: gradient of the true (robust) cost in tangent coordinates."""
+    return jax.grad(lambda d: graph.cost(retract_values(x_star, d)))(delta)
+
+
+def _pcg(matvec, precondition, b: Tangent, rtol, atol, max_steps: int) -> Tangent:
+    """Preconditioned CG (Polak-Ribière form, tolerant of a slightly varying
+    preconditioner such as an inner iterative solve).
+    """
+    x = {k: jnp.zeros_like(v) for k, v in b.items()}
+    z = precondition(b)
+    rz = _dot(b, z)
+    tol = rtol * jnp.sqrt(_dot(b, b)) + atol
+
+    def keep_going(loop):
+        _, r, _, _, rz, i = loop
+        return (i < max_steps) & (jnp.sqrt(_dot(r, r)) > tol) & (rz > 0)
+
+    def step(loop):
+        x, r, z, p, rz, i = loop
+        hp = matvec(p)
+        php = _dot(p, hp)
+        ok = php > 0  # negative curvature: not at a minimum, stop here
+        alpha = jnp.where(ok, rz / jnp.where(ok, php, 1.0), 0.0)
+        x = _axpy(alpha, p, x)
+        r_new = _axpy(-alpha, hp, r)
+        z_new = precondition(r_new)
+        rz_new = _dot(r_new, z_new)
+        beta = _dot(z_new, {k: r_new[k] - r[k] for k in r}) / rz
+        p = _axpy(beta, p, z_new)
+        rz_new = jnp.where(ok, rz_new, 0.0)
+        return x, r_new, z_new, p, rz_new, i + 1
+
+    x, *_ = lax.while_loop(keep_going, step, (x, b, z, z, rz, jnp.array(0)))
+    return x
+
+
+@eqx.filter_custom_vjp
+def _implicit_delta(graph, x_star, lin, adjoint, linear_solver):
+    del graph, x_star, adjoint, linear_solver
+    return _zeros(lin)
+
+
+@_implicit_delta.def_fwd
+def _implicit_delta_fwd(perturbed, graph, x_star, lin, adjoint, linear_solver):
+    del perturbed, graph, x_star, adjoint, linear_solver
+    return _zeros(lin), None
+
+
+@_implicit_delta.def_bwd
+def _implicit_delta_bwd(
+    residuals, grad_obj, perturbed, graph, x_star, lin, adjoint, linear_solver
+):
+    del residuals
+    zero = _zeros(lin)
+    v = {k: zero[k] if grad_obj[k] is None else grad_obj[k] for k in zero}
+
+    def structured_solve(rhs):
+        w, _ = linear_solver.solve(lin, None, rhs=rhs)
+        return w
+
+    if adjoint.hessian == "gauss_newton":
+        w = structured_solve(v)
+    else:
+        _, hvp = jax.linearize(lambda d: _tangent_gradient(graph, x_star, d), zero)
+        eps = float(np.finfo(lin.dtype).eps)
+        rtol = max(adjoint.rtol, 10 * eps)
+        w = _pcg(hvp, structured_solve, v, rtol, adjoint.atol, adjoint.max_steps)
+    neg_w = {k: -w[k] for k in w}
+    _, vjp_fn = eqx.filter_vjp(lambda g: _tangent_gradient(g, x_star, zero), graph)
+    (grad_graph,) = vjp_fn(neg_w)
+    return jax.tree_util.tree_map(
+        lambda g, p: g if p else None,
+        grad_graph,
+        perturbed,
+        is_leaf=lambda x: x is None,
+    )
