@@ -7,7 +7,9 @@ The most used names are re-exported here; the subpackages are
 
 from . import (
     factors as factors,
+    filters as filters,
     io as io,
+    learn as learn,
     lie as lie,
     manifold as manifold,
     solve as solve,
@@ -26,6 +28,14 @@ from .factors import (
     shared_field as shared_field,
     SqrtInformationNoise as SqrtInformationNoise,
     Var as Var,
+)
+from .filters import ekf as ekf, rts_smoother as rts_smoother
+from .learn import (
+    joint_nll as joint_nll,
+    make_optimizer as make_optimizer,
+    manifold_mse as manifold_mse,
+    surrogate_loss as surrogate_loss,
+    train as train,
 )
 from .lie import SE2 as SE2, SE3 as SE3, SO2 as SO2, SO3 as SO3
 from .manifold import local as local, retract as retract

@@ -1,0 +1,13 @@
+"""Differentiable extended Kalman filter and RTS smoother built from factors.
+
+The baseline of Yi et al. (IROS 2021): the same transition and measurement
+factor stacks that define a smoothing graph define the filter.
+"""
+
+from ._ekf import ekf as ekf, EKFSolution as EKFSolution
+from ._losses import (
+    ekf_innovation_nll as ekf_innovation_nll,
+    ekf_marginal_nll as ekf_marginal_nll,
+    ekf_mse_loss as ekf_mse_loss,
+)
+from ._rts import rts_smoother as rts_smoother, RTSSolution as RTSSolution

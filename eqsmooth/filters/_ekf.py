@@ -1,0 +1,399 @@
+"""A differentiable extended Kalman filter on manifolds, built from factors."""
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PyTree
+
+from ..factors import AbstractFactor
+from ..manifold import local, retract, tangent_dim
+from ._rows import (
+    check_gaussian,
+    check_rows,
+    gather_rows,
+    per_row_fields,
+    row_whitening,
+    with_rows,
+)
+
+
+class EKFSolution(eqx.Module):
+    """What [`eqsmooth.filters.ekf`][] returns.
+
+    Covariances are in the tangent coordinates of the corresponding mean
+    (right perturbations, `x ⊕ δ` with `δ ~ N(0, P)`). Innovations are
+    *whitened*: `y = −R r(x̂)` with `R` the measurement's square-root
+    information, so for a Gaussian measurement `y ~ N(0, S)`.
+
+    **Fields:**
+
+    - `mean`: filtered means `x_{t|t}`, the state pytree with a leading axis `T`.
+    - `covariance`: filtered covariances `P_{t|t}`, shape `(T, d, d)`.
+    - `predicted_mean`: `x_{t|t−1}` (with `x_{0|−1}` the initial mean), leading
+        axis `T`.
+    - `predicted_covariance`: `P_{t|t−1}`, shape `(T, d, d)`.
+    - `transition_jacobian`: `F_t`, shape `(T−1, d, d)`, mapping the tangent at
+        `x_{t|t}` to the tangent at `x_{t+1|t}` (used by
+        [`eqsmooth.filters.rts_smoother`][]).
+    - `innovations`: one array `(n_j, m_j)` per measurement stack, aligned with
+        that stack's rows.
+    - `innovation_covariances`: one array `(n_j, m_j, m_j)` per measurement
+        stack (`S = H P Hᵀ + I` in whitened units).
+    - `step_log_likelihood`: `log p(z_t | z_{<t})` for every time step, `(T,)`;
+        zero at steps without measurements.
+    - `log_likelihood`: their sum, the marginal log-likelihood `log p(z_{0:T−1})`
+        of the measurements under the linearised model.
+    """
+
+    mean: PyTree
+    covariance: Float[Array, "T d d"]
+    predicted_mean: PyTree
+    predicted_covariance: Float[Array, "T d d"]
+    transition_jacobian: Float[Array, "Tm1 d d"]
+    innovations: tuple[Float[Array, "_n _m"], ...]
+    innovation_covariances: tuple[Float[Array, "_n _m _m"], ...]
+    step_log_likelihood: Float[Array, " T"]
+    log_likelihood: Float[Array, ""]
+
+
+def _value_and_jac(fn, dim: int, dtype):
+    # One primal evaluation, then the identity pushed through the JVP
+    # (forward mode, as the smoother's linearisation does).
+    zero = jnp.zeros((dim,), dtype=dtype)
+    r, jvp = jax.linearize(fn, zero)
+    J = jax.vmap(jvp, in_axes=1, out_axes=1)(jnp.eye(dim, dtype=dtype))
+    return r, J
+
+
+def _sym(P):
+    return 0.5 * (P + P.T)
+
+
+def _chain_order(transition: AbstractFactor) -> tuple[str, np.ndarray]:
+    name = type(transition).__name__
+    if len(transition.variables) != 2:
+        raise ValueError(
+            f"ekf: the transition factor {name} must touch two variables "
+            f"(x_t, x_t+1); it touches {len(transition.variables)}"
+        )
+    va, vb = transition.variables
+    if va.group != vb.group:
+        raise ValueError(
+            f"ekf: the transition factor {name} links groups {va.group!r} and "
+            f"{vb.group!r}; both variables must be in one group"
+        )
+    ia, ib = va.ids, vb.ids
+    n = ia.shape[0]
+    if n == 0:
+        raise ValueError(f"ekf: the transition factor {name} has no rows")
+    perm = np.argsort(ia, kind="stable")
+    if not (np.array_equal(ia[perm], np.arange(n)) and np.array_equal(ib, ia + 1)):
+        raise ValueError(
+            f"ekf: the transition factor {name} must form a chain: each row touches "
+            f"({va.group}[t], {va.group}[t+1]) and every t = 0..{n - 1} appears "
+            f"exactly once; got rows {ia[:4].tolist()} -> {ib[:4].tolist()}"
+            + (" ..." if n > 4 else "")
+        )
+    return va.group, perm
+
+
+def _layers(ids: np.ndarray, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-row layer (occurrence number of its time step), table and mask.
+
+    `table[t, k]` is the row holding the k-th measurement of time `t` (0 where
+    there is none) and `mask[t, k]` whether it exists.
+    """
+    n = ids.shape[0]
+    order = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order]
+    first = np.searchsorted(sorted_ids, sorted_ids, side="left")
+    layer = np.empty(n, dtype=np.int64)
+    layer[order] = np.arange(n) - first
+    L = int(layer.max()) + 1
+    table = np.zeros((T, L), dtype=np.int64)
+    mask = np.zeros((T, L), dtype=bool)
+    table[ids, layer] = np.arange(n)
+    mask[ids, layer] = True
+    return layer, table, mask
+
+
+def _row_dim(factor: AbstractFactor, rows, *states) -> int:
+    row0 = jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a, rows)
+
+    def fn(rows0, *xs):
+        return with_rows(factor, rows0).residual(*xs)
+
+    out = eqx.filter_eval_shape(fn, row0, *states)
+    if len(out.shape) != 1:
+        raise ValueError(
+            f"{type(factor).__name__}.residual must return a 1-D array, got shape "
+            f"{out.shape}"
+        )
+    return out.shape[0]
+
+
+def ekf(
+    transition: AbstractFactor,
+    measurements: Sequence[AbstractFactor],
+    initial_mean: PyTree,
+    initial_covariance: Float[Array, "d d"],
+    *,
+    prediction_steps: int = 1,
+    reset_covariance: bool = False,
+) -> EKFSolution:
+    """Run an extended Kalman filter defined by the smoother's own factors.
+
+    The same factor stacks that make up a smoothing graph define the filter:
+    no second model description. Time runs over the rows of `transition`:
+    `T = transition.num_rows + 1` states.
+
+    *Prediction.* With the whitened transition residual `r_w(a, b) = W r(a, b)`
+    (`r_w ~ N(0, I)`), the predicted mean `b̂` solves `r(x_{t|t}, b) = 0` by
+    `prediction_steps` Newton steps in the tangent of `b`, started at
+    `b = x_{t|t}`. One step is exact for residuals of the form `b ⊖ f(a)`,
+    `f(a) ⊖ b` and the [`eqsmooth.BetweenFactor`][] residual, on vector spaces
+    and Lie groups alike. With `A = ∂r_w/∂δa` and `B = ∂r_w/∂δb` at
+    `(x_{t|t}, b̂)` (forward-mode autodiff through
+    [`eqsmooth.manifold.retract`][]), `F = −B⁻¹A`, `Q = B⁻¹B⁻ᵀ` and
+    `P_{t+1|t} = F P Fᵀ + Q`.
+
+    *Update.* For each measurement row at time `t` (stacks in the given order,
+    rows of one stack at the same `t` in row order), with the whitened
+    residual `r_w(x) = R r(x) ~ N(0, I)` and `H = ∂r_w/∂δ` at the prediction
+    `x̂`: innovation `y = −r_w(x̂)`, `S = H P Hᵀ + I`, `K = P Hᵀ S⁻¹`,
+    `x = x̂ ⊕ K y` and the Joseph form `P = (I − KH) P (I − KH)ᵀ + K Kᵀ`.
+    The log-likelihood adds `log N(y; 0, S) + log|det R|`, which is the density
+    of the measurement itself when `r = h(x) − z`.
+
+    Everything is a `lax.scan`, so `jax.jit`, `jax.vmap` (batches of
+    sequences) and `jax.grad` (with respect to any array leaf of the factors,
+    including per-row noise parameters, and to the initial belief) apply.
+
+    **Arguments:**
+
+    - `transition`: a factor stack whose rows touch `(x_t, x_{t+1})` of one
+        variable group, one row per `t = 0..T−2` (in any row order). Its
+        residual dimension must equal the tangent dimension `d` of the state.
+    - `measurements`: factor stacks whose rows each touch one `x_t` of the same
+        group; they may cover any subset of time steps (missing measurements)
+        and several rows may share a time step.
+    - `initial_mean`: the prior mean of `x_0`, one state (pytree of arrays and
+        Lie groups such as [`eqsmooth.SE2`][], no leading time axis).
+    - `initial_covariance`: its covariance `(d, d)` in tangent coordinates.
+    - `prediction_steps`: Newton steps solving `r(a, b) = 0` for the predicted
+        mean (at least 1).
+    - `reset_covariance`: after each update, move the covariance from the
+        tangent at `x̂` to the tangent at the updated mean `x = x̂ ⊕ v` by the
+        Jacobian `J` of `δ ↦ (x̂ ⊕ (v + δ)) ⊖ x`, i.e. `P ← J P Jᵀ` (the
+        "covariance reset" of multiplicative/invariant EKFs). It has no effect
+        on vector-space states. Off by default: the textbook EKF.
+
+    **Returns:** an [`eqsmooth.filters.EKFSolution`][].
+
+    Raises `ValueError`/`TypeError` naming the factor if the transition is not
+    a chain `t → t+1`, a measurement touches another group or several
+    variables, a time index is out of range, or a noise model is robust.
+    """
+    if not isinstance(transition, AbstractFactor):
+        raise TypeError(
+            f"ekf: transition must be an AbstractFactor, got "
+            f"{type(transition).__name__}"
+        )
+    if isinstance(measurements, AbstractFactor):
+        measurements = (measurements,)
+    measurements = tuple(measurements)
+    for f in measurements:
+        if not isinstance(f, AbstractFactor):
+            raise TypeError(
+                f"ekf: measurements must be AbstractFactor stacks, got "
+                f"{type(f).__name__}"
+            )
+    if not isinstance(prediction_steps, int) or prediction_steps < 1:
+        raise ValueError(
+            f"ekf: prediction_steps must be an int >= 1, got {prediction_steps!r}"
+        )
+    group, _ = _chain_order(transition)
+    T = transition.num_rows + 1
+    for f in measurements:
+        name = type(f).__name__
+        if len(f.variables) != 1:
+            raise ValueError(
+                f"ekf: measurement factor {name} must touch one variable (x_t); it "
+                f"touches {len(f.variables)}"
+            )
+        var = f.variables[0]
+        if var.group != group:
+            raise ValueError(
+                f"ekf: measurement factor {name} touches group {var.group!r} but the "
+                f"transition factor {type(transition).__name__} is on group "
+                f"{group!r}"
+            )
+        if len(var) and var.ids.max() >= T:
+            raise ValueError(
+                f"ekf: measurement factor {name} has time indices up to "
+                f"{int(var.ids.max())}, but the transition defines only {T} states"
+            )
+    for f in (transition,) + measurements:
+        check_rows(f)
+        check_gaussian(f.noise, f"ekf: factor {type(f).__name__}")
+    d = tangent_dim(initial_mean)
+    initial_covariance = jnp.asarray(initial_covariance)
+    if initial_covariance.shape != (d, d):
+        raise ValueError(
+            f"ekf: initial_covariance has shape {initial_covariance.shape}; the state "
+            f"has tangent dimension {d}, so it must be ({d}, {d})"
+        )
+    return _ekf(
+        transition,
+        tuple(f for f in measurements if f.num_rows > 0),
+        initial_mean,
+        initial_covariance,
+        prediction_steps,
+        reset_covariance,
+    )
+
+
+@eqx.filter_jit
+def _ekf(transition, measurements, mean0, cov0, prediction_steps, reset_covariance):
+    dtype = cov0.dtype
+    d = cov0.shape[0]
+    T = transition.num_rows + 1
+    _, perm = _chain_order(transition)
+
+    # Transition rows in time order, padded with one dummy row so that every
+    # scan step is "update at t, then predict t+1" (the last prediction is
+    # discarded).
+    trans_rows = per_row_fields(transition)
+    m_trans = _row_dim(transition, trans_rows, mean0, mean0)
+    tname = type(transition).__name__
+    if m_trans != d:
+        raise ValueError(
+            f"ekf: the transition factor {tname} has residual dimension {m_trans} "
+            f"but the state has tangent dimension {d}; the residual must determine "
+            "x_t+1 given x_t (a square Jacobian)"
+        )
+    W_all, _ = row_whitening(transition, d, dtype)
+    order = np.concatenate([perm, perm[-1:]])
+    trans_dyn, trans_static = eqx.partition(
+        gather_rows(trans_rows, order), eqx.is_array
+    )
+    trans_xs = (trans_dyn, W_all[order])
+
+    meas_static, meas_xs, meas_layout = [], [], []
+    for f in measurements:
+        rows = per_row_fields(f)
+        m = _row_dim(f, rows, mean0)
+        R_all, logdet_all = row_whitening(f, m, dtype)
+        ids = f.variables[0].ids
+        layer, table, mask = _layers(ids, T)
+        dyn, static = eqx.partition(gather_rows(rows, table), eqx.is_array)
+        meas_static.append(static)
+        meas_xs.append((dyn, R_all[table], logdet_all[table], jnp.asarray(mask)))
+        meas_layout.append((ids, layer, m))
+
+    def update(mean, cov, factor, R, logdet_R, present):
+        def r_w(delta):
+            return R @ factor.residual(retract(mean, delta))
+
+        r, H = _value_and_jac(r_w, d, dtype)
+        m = r.shape[0]
+        y = -r
+        PHt = cov @ H.T
+        S = _sym(H @ PHt + jnp.eye(m, dtype=dtype))
+        L = jnp.linalg.cholesky(S)
+        K = jax.scipy.linalg.cho_solve((L, True), PHt.T).T
+        v = K @ y
+        new_mean = retract(mean, v)
+        IKH = jnp.eye(d, dtype=dtype) - K @ H
+        new_cov = IKH @ cov @ IKH.T + K @ K.T
+        if reset_covariance:
+
+            def moved(delta):
+                return local(new_mean, retract(mean, v + delta))
+
+            _, J = _value_and_jac(moved, d, dtype)
+            new_cov = J @ new_cov @ J.T
+        new_cov = _sym(new_cov)
+        alpha = jax.scipy.linalg.solve_triangular(L, y, lower=True)
+        ll = (
+            -0.5 * jnp.dot(alpha, alpha)
+            - jnp.sum(jnp.log(jnp.diagonal(L)))
+            - 0.5 * m * math.log(2 * math.pi)
+            + logdet_R
+        )
+        mean = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(present, a, b), new_mean, mean
+        )
+        cov = jnp.where(present, new_cov, cov)
+        y = jnp.where(present, y, jnp.zeros_like(y))
+        S = jnp.where(present, S, jnp.eye(m, dtype=dtype))
+        ll = jnp.where(present, ll, jnp.zeros_like(ll))
+        return mean, cov, (y, S, ll)
+
+    def predict(mean, cov, factor, W):
+        def r_w(a, b):
+            return W @ factor.residual(a, b)
+
+        b = mean
+        for _ in range(prediction_steps):
+            r, B = _value_and_jac(lambda db: r_w(mean, retract(b, db)), d, dtype)
+            b = retract(b, -jnp.linalg.solve(B, r))
+
+        def joint(delta):
+            return r_w(retract(mean, delta[:d]), retract(b, delta[d:]))
+
+        _, J = _value_and_jac(joint, 2 * d, dtype)
+        A, B = J[:, :d], J[:, d:]
+        Binv = jnp.linalg.solve(B, jnp.eye(d, dtype=dtype))
+        F = -Binv @ A
+        P = _sym(F @ cov @ F.T + Binv @ Binv.T)
+        return b, P, F
+
+    # Updates are recorded stack by stack, then layer by layer.
+    layer_counts = [int(x[3].shape[1]) for x in meas_xs]
+
+    def body(carry, xs):
+        mean, cov = carry
+        (t_dyn, W), m_xs = xs
+        pred_mean, pred_cov = mean, cov
+        records = []
+        for j, (static, (dyn, R, logdet_R, mask)) in enumerate(zip(meas_static, m_xs)):
+            for k in range(layer_counts[j]):
+                rows_k = jax.tree_util.tree_map(lambda a: a[k], dyn)
+                factor = with_rows(measurements[j], eqx.combine(rows_k, static))
+                mean, cov, rec = update(mean, cov, factor, R[k], logdet_R[k], mask[k])
+                records.append(rec)
+        tfactor = with_rows(transition, eqx.combine(t_dyn, trans_static))
+        next_mean, next_cov, F = predict(mean, cov, tfactor, W)
+        return (next_mean, next_cov), (pred_mean, pred_cov, mean, cov, F, records)
+
+    _, outs = lax.scan(body, (mean0, cov0), (trans_xs, tuple(meas_xs)))
+    pred_mean, pred_cov, mean, cov, F, records = outs
+
+    innovations, innovation_covs = [], []
+    step_ll = jnp.zeros((T,), dtype=dtype)
+    start = 0
+    for j, (ids, layer, m) in enumerate(meas_layout):
+        ys = jnp.stack([records[start + k][0] for k in range(layer_counts[j])], 1)
+        Ss = jnp.stack([records[start + k][1] for k in range(layer_counts[j])], 1)
+        for k in range(layer_counts[j]):
+            step_ll = step_ll + records[start + k][2]
+        start += layer_counts[j]
+        innovations.append(ys[ids, layer])
+        innovation_covs.append(Ss[ids, layer])
+    return EKFSolution(
+        mean=mean,
+        covariance=cov,
+        predicted_mean=pred_mean,
+        predicted_covariance=pred_cov,
+        transition_jacobian=F[:-1],
+        innovations=tuple(innovations),
+        innovation_covariances=tuple(innovation_covs),
+        step_log_likelihood=step_ll,
+        log_likelihood=jnp.sum(step_ll),
+    )

@@ -1,0 +1,93 @@
+"""Row access to stacked factors for sequential (filtering) evaluation.
+
+The smoother evaluates a factor stack with `vmap` over its rows; a filter
+needs the rows one time step at a time inside a `lax.scan`. These helpers
+split a stack into its per-row leaves (scanned over) and the rest (closed
+over), rebuild a one-row factor inside the scan, and turn the stack's noise
+model into one square-root information matrix per row.
+"""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PyTree
+
+from ..factors import AbstractFactor, AbstractNoiseModel, CauchyNoise, HuberNoise
+from ..factors._factor import _SHARED, check_row_leaves
+
+
+def per_row_fields(factor: AbstractFactor) -> dict[str, PyTree]:
+    """The fields of `factor` whose array leaves carry one entry per row."""
+    out = {}
+    for f in dataclasses.fields(factor):
+        if (
+            f.metadata.get("static", False)
+            or f.name in ("variables", "noise")
+            or f.metadata.get(_SHARED, False)
+        ):
+            continue
+        out[f.name] = getattr(factor, f.name)
+    return out
+
+
+def gather_rows(rows: dict[str, PyTree], index: np.ndarray) -> dict[str, PyTree]:
+    """Index the leading (row) axis of every array leaf with a static `index`."""
+    return jax.tree_util.tree_map(
+        lambda a: jnp.asarray(a)[index] if eqx.is_array(a) else a, rows
+    )
+
+
+def with_rows(factor: AbstractFactor, rows: dict[str, PyTree]) -> AbstractFactor:
+    """A copy of `factor` whose per-row fields are replaced by `rows`.
+
+    Built without `__init__` (as the smoother's vmap prefix is), so that the
+    one-row copy inside a scan skips the stack's shape checks.
+    """
+    new = object.__new__(type(factor))
+    for f in dataclasses.fields(factor):
+        value = rows[f.name] if f.name in rows else getattr(factor, f.name)
+        object.__setattr__(new, f.name, value)
+    return new
+
+
+def check_gaussian(noise: AbstractNoiseModel, where: str) -> None:
+    """Raise a `TypeError` if `noise` is a robust (non-Gaussian) model."""
+    robust = isinstance(noise, (HuberNoise, CauchyNoise))
+    if not robust:
+        # Probe user-defined models: a Gaussian model has rho(s) = s. Skipped
+        # when the noise parameters are traced (the value is then unknown).
+        s = jnp.asarray([0.25, 4.0, 100.0])
+        value, _ = noise.rho(s)
+        if not isinstance(value, jax.core.Tracer):
+            robust = not np.allclose(np.asarray(value), np.asarray(s))
+    if robust:
+        raise TypeError(
+            f"{where}: noise model {type(noise).__name__} is robust (non-Gaussian); "
+            "a Kalman filter needs Gaussian noise (IsotropicNoise, DiagonalNoise or "
+            "SqrtInformationNoise). Use the factor-graph smoother for robust losses."
+        )
+
+
+def row_whitening(
+    factor: AbstractFactor, m: int, dtype
+) -> tuple[Float[Array, "n m m"], Float[Array, " n"]]:
+    """Square-root information `R_i` of every row and `log|det R_i|`.
+
+    Whitening is linear, so applying the stack's noise model to identity
+    matrices gives each row's `R_i` whether the noise is shared or per row.
+    """
+    n = factor.num_rows
+    name = type(factor).__name__
+    factor.noise.check_shapes(name, n, m)
+    eye = jnp.broadcast_to(jnp.eye(m, dtype=dtype), (n, m, m))
+    R = factor.noise.whiten(eye)
+    _, logdet = jnp.linalg.slogdet(R)
+    return R, logdet
+
+
+def check_rows(factor: AbstractFactor) -> None:
+    """Per-row leaves must have a leading axis of the stack's length."""
+    check_row_leaves(factor)
