@@ -1,5 +1,6 @@
 """EKF / RTS built from factors, tied to Kalman theory and the factor-graph MAP."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -134,6 +135,15 @@ def test_ekf_equals_kalman_filter(linear_run):
         trans, meas, jnp.asarray(M0), jnp.asarray(P0), reset_covariance=True
     )
     np.testing.assert_allclose(reset.covariance, covs, rtol=0, atol=1e-10)
+    # Transition rows may come in any order.
+    rev = eqs.FunctionFactor(
+        _lin_trans,
+        tuple(eqs.Var("x", v.ids[::-1]) for v in trans.variables),
+        trans.noise,
+        params=trans.params,
+    )
+    sol_rev = eqs.filters.ekf(rev, meas, jnp.asarray(M0), jnp.asarray(P0))
+    np.testing.assert_allclose(sol_rev.mean, means, rtol=0, atol=1e-10)
     np.testing.assert_allclose(
         sol.transition_jacobian, np.broadcast_to(F_MAT, (T - 1, 2, 2)), atol=1e-12
     )
@@ -252,6 +262,14 @@ def test_se2_prediction_and_jacobians():
     np.testing.assert_allclose(
         sol.transition_jacobian, eqs.SE2.exp(-u).adjoint(), atol=1e-10
     )
+    # More Newton steps change nothing when one is exact.
+    sol2 = eqs.filters.ekf(
+        trans, [meas], truth[0], 0.01 * jnp.eye(3), prediction_steps=2
+    )
+    np.testing.assert_allclose(sol2.covariance, sol.covariance, atol=1e-12)
+    np.testing.assert_allclose(
+        sol2.mean.parameters(), sol.mean.parameters(), atol=1e-12
+    )
     # The filter tracks the truth better than the raw measurements' noise.
     err = eqs.local(truth, sol.mean, batch_ndim=1)
     assert np.sqrt(np.mean(np.asarray(err[:, :2]) ** 2)) < 0.2
@@ -358,6 +376,26 @@ def test_clear_errors():
         eqs.filters.ekf(trans, [robust], m0, p0)
     with pytest.raises(ValueError, match=r"must be \(2, 2\)"):
         eqs.filters.ekf(trans, [meas1], m0, jnp.eye(3))
+    empty = eqs.FunctionFactor(
+        _lin_meas,
+        (eqs.Var("x", np.zeros((0,), np.int64)),),
+        noise,
+        data=jnp.zeros((0, 1)),
+        params=jnp.asarray(H1),
+    )
+    with pytest.raises(ValueError, match="has no rows"):
+        eqs.filters.ekf(trans, [empty], m0, p0)
+    with pytest.raises(ValueError, match="prediction_steps"):
+        eqs.filters.ekf(trans, [meas1], m0, p0, prediction_steps=0)
+    bad = eqs.FunctionFactor(
+        _lin_meas,
+        meas1.variables,
+        meas1.noise,
+        data=meas1.data.at[2].set(jnp.nan),
+        params=meas1.params,
+    )
+    with pytest.raises(eqx.EquinoxRuntimeError, match="not finite"):
+        eqs.filters.ekf(trans, [bad], m0, p0)
     with pytest.raises(ValueError, match="weights must have shape"):
         eqs.filters.ekf_mse_loss(
             eqs.filters.ekf(trans, [meas1], m0, p0), jnp.zeros((T, 2)), jnp.ones(3)

@@ -145,6 +145,7 @@ def ekf(
     *,
     prediction_steps: int = 1,
     reset_covariance: bool = False,
+    throw: bool = True,
 ) -> EKFSolution:
     """Run an extended Kalman filter defined by the smoother's own factors.
 
@@ -192,6 +193,10 @@ def ekf(
         Jacobian `J` of `δ ↦ (x̂ ⊕ (v + δ)) ⊖ x`, i.e. `P ← J P Jᵀ` (the
         "covariance reset" of multiplicative/invariant EKFs). It has no effect
         on vector-space states. Off by default: the textbook EKF.
+    - `throw`: raise an `EquinoxRuntimeError` (through `eqx.error_if`) if a
+        covariance or the log-likelihood is not finite, e.g. a singular
+        transition Jacobian `B`; with `throw=False` non-finite values are
+        returned as they are.
 
     **Returns:** an [`eqsmooth.filters.EKFSolution`][].
 
@@ -227,6 +232,8 @@ def ekf(
                 f"touches {len(f.variables)}"
             )
         var = f.variables[0]
+        if len(var) == 0:
+            raise ValueError(f"ekf: measurement factor {name} has no rows")
         if var.group != group:
             raise ValueError(
                 f"ekf: measurement factor {name} touches group {var.group!r} but the "
@@ -250,16 +257,19 @@ def ekf(
         )
     return _ekf(
         transition,
-        tuple(f for f in measurements if f.num_rows > 0),
+        measurements,
         initial_mean,
         initial_covariance,
         prediction_steps,
         reset_covariance,
+        throw,
     )
 
 
 @eqx.filter_jit
-def _ekf(transition, measurements, mean0, cov0, prediction_steps, reset_covariance):
+def _ekf(
+    transition, measurements, mean0, cov0, prediction_steps, reset_covariance, throw
+):
     dtype = cov0.dtype
     d = cov0.shape[0]
     T = transition.num_rows + 1
@@ -386,6 +396,16 @@ def _ekf(transition, measurements, mean0, cov0, prediction_steps, reset_covarian
         start += layer_counts[j]
         innovations.append(ys[ids, layer])
         innovation_covs.append(Ss[ids, layer])
+    log_likelihood = jnp.sum(step_ll)
+    if throw:
+        finite = jnp.all(jnp.isfinite(cov)) & jnp.isfinite(log_likelihood)
+        cov = eqx.error_if(
+            cov,
+            ~finite,
+            "ekf: a covariance or the log-likelihood is not finite (a singular "
+            "transition Jacobian, a non-positive-definite innovation covariance, "
+            "or non-finite measurements?)",
+        )
     return EKFSolution(
         mean=mean,
         covariance=cov,
@@ -395,5 +415,5 @@ def _ekf(transition, measurements, mean0, cov0, prediction_steps, reset_covarian
         innovations=tuple(innovations),
         innovation_covariances=tuple(innovation_covs),
         step_log_likelihood=step_ll,
-        log_likelihood=jnp.sum(step_ll),
+        log_likelihood=log_likelihood,
     )
