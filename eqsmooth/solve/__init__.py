@@ -29,6 +29,15 @@ from ._linearization import (
     Linearization as Linearization,
     linearize as linearize,
 )
+from ._logdet import (
+    block_tridiagonal_log_det as block_tridiagonal_log_det,
+    normal_log_det as normal_log_det,
+)
 from ._marginals import marginal_covariances as marginal_covariances
-from ._pcg import PCG as PCG
+from ._pcg import (
+    AbstractPreconditioner as AbstractPreconditioner,
+    BlockJacobi as BlockJacobi,
+    ChainPreconditioner as ChainPreconditioner,
+    PCG as PCG,
+)
 from ._solution import RESULTS as RESULTS, Solution as Solution

@@ -1,0 +1,23 @@
+"""The model-discrepancy workflow: find, name, add, show.
+
+See the [API page](../api/discover.md) for the statistics behind each step.
+"""
+
+from ._candidates import (
+    Candidate as Candidate,
+    mechanical_library as mechanical_library,
+)
+from ._laplace import (
+    laplace_at_map as laplace_at_map,
+    laplace_log_marginal as laplace_log_marginal,
+)
+from ._model import ChainModel as ChainModel, Sequences as Sequences
+from ._workflow import (
+    add as add,
+    discover as discover,
+    find as find,
+    name as name,
+    score_test as score_test,
+    show as show,
+    to_json as to_json,
+)

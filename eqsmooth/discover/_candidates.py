@@ -1,0 +1,267 @@
+"""Named candidate effects: the library the discrepancy workflow searches."""
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+
+_TARGETS = ("dynamics", "measurement")
+
+
+class Candidate(eqx.Module):
+    """One named effect that may be missing from a model.
+
+    A candidate adds `coefficient · feature(x, u)` to the model: to the
+    predicted next state for `target="dynamics"`
+    (`x_{t+1} = f(x_t, u_t) + c φ(x_t, u_t) + w_t`) or to the predicted
+    measurement for `target="measurement"` (`y_t = h(x_t) + c ψ(x_t, u_t) + v_t`).
+    The coefficient is a scalar; its value 0 is the nominal model.
+
+    **Arguments:**
+
+    - `name`: the name reported when the effect is found, e.g. `"quadratic drag"`.
+    - `feature`: `feature(x, u) -> array`, with `x` ONE state `(n,)` and `u`
+        one input `(k,)`; returns `(n,)` for dynamics candidates and `(m,)` for
+        measurement candidates. Must be a hashable callable that compares by
+        value or identity (a module-level function or a frozen dataclass), so
+        that compiled code is reused.
+    - `target`: `"dynamics"` or `"measurement"`.
+    - `sign`: `+1` if physics says the coefficient is non-negative, `-1` if
+        non-positive, `0` if either (only reported, not enforced).
+    - `unit`: unit of the coefficient, for reports.
+    - `description`: one line for reports, e.g. `"v' -= c v|v| dt"`.
+    """
+
+    name: str = eqx.field(static=True)
+    feature: Callable = eqx.field(static=True)
+    target: str = eqx.field(static=True, default="dynamics")
+    sign: int = eqx.field(static=True, default=0)
+    unit: str = eqx.field(static=True, default="")
+    description: str = eqx.field(static=True, default="")
+
+    def __check_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError("Candidate.name must be a non-empty string")
+        if self.target not in _TARGETS:
+            raise ValueError(
+                f"Candidate {self.name!r}: target must be one of {_TARGETS}, got "
+                f"{self.target!r}"
+            )
+        if self.sign not in (-1, 0, 1):
+            raise ValueError(
+                f"Candidate {self.name!r}: sign must be -1, 0 or 1, got {self.sign}"
+            )
+        if not callable(self.feature):
+            raise TypeError(f"Candidate {self.name!r}: feature must be callable")
+
+
+# Features are frozen dataclasses (hash and compare by value), so two libraries
+# built with the same arguments share compiled code.
+
+
+@dataclasses.dataclass(frozen=True)
+class _Acceleration:
+    kind: str
+    positions: tuple[int, ...]
+    velocities: tuple[int, ...]
+    state_dim: int
+    dt: float
+    eps: float = 1.0
+    axis: int | None = None
+    input_index: int = 0
+
+    def _select(self, index: tuple[int, ...]) -> np.ndarray:
+        sel = np.zeros((self.state_dim, len(index)))
+        sel[np.asarray(index), np.arange(len(index))] = 1.0
+        return sel
+
+    def __call__(self, x: Float[Array, " n"], u: Float[Array, " k"]) -> Array:
+        # Constant selection matrices instead of gathers/scatters: smaller
+        # programs to compile once differentiated twice.
+        sel_p = jnp.asarray(self._select(self.positions), x.dtype)
+        sel_v = jnp.asarray(self._select(self.velocities), x.dtype)
+        p, v = x @ sel_p, x @ sel_v
+        if self.kind in ("constant", "actuator"):
+            unit = np.zeros(len(self.velocities))
+            unit[self.axis] = 1.0
+            a = jnp.asarray(unit, x.dtype)
+            if self.kind == "actuator":
+                a = a * u[self.input_index]
+        elif self.kind == "viscous":
+            a = -v
+        elif self.kind == "drag":
+            a = -v * jnp.abs(v)
+        elif self.kind == "coulomb":
+            a = -jnp.tanh(v / self.eps)
+        elif self.kind == "cubic_damping":
+            a = -(v**3)
+        elif self.kind == "spring":
+            a = -p
+        elif self.kind == "cubic_stiffness":
+            a = -(p**3)
+        else:  # pragma: no cover - guarded by the library builder
+            raise ValueError(f"unknown acceleration feature {self.kind!r}")
+        return sel_v @ (self.dt * a)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Sensor:
+    kind: str
+    channel: int
+    measurement_dim: int
+    position: int = 0
+    velocity: int = 0
+
+    def __call__(self, x: Float[Array, " n"], u: Float[Array, " k"]) -> Array:
+        unit = np.zeros(self.measurement_dim)
+        unit[self.channel] = 1.0
+        if self.kind == "bias":
+            value = jnp.ones((), x.dtype)
+        elif self.kind == "scale":
+            value = x[self.position]
+        elif self.kind == "delay":
+            # y(t − τ) ≈ p(t) − τ ṗ(t): a delay τ (time units of the velocity).
+            value = -x[self.velocity]
+        else:  # pragma: no cover - guarded by the library builder
+            raise ValueError(f"unknown sensor feature {self.kind!r}")
+        return value * jnp.asarray(unit, x.dtype)
+
+
+_MECHANICAL = (
+    ("constant force", "constant", 0, "per-axis constant acceleration: v' += c dt"),
+    ("viscous damping", "viscous", 1, "v' -= c v dt"),
+    ("quadratic drag", "drag", 1, "v' -= c v|v| dt"),
+    ("Coulomb friction", "coulomb", 1, "v' -= c tanh(v/eps) dt (smoothed sign)"),
+    ("cubic damping", "cubic_damping", 1, "v' -= c v^3 dt"),
+    ("spring error", "spring", 0, "v' -= c p dt"),
+    ("cubic stiffness", "cubic_stiffness", 0, "v' -= c p^3 dt"),
+    ("actuator gain", "actuator", 0, "v' += c u dt (per axis)"),
+)
+
+
+def mechanical_library(
+    positions: Sequence[int],
+    velocities: Sequence[int],
+    state_dim: int,
+    *,
+    dt: float = 1.0,
+    coulomb_eps: float = 0.1,
+    measured_positions: Sequence[int] | None = None,
+    num_inputs: int = 0,
+    axis_names: Sequence[str] | None = None,
+    include: Sequence[str] | None = None,
+) -> tuple[Candidate, ...]:
+    """The standard candidate effects of a second-order mechanical system.
+
+    The state holds positions `p` and velocities `v` of one or more axes
+    (`positions[i]` and `velocities[i]` are the indices of axis `i`). Every
+    dynamics candidate is an extra acceleration `a(p, v, u)` entering the
+    velocities as `v' += c · a · dt` (the discretisation of `v̇ = … + c a`).
+    Dissipative and stiffness terms share one coefficient over all axes
+    (isotropic); constant force, actuator gain and the sensor effects get one
+    candidate per axis or channel.
+
+    | name | acceleration / measurement term |
+    |---|---|
+    | constant force | `+1` on one axis |
+    | viscous damping | `−v` |
+    | quadratic drag | `−v|v|` |
+    | Coulomb friction | `−tanh(v/ε)`, a smoothed `−sign(v)` (`ε = coulomb_eps`) |
+    | cubic damping | `−v³` |
+    | spring error | `−p` |
+    | cubic stiffness | `−p³` |
+    | actuator gain | `+u_i` (only with `num_inputs > 0`) |
+    | sensor bias | `y_j += c` |
+    | sensor scale | `y_j += c p` |
+    | sensor delay | `y_j += −c v` (`y(t − τ) ≈ p(t) − τ v(t)`) |
+
+    Sensor candidates are built when `measured_positions` is given: channel
+    `j` of the measurement measures position `measured_positions[j]`.
+
+    **Arguments:**
+
+    - `positions`, `velocities`: state indices, one per axis.
+    - `state_dim`: the state dimension `n`.
+    - `dt`: time step of the discrete model.
+    - `coulomb_eps`: smoothing velocity `ε` of the Coulomb term (velocity
+        units); small compared with typical speeds.
+    - `measured_positions`: for sensor candidates (see above), or `None`.
+    - `num_inputs`: number of inputs; actuator-gain candidates map input `i`
+        to axis `i`.
+    - `axis_names`: names of the axes for per-axis candidates (default
+        `x0, x1, …`; with one axis no suffix is used).
+    - `include`: restrict to these candidate names (before axis suffixes).
+
+    **Returns:** a tuple of [`eqsmooth.discover.Candidate`][].
+    """
+    positions, velocities = tuple(positions), tuple(velocities)
+    if len(positions) != len(velocities) or not positions:
+        raise ValueError(
+            "mechanical_library: positions and velocities must be non-empty and of "
+            f"equal length, got {positions} and {velocities}"
+        )
+    for i in positions + velocities:
+        if not 0 <= i < state_dim:
+            raise ValueError(
+                f"mechanical_library: state index {i} out of range for state_dim "
+                f"{state_dim}"
+            )
+    if coulomb_eps <= 0:
+        raise ValueError("mechanical_library: coulomb_eps must be positive")
+    naxes = len(positions)
+    if axis_names is None:
+        axis_names = [f"x{i}" for i in range(naxes)]
+    if len(axis_names) != naxes:
+        raise ValueError("mechanical_library: one axis name per axis")
+
+    def suffix(i):
+        return "" if naxes == 1 else f" [{axis_names[i]}]"
+
+    wanted = None if include is None else set(include)
+    out = []
+    for name, kind, sign, desc in _MECHANICAL:
+        if wanted is not None and name not in wanted:
+            continue
+        common = dict(
+            positions=positions, velocities=velocities, state_dim=state_dim, dt=dt
+        )
+        if kind == "constant":
+            for i in range(naxes):
+                feat = _Acceleration(kind, axis=i, **common)
+                out.append(Candidate(name + suffix(i), feat, "dynamics", 0, "", desc))
+        elif kind == "actuator":
+            for i in range(min(num_inputs, naxes)):
+                feat = _Acceleration(kind, axis=i, input_index=i, **common)
+                out.append(Candidate(name + suffix(i), feat, "dynamics", 0, "", desc))
+        else:
+            eps = coulomb_eps if kind == "coulomb" else 1.0
+            feat = _Acceleration(kind, eps=eps, **common)
+            out.append(Candidate(name, feat, "dynamics", sign, "", desc))
+    if measured_positions is not None:
+        measured_positions = tuple(measured_positions)
+        m = len(measured_positions)
+        for j, pos in enumerate(measured_positions):
+            if pos not in positions:
+                raise ValueError(
+                    f"mechanical_library: measured position {pos} is not one of the "
+                    f"positions {positions}"
+                )
+            vel = velocities[positions.index(pos)]
+            sfx = "" if m == 1 else f" [y{j}]"
+            for name, kind, desc in (
+                ("sensor bias", "bias", "y += c"),
+                ("sensor scale", "scale", "y += c p"),
+                ("sensor delay", "delay", "y += -c v  (delay c)"),
+            ):
+                if wanted is not None and name not in wanted:
+                    continue
+                feat = _Sensor(kind, j, m, pos, vel)
+                out.append(Candidate(name + sfx, feat, "measurement", 0, "", desc))
+    names = [c.name for c in out]
+    if len(set(names)) != len(names):
+        raise ValueError(f"mechanical_library: duplicate candidate names {names}")
+    return tuple(out)

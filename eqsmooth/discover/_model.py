@@ -1,0 +1,420 @@
+"""A chain (state-space) model with candidate terms, and its likelihoods."""
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, PyTree
+
+from ..factors import DiagonalNoise, FactorGraph, FunctionFactor, Var
+from ..solve import BlockTridiagonal, GaussNewton, least_squares
+from ._candidates import Candidate
+from ._laplace import laplace_at_map
+
+
+class Sequences(eqx.Module):
+    """A batch of measured sequences of equal length.
+
+    **Arguments:**
+
+    - `measurements`: `(B, T, m)` measurements `y_t`.
+    - `x0_mean`: `(B, n)` mean of the prior on each sequence's first state.
+    - `inputs`: `(B, T, k)` known inputs `u_t`, or `None` (then `k = 1`, zeros).
+    - `initial_states`: `(B, T, n)` initial guess for the MAP solves, or
+        `None` (the prior mean repeated over time).
+    """
+
+    measurements: Float[Array, "B T m"]
+    x0_mean: Float[Array, "B n"]
+    inputs: Float[Array, "B T k"]
+    initial_states: Float[Array, "B T n"]
+
+    def __init__(
+        self,
+        measurements: Float[ArrayLike, "B T m"],
+        x0_mean: Float[ArrayLike, "B n"],
+        inputs: Float[ArrayLike, "B T k"] | None = None,
+        initial_states: Float[ArrayLike, "B T n"] | None = None,
+    ):
+        y = jnp.asarray(measurements)
+        x0 = jnp.asarray(x0_mean, dtype=y.dtype)
+        if y.ndim != 3:
+            raise ValueError(f"Sequences.measurements must be (B, T, m), got {y.shape}")
+        if x0.ndim != 2 or x0.shape[0] != y.shape[0]:
+            raise ValueError(
+                f"Sequences.x0_mean must be (B, n) with B = {y.shape[0]}, got "
+                f"{x0.shape}"
+            )
+        B, T, _ = y.shape
+        if inputs is None:
+            u = jnp.zeros((B, T, 1), y.dtype)
+        else:
+            u = jnp.asarray(inputs, dtype=y.dtype)
+            if u.ndim != 3 or u.shape[:2] != (B, T):
+                raise ValueError(
+                    f"Sequences.inputs must be (B, T, k) = ({B}, {T}, k), got {u.shape}"
+                )
+        if initial_states is None:
+            xi = jnp.broadcast_to(x0[:, None, :], (B, T, x0.shape[1]))
+        else:
+            xi = jnp.asarray(initial_states, dtype=y.dtype)
+            if xi.shape != (B, T, x0.shape[1]):
+                raise ValueError(
+                    f"Sequences.initial_states must be {(B, T, x0.shape[1])}, got "
+                    f"{xi.shape}"
+                )
+        self.measurements = y
+        self.x0_mean = x0
+        self.inputs = u
+        self.initial_states = xi
+
+    @property
+    def num_sequences(self) -> int:
+        return int(self.measurements.shape[0])
+
+    @property
+    def length(self) -> int:
+        return int(self.measurements.shape[1])
+
+    def take(self, index: Sequence[int] | np.ndarray) -> "Sequences":
+        """The sequences at `index` (a new batch)."""
+        idx = np.asarray(index)
+        return Sequences(
+            self.measurements[idx],
+            self.x0_mean[idx],
+            self.inputs[idx],
+            self.initial_states[idx],
+        )
+
+
+class ChainModel(eqx.Module):
+    """A nominal state-space model plus scalar coefficients of candidate effects.
+
+        x_{t+1} = f(x_t, u_t, params) + Σ_k c_k φ_k(x_t, u_t) + w_t,  w ~ N(0, diag(q²))
+        y_t     = h(x_t, params)      + Σ_j c_j ψ_j(x_t, u_t) + v_t,  v ~ N(0, diag(r²))
+        x_0     ~ N(x0_mean, diag(prior_sigma²))
+
+    The coefficients `c` of all candidates are stored (zero = absent), so that
+    models with different active sets share compiled code.
+
+    **Arguments:**
+
+    - `dynamics`: `f(x, u, params) -> (n,)` (module-level function).
+    - `measurement`: `h(x, params) -> (m,)`.
+    - `params`: nominal parameters (a pytree; held fixed by the workflow).
+    - `process_sigma`: `(n,)` process noise standard deviations `q` (positive).
+    - `measurement_sigma`: `(m,)` measurement noise standard deviations `r`.
+    - `prior_sigma`: `(n,)` standard deviations of the first-state prior.
+    - `candidates`: tuple of [`eqsmooth.discover.Candidate`][].
+    - `coefficients`: `(K,)` coefficients (default zeros).
+    """
+
+    dynamics: Callable = eqx.field(static=True)
+    measurement: Callable = eqx.field(static=True)
+    params: PyTree
+    process_sigma: Float[Array, " n"]
+    measurement_sigma: Float[Array, " m"]
+    prior_sigma: Float[Array, " n"]
+    candidates: tuple[Candidate, ...] = eqx.field(static=True)
+    coefficients: Float[Array, " K"]
+
+    def __init__(
+        self,
+        dynamics: Callable,
+        measurement: Callable,
+        params: PyTree,
+        process_sigma: Float[ArrayLike, " n"],
+        measurement_sigma: Float[ArrayLike, " m"],
+        prior_sigma: Float[ArrayLike, " n"],
+        candidates: Sequence[Candidate] = (),
+        coefficients: Float[ArrayLike, " K"] | None = None,
+    ):
+        self.dynamics = dynamics
+        self.measurement = measurement
+        self.params = params
+        self.process_sigma = jnp.asarray(process_sigma, dtype=float)
+        self.measurement_sigma = jnp.asarray(measurement_sigma, dtype=float)
+        self.prior_sigma = jnp.asarray(prior_sigma, dtype=float)
+        self.candidates = tuple(candidates)
+        if coefficients is None:
+            coefficients = np.zeros(len(self.candidates))
+        self.coefficients = jnp.asarray(coefficients, dtype=float)
+
+    def __check_init__(self):
+        for c in self.candidates:
+            if not isinstance(c, Candidate):
+                raise TypeError(
+                    f"ChainModel.candidates must be Candidate, got {type(c).__name__}"
+                )
+        names = [c.name for c in self.candidates]
+        if len(set(names)) != len(names):
+            raise ValueError(f"ChainModel: duplicate candidate names {names}")
+        if self.coefficients.shape != (len(self.candidates),):
+            raise ValueError(
+                f"ChainModel.coefficients must have shape ({len(self.candidates)},), "
+                f"got {self.coefficients.shape}"
+            )
+        n = self.process_sigma.shape
+        if self.process_sigma.ndim != 1 or self.prior_sigma.shape != n:
+            raise ValueError(
+                "ChainModel: process_sigma and prior_sigma must both be (n,), got "
+                f"{self.process_sigma.shape} and {self.prior_sigma.shape}"
+            )
+        if self.measurement_sigma.ndim != 1:
+            raise ValueError(
+                "ChainModel.measurement_sigma must be (m,), got "
+                f"{self.measurement_sigma.shape}"
+            )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.candidates)
+
+    def index(self, name: str) -> int:
+        """Position of the candidate called `name`."""
+        if name not in self.names:
+            raise ValueError(f"no candidate named {name!r}; candidates: {self.names}")
+        return self.names.index(name)
+
+    def with_coefficients(self, coefficients: Float[ArrayLike, " K"]) -> "ChainModel":
+        return eqx.tree_at(lambda m: m.coefficients, self, jnp.asarray(coefficients))
+
+    def with_noise_scales(self, log_q: float, log_r: float) -> "ChainModel":
+        """Multiply the process / measurement sigmas by `exp(log_q)`, `exp(log_r)`."""
+        return eqx.tree_at(
+            lambda m: (m.process_sigma, m.measurement_sigma),
+            self,
+            (
+                self.process_sigma * jnp.exp(log_q),
+                self.measurement_sigma * jnp.exp(log_r),
+            ),
+        )
+
+    def transition(
+        self, x: Float[Array, " n"], u: Float[Array, " k"]
+    ) -> Float[Array, " n"]:
+        """Mean of `x_{t+1}` given `x_t = x`, `u_t = u` (candidates included)."""
+        out = self.dynamics(x, u, self.params)
+        for c, coef in zip(self.candidates, self.coefficients):
+            if c.target == "dynamics":
+                out = out + coef * c.feature(x, u)
+        return out
+
+    def observe(
+        self, x: Float[Array, " n"], u: Float[Array, " k"]
+    ) -> Float[Array, " m"]:
+        """Mean of `y_t` given `x_t = x` (candidates included)."""
+        out = self.measurement(x, self.params)
+        for c, coef in zip(self.candidates, self.coefficients):
+            if c.target == "measurement":
+                out = out + coef * c.feature(x, u)
+        return out
+
+    def graph(
+        self,
+        measurements: Float[Array, "T m"],
+        inputs: Float[Array, "T k"],
+        x0_mean: Float[Array, " n"],
+    ) -> FactorGraph:
+        """The factor graph of ONE sequence (prior, transitions, measurements)."""
+        T = measurements.shape[0]
+        t = np.arange(T)
+        return FactorGraph(
+            [
+                FunctionFactor(
+                    _prior_residual,
+                    (Var("x", [0]),),
+                    DiagonalNoise(1.0 / self.prior_sigma),
+                    data=x0_mean[None],
+                ),
+                FunctionFactor(
+                    _transition_residual,
+                    (Var("x", t[:-1]), Var("x", t[1:])),
+                    DiagonalNoise(1.0 / self.process_sigma),
+                    data=inputs[:-1],
+                    params=self,
+                ),
+                FunctionFactor(
+                    _measurement_residual,
+                    (Var("x", t),),
+                    DiagonalNoise(1.0 / self.measurement_sigma),
+                    data=(measurements, inputs),
+                    params=self,
+                ),
+            ]
+        )
+
+
+def _prior_residual(x, data, params):
+    return x - data
+
+
+def _transition_residual(a, b, u, model: ChainModel):
+    return b - model.transition(a, u)
+
+
+def _measurement_residual(x, data, model: ChainModel):
+    y, u = data
+    return y - model.observe(x, u)
+
+
+# ---------------------------------------------------------------------------
+# Likelihoods of a batch; z = [coefficients (K), log q-scale, log r-scale]
+# ---------------------------------------------------------------------------
+
+
+def apply_z(model: ChainModel, z: Float[Array, " P"]) -> ChainModel:
+    K = len(model.candidates)
+    return model.with_coefficients(z[:K]).with_noise_scales(z[K], z[K + 1])
+
+
+def z_of(model: ChainModel) -> np.ndarray:
+    return np.concatenate([np.asarray(model.coefficients), np.zeros(2)])
+
+
+_SOLVER = GaussNewton(BlockTridiagonal())
+
+
+def _map_one(model, y, u, x0, xinit, max_steps):
+    graph = model.graph(y, u, x0)
+    sol = least_squares(graph, {"x": xinit}, _SOLVER, max_steps=max_steps, throw=False)
+    return sol.value["x"]
+
+
+@eqx.filter_jit
+def map_states(
+    model: ChainModel,
+    z: Float[Array, " P"],
+    data: Sequences,
+    init: Float[Array, "B T n"],
+    max_steps: int = 30,
+) -> Float[Array, "B T n"]:
+    """MAP (smoothed) states of every sequence, starting the solves at `init`."""
+    m = apply_z(model, z)
+    return jax.vmap(_map_one, in_axes=(None, 0, 0, 0, 0, None))(
+        m, data.measurements, data.inputs, data.x0_mean, init, max_steps
+    )
+
+
+def _laplace_one(model, y, u, x0, xhat):
+    return laplace_at_map(model.graph(y, u, x0), {"x": xhat}, _SOLVER.linear_solver)
+
+
+def sequence_log_marginals(
+    model: ChainModel,
+    z: Float[Array, " P"],
+    data: Sequences,
+    xhat: Float[Array, "B T n"],
+) -> Float[Array, " B"]:
+    """Laplace log marginal likelihood of every sequence at the MAP `xhat`."""
+    m = apply_z(model, z)
+    return jax.vmap(_laplace_one, in_axes=(None, 0, 0, 0, 0))(
+        m, data.measurements, data.inputs, data.x0_mean, xhat
+    )
+
+
+@eqx.filter_jit
+def batch_log_marginal(model, z, data, xhat):
+    return sequence_log_marginals(model, z, data, xhat)
+
+
+def _one_z(zz, model, y, u, x0, xh):
+    return _laplace_one(apply_z(model, zz), y, u, x0, xh)
+
+
+@eqx.filter_jit
+def batch_scores(model, z, data, xhat):
+    """Per-sequence values `(B,)` and scores `(B, P)` (reverse mode, vmapped)."""
+    fn = jax.vmap(jax.value_and_grad(_one_z), in_axes=(None, None, 0, 0, 0, 0))
+    return fn(z, model, data.measurements, data.inputs, data.x0_mean, xhat)
+
+
+# ---------------------------------------------------------------------------
+# Extended Kalman filter innovations (diagnostics and prediction)
+# ---------------------------------------------------------------------------
+
+
+def _ekf_one(model: ChainModel, y, u, x0):
+    n = x0.shape[0]
+    Q = jnp.diag(model.process_sigma**2)
+    R = jnp.diag(model.measurement_sigma**2)
+    P0 = jnp.diag(model.prior_sigma**2)
+
+    def step(carry, inp):
+        x, P = carry
+        yt, ut = inp
+        H = jax.jacfwd(model.observe)(x, ut)
+        nu = yt - model.observe(x, ut)
+        S = H @ P @ H.T + R
+        S = 0.5 * (S + S.T)
+        K = jnp.linalg.solve(S, H @ P).T
+        xf = x + K @ nu
+        IKH = jnp.eye(n, dtype=x.dtype) - K @ H
+        Pf = IKH @ P @ IKH.T + K @ R @ K.T
+        F = jax.jacfwd(model.transition)(xf, ut)
+        xp = model.transition(xf, ut)
+        Pp = F @ Pf @ F.T + Q
+        return (xp, 0.5 * (Pp + Pp.T)), (nu, S, xf)
+
+    _, (nus, Ss, xfs) = jax.lax.scan(step, (x0, P0), (y, u))
+    return nus, Ss, xfs
+
+
+@eqx.filter_jit
+def ekf_innovations(model: ChainModel, data: Sequences):
+    """Innovations `(B, T, m)`, their covariances `(B, T, m, m)`, filtered states.
+
+    For a linear-Gaussian model this is the Kalman filter; otherwise an EKF
+    (first order). Used for diagnostics (NIS, whiteness) and for k-step
+    prediction, never for naming or fitting (first-order likelihoods invent
+    effects, see the docs).
+    """
+    return jax.vmap(_ekf_one, in_axes=(None, 0, 0, 0))(
+        model, data.measurements, data.inputs, data.x0_mean
+    )
+
+
+@eqx.filter_jit
+def simulate(model: ChainModel, x0: Float[Array, "B n"], inputs: Float[Array, "B T k"]):
+    """Noise-free open-loop states `(B, T, n)` from `x0`, and measurements."""
+
+    def one(x0, u):
+        def step(x, ut):
+            return model.transition(x, ut), x
+
+        _, xs = jax.lax.scan(step, x0, u)
+        ys = jax.vmap(model.observe)(xs, u)
+        return xs, ys
+
+    return jax.vmap(one)(x0, inputs)
+
+
+@eqx.filter_jit
+def k_step_errors(model: ChainModel, data: Sequences, horizon: int):
+    """Squared k-step open-loop prediction errors from filtered states.
+
+    Returns `(horizon, m)` mean squared errors of `y_{t+k} − ĥ(x̂_{t+k|t})` for
+    `k = 1..horizon`, averaged over sequences and start times `t`.
+    """
+    _, _, xf = ekf_innovations(model, data)
+    y, u = data.measurements, data.inputs
+    T = y.shape[1]
+    starts = T - horizon
+
+    def from_start(xf_b, y_b, u_b):
+        def one(t):
+            x = xf_b[t]
+
+            def step(x, k):
+                xn = model.transition(x, u_b[t + k])
+                return xn, model.observe(xn, u_b[t + k + 1]) - y_b[t + k + 1]
+
+            _, errs = jax.lax.scan(step, x, jnp.arange(horizon))
+            return errs**2
+
+        return jax.vmap(one)(jnp.arange(starts))
+
+    errs = jax.vmap(from_start)(xf, y, u)  # (B, starts, horizon, m)
+    return jnp.mean(errs, axis=(0, 1))

@@ -1,0 +1,640 @@
+"""Find, name, add, show: the model-discrepancy workflow."""
+
+import numpy as np
+
+from ._fit import evaluate, feature_scales, fit, fitted_model, null_z
+from ._model import ChainModel, ekf_innovations, k_step_errors, Sequences, simulate
+from ._stats import (
+    chi2_sf,
+    chi2_two_sided,
+    ljung_box,
+    normal_quantile,
+    normal_two_sided,
+)
+
+
+_LN20 = float(np.log(20.0))
+
+
+# ---------------------------------------------------------------------------
+# Diagnostics shared by Find and Show
+# ---------------------------------------------------------------------------
+
+
+def innovation_tests(model: ChainModel, data: Sequences, lags: int = 10) -> dict:
+    """NIS, bias and whiteness (Ljung-Box) tests of the filter innovations."""
+    nu, S, _ = ekf_innovations(model, data)
+    nu, S = np.asarray(nu), np.asarray(S)
+    B, T, m = nu.shape
+    L = np.linalg.cholesky(S)
+    e = np.linalg.solve(L, nu[..., None])[..., 0]  # whitened innovations
+    nis = np.sum(e * e, axis=-1)
+    total = float(np.sum(nis))
+    dof = B * T * m
+    out = {
+        "nis_mean": total / (B * T),
+        "nis_expected": float(m),
+        "nis_p_value": chi2_two_sided(total, dof),
+        "bias": [],
+        "whiteness": [],
+    }
+    for j in range(m):
+        ej = e[..., j]
+        mean = float(np.mean(ej))
+        z = mean * np.sqrt(ej.size)
+        out["bias"].append(
+            {"channel": j, "mean_whitened": mean, "p_value": normal_two_sided(z)}
+        )
+        q, p = ljung_box(ej, lags)
+        out["whiteness"].append(
+            {"channel": j, "ljung_box_q": q, "lags": lags, "p_value": p}
+        )
+    out["whitened_innovations"] = e
+    return out
+
+
+def _residuals(model: ChainModel, data: Sequences, xhat: np.ndarray):
+    """Whitened smoother residuals: transitions `(B, T-1, n)`, measurements."""
+    import jax
+
+    x, u, y = xhat, np.asarray(data.inputs), np.asarray(data.measurements)
+    trans = jax.vmap(jax.vmap(model.transition))(x[:, :-1], u[:, :-1])
+    obs = jax.vmap(jax.vmap(model.observe))(x, u)
+    rt = (x[:, 1:] - np.asarray(trans)) / np.asarray(model.process_sigma)
+    rm = (y - np.asarray(obs)) / np.asarray(model.measurement_sigma)
+    return rt, rm
+
+
+def _bin_rows(label, values, resid, bins):
+    rows = []
+    edges = np.quantile(values, np.linspace(0, 1, bins + 1))
+    for b in range(bins):
+        lo, hi = edges[b], edges[b + 1]
+        sel = (values >= lo) & (values <= hi if b == bins - 1 else values < hi)
+        r = resid[sel]
+        if r.size < 5:
+            continue
+        mean = float(np.mean(r))
+        z = mean / (np.std(r) / np.sqrt(r.size) + 1e-300)
+        rows.append(
+            {
+                "where": label,
+                "bin": [float(lo), float(hi)],
+                "count": int(r.size),
+                "mean_whitened": mean,
+                "z": float(z),
+            }
+        )
+    return rows
+
+
+def localisation_table(
+    model: ChainModel,
+    data: Sequences,
+    xhat: np.ndarray,
+    bins: int = 5,
+    top: int = 8,
+) -> list[dict]:
+    """Where the whitened smoother residuals are biased.
+
+    Rows by factor type and component, binned by each state coordinate
+    (quantile bins), by time (quarters of the sequence) and by sequence;
+    sorted by `|z|`, the mean over its standard error.
+    """
+    rt, rm = _residuals(model, data, xhat)
+    n, m = rt.shape[-1], rm.shape[-1]
+    rows = []
+    states_t = xhat[:, :-1]
+    for i in range(n):
+        comp = rt[..., i]
+        if np.std(comp) == 0:
+            continue
+        for s in range(n):
+            rows += _bin_rows(
+                f"transition[{i}] by state[{s}]",
+                states_t[..., s].ravel(),
+                comp.ravel(),
+                bins,
+            )
+        T1 = comp.shape[1]
+        times = np.broadcast_to(np.arange(T1), comp.shape).ravel()
+        rows += _bin_rows(f"transition[{i}] by time", times, comp.ravel(), 4)
+    for j in range(m):
+        comp = rm[..., j]
+        for s in range(n):
+            rows += _bin_rows(
+                f"measurement[{j}] by state[{s}]",
+                xhat[..., s].ravel(),
+                comp.ravel(),
+                bins,
+            )
+        seq_means = comp.mean(axis=1)
+        worst = int(np.argmax(np.abs(seq_means)))
+        r = comp[worst]
+        rows.append(
+            {
+                "where": f"measurement[{j}] by sequence",
+                "bin": [worst, worst],
+                "count": int(r.size),
+                "mean_whitened": float(seq_means[worst]),
+                "z": float(seq_means[worst] / (np.std(r) / np.sqrt(r.size) + 1e-300)),
+            }
+        )
+    rows.sort(key=lambda r: -abs(r["z"]))
+    return rows[:top]
+
+
+def _residual_summary(model, data, xhat) -> list[dict]:
+    rt, rm = _residuals(model, data, xhat)
+    out = []
+    for kind, r in (("transition", rt), ("measurement", rm)):
+        for i in range(r.shape[-1]):
+            c = r[..., i]
+            out.append(
+                {
+                    "factor": kind,
+                    "component": i,
+                    "mean_whitened": float(np.mean(c)),
+                    "rms_whitened": float(np.sqrt(np.mean(c * c))),
+                }
+            )
+    return out
+
+
+def open_loop(model: ChainModel, data: Sequences, xhat: np.ndarray) -> dict:
+    """Noise-free simulation from the smoothed first states versus the data."""
+    _, ys = simulate(model, xhat[:, 0], data.inputs)
+    err = np.asarray(data.measurements) - np.asarray(ys)
+    rms_t = np.sqrt(np.mean(err * err, axis=(0, 2)))
+    T = rms_t.shape[0]
+    marks = sorted({0, T // 4, T // 2, 3 * T // 4, T - 1})
+    return {
+        "rms_error": float(np.sqrt(np.mean(err * err))),
+        "rms_error_by_time": {int(t): float(rms_t[t]) for t in marks},
+        "measurement_sigma": np.asarray(model.measurement_sigma).tolist(),
+    }
+
+
+# ---------------------------------------------------------------------------
+# Score test
+# ---------------------------------------------------------------------------
+
+
+def _efficient_information(info: np.ndarray, test: np.ndarray, nuis: np.ndarray):
+    Icc = info[np.ix_(test, test)]
+    if len(nuis):
+        Icn = info[np.ix_(test, nuis)]
+        Inn = info[np.ix_(nuis, nuis)]
+        return Icc - Icn @ np.linalg.pinv(Inn) @ Icn.T
+    return Icc
+
+
+def score_test(
+    ev, test: np.ndarray, nuisance: np.ndarray, covariance: str = "auto"
+) -> dict:
+    """Score (Lagrange multiplier) test of `test` coefficients at `ev.z`.
+
+    `covariance="opg"`: regress a vector of ones on the per-sequence scores
+    of test and nuisance parameters, `S = n R²` (outer product of gradients
+    across sequences); `"hessian"`: `S = gᵀ I_eff⁻¹ g` with the observed
+    information adjusted for the nuisance parameters. `"auto"` takes OPG when
+    there are at least 5 sequences per parameter.
+    """
+    test, nuisance = np.asarray(test, int), np.asarray(nuisance, int)
+    G = ev.scores
+    B = G.shape[0]
+    k = len(test)
+    if covariance == "auto":
+        covariance = "opg" if B >= 5 * (k + len(nuisance)) else "hessian"
+    if covariance == "opg":
+        cols = np.concatenate([test, nuisance])
+        Gs = G[:, cols]
+        Gs = Gs / (np.sqrt(np.mean(Gs * Gs, axis=0)) + 1e-300)
+        beta, _, rank, _ = np.linalg.lstsq(Gs, np.ones(B), rcond=1e-10)
+        fitted = Gs @ beta
+        stat = float(fitted @ fitted)
+        _, _, rank_n, _ = (
+            np.linalg.lstsq(Gs[:, k:], np.ones(B), rcond=1e-10)
+            if len(nuisance)
+            else (None, None, 0, None)
+        )
+        df = int(rank) - int(rank_n)
+    elif covariance == "hessian":
+        I_eff = _efficient_information(-ev.hessian, test, nuisance)
+        g = np.sum(G, axis=0)[test]
+        w, V = np.linalg.eigh(0.5 * (I_eff + I_eff.T))
+        keep = w > 1e-10 * max(w.max(), 1e-300)
+        proj = V[:, keep].T @ g
+        stat = float(np.sum(proj * proj / w[keep]))
+        df = int(np.sum(keep))
+    else:
+        raise ValueError(
+            f"covariance must be 'auto', 'opg' or 'hessian', got {covariance!r}"
+        )
+    return {
+        "statistic": stat,
+        "df": df,
+        "p_value": chi2_sf(stat, df),
+        "covariance": covariance,
+    }
+
+
+# ---------------------------------------------------------------------------
+# The workflow
+# ---------------------------------------------------------------------------
+
+
+def _candidate_indices(model: ChainModel) -> np.ndarray:
+    return np.arange(len(model.candidates))
+
+
+def _nuisance(model: ChainModel, fit_noise: bool) -> np.ndarray:
+    K = len(model.candidates)
+    return np.array([K, K + 1]) if fit_noise else np.array([], dtype=int)
+
+
+def find(
+    model: ChainModel,
+    data: Sequences,
+    *,
+    alpha: float = 0.05,
+    fit_noise: bool = True,
+    covariance: str = "auto",
+) -> dict:
+    """Find where the nominal model and the data disagree.
+
+    Fits the noise scales of the nominal model (all candidate coefficients
+    zero) by Laplace marginal likelihood, then reports: open-loop simulation
+    error from the smoothed first states; whitened smoother residuals per
+    factor type; NIS, bias and Ljung-Box whiteness tests of the innovations;
+    the score test against the whole candidate library (the decision test);
+    per-candidate score statistics and smallest detectable effects; and a
+    localisation table.
+
+    **Arguments:**
+
+    - `model`: the nominal [`eqsmooth.discover.ChainModel`][] with its
+        candidate library (coefficients are reset to zero).
+    - `data`: the measured [`eqsmooth.discover.Sequences`][].
+    - `alpha`: significance level of the decision test.
+    - `fit_noise`: refit the process/measurement noise scales first (they
+        are then nuisance parameters of the score test).
+    - `covariance`: `"auto"`, `"opg"` or `"hessian"` (see `score_test`).
+
+    **Returns:** a dict (JSON-serialisable except the `"_state"` entry, which
+    later steps reuse).
+    """
+    K = len(model.candidates)
+    if K == 0:
+        raise ValueError("find: the model has no candidate effects to test")
+    model = model.with_coefficients(np.zeros(K))
+    nuis = _nuisance(model, fit_noise)
+    z0 = null_z(model)
+    ev0 = evaluate(model, data, z0, np.asarray(data.initial_states), np.ones(K))
+    scales = feature_scales(model, data, ev0.xhat)
+    if fit_noise:
+        ev = fit(model, data, nuis, z0, ev0.xhat, scales)
+    else:
+        ev = ev0
+    everything = np.concatenate([_candidate_indices(model), nuis])
+    ev = evaluate(model, data, ev.z, ev.xhat, scales, everything)
+    nominal = fitted_model(model, ev.z)
+    test = _candidate_indices(model)
+    decision = score_test(ev, test, nuis, covariance)
+    I_eff = _efficient_information(-ev.hessian, test, nuis)
+    g = np.sum(ev.scores, axis=0)[test]
+    z_power = normal_quantile(1 - alpha / 2) + normal_quantile(0.8)
+    per_candidate = []
+    for k, c in enumerate(model.candidates):
+        info = max(I_eff[k, k], 1e-300)
+        zk = g[k] / np.sqrt(info)
+        per_candidate.append(
+            {
+                "name": c.name,
+                "target": c.target,
+                "score_z": float(zk),
+                "score_p_value": normal_two_sided(zk),
+                "smallest_detectable": float(z_power / np.sqrt(info)),
+                "feature_scale": float(scales[k]),
+            }
+        )
+    innov = innovation_tests(nominal, data)
+    report = {
+        "log_marginal": ev.log_marginal,
+        "noise_scales": {
+            "process": float(np.exp(ev.z[K])),
+            "measurement": float(np.exp(ev.z[K + 1])),
+        },
+        "open_loop": open_loop(nominal, data, ev.xhat),
+        "residuals": _residual_summary(nominal, data, ev.xhat),
+        "nis": {
+            "mean": innov["nis_mean"],
+            "expected": innov["nis_expected"],
+            "p_value": innov["nis_p_value"],
+        },
+        "bias": innov["bias"],
+        "whiteness": innov["whiteness"],
+        "score_test": decision,
+        "detected": bool(decision["p_value"] < alpha),
+        "candidates": per_candidate,
+        "localisation": localisation_table(nominal, data, ev.xhat),
+        "_state": {
+            "model": model,
+            "evaluation": ev,
+            "scales": scales,
+            "nuisance": nuis,
+            "I_eff": I_eff,
+            "alpha": alpha,
+        },
+    }
+    return report
+
+
+def _diagnostics_significant(innov: dict, alpha: float) -> bool:
+    pvals = [innov["nis_p_value"]] + [w["p_value"] for w in innov["whiteness"]]
+    pvals += [b["p_value"] for b in innov["bias"]]
+    return min(pvals) < alpha / len(pvals)
+
+
+def name(
+    found: dict,
+    data: Sequences,
+    *,
+    max_terms: int = 3,
+    equivalence_corr: float = 0.98,
+) -> dict:
+    """Name the missing effect(s) by forward selection on the Laplace evidence.
+
+    Not significant in the decision test: "no missing effect detected" with
+    the smallest detectable effect per candidate. Otherwise, at each step
+    every remaining candidate is fitted (with the already named ones and the
+    noise scales) by maximising the Laplace marginal likelihood; the best is
+    named if its likelihood-ratio test passes a Bonferroni gate
+    (`p < alpha / number of remaining candidates`). A runner-up within
+    `ln 20` log-units makes the step "ambiguous"; when the two candidates'
+    nuisance-adjusted information correlation exceeds `equivalence_corr` the
+    data cannot tell them apart and they are reported as an equivalence set.
+    If the decision test fires but no candidate passes the gate, or the
+    innovation diagnostics of the final model stay significant, the verdict
+    includes "unnamed residual structure".
+
+    **Arguments:**
+
+    - `found`: the output of [`eqsmooth.discover.find`][].
+    - `data`: the same sequences.
+    - `max_terms`: at most this many named terms.
+    - `equivalence_corr`: information-correlation threshold for equivalence.
+
+    **Returns:** a dict with `verdict` (a sentence), `named` (list of names),
+    `steps` (the selection table), `equivalence_sets`, `ambiguous`.
+    """
+    st = found["_state"]
+    model, ev0, scales, nuis = (
+        st["model"],
+        st["evaluation"],
+        st["scales"],
+        st["nuisance"],
+    )
+    alpha, I_eff = st["alpha"], st["I_eff"]
+    names = [c.name for c in model.candidates]
+    out = {
+        "named": [],
+        "steps": [],
+        "equivalence_sets": [],
+        "ambiguous": [],
+        "unnamed_residual_structure": False,
+    }
+    if not found["detected"]:
+        mde = {c["name"]: c["smallest_detectable"] for c in found["candidates"]}
+        out["verdict"] = "no missing effect detected"
+        out["smallest_detectable"] = mde
+        out["_state"] = {"evaluation": ev0, "active": []}
+        return out
+    active: list[int] = []
+    current = ev0
+    for _ in range(max_terms):
+        remaining = [k for k in range(len(names)) if k not in active]
+        if not remaining:
+            break
+        trials = []
+        for k in remaining:
+            free = np.concatenate([np.asarray(active + [k], int), nuis])
+            trials.append((k, fit(model, data, free, current.z, current.xhat, scales)))
+        trials.sort(key=lambda t: -t[1].log_marginal)
+        best_k, best = trials[0]
+        lr = 2.0 * (best.log_marginal - current.log_marginal)
+        p = chi2_sf(lr, 1)
+        gate = alpha / len(remaining)
+        step = {
+            "candidates": [
+                {
+                    "name": names[k],
+                    "log_marginal_gain": e.log_marginal - current.log_marginal,
+                }
+                for k, e in trials
+            ],
+            "best": names[best_k],
+            "likelihood_ratio": lr,
+            "p_value": p,
+            "gate": gate,
+        }
+        out["steps"].append(step)
+        if p >= gate:
+            break
+        close = []
+        if len(trials) > 1:
+            margin = best.log_marginal - trials[1][1].log_marginal
+            step["margin"] = margin
+            for k, e in trials[1:]:
+                if best.log_marginal - e.log_marginal < _LN20:
+                    close.append(k)
+        equiv, amb = [names[best_k]], [names[best_k]]
+        for k in close:
+            corr = I_eff[best_k, k] / np.sqrt(I_eff[best_k, best_k] * I_eff[k, k])
+            if abs(corr) >= equivalence_corr:
+                equiv.append(names[k])
+            else:
+                amb.append(names[k])
+        if len(equiv) > 1:
+            out["equivalence_sets"].append(equiv)
+        if len(amb) > 1:
+            out["ambiguous"].append(amb)
+        active.append(best_k)
+        current = best
+        out["named"].append(names[best_k])
+    final = fitted_model(model, current.z)
+    innov = innovation_tests(final, data)
+    leftover = _diagnostics_significant(innov, alpha)
+    parts = []
+    for nm in out["named"]:
+        eq = [s for s in out["equivalence_sets"] if s[0] == nm]
+        am = [s for s in out["ambiguous"] if s[0] == nm]
+        if eq:
+            parts.append("not identifiable from this data: {" + " ≡ ".join(eq[0]) + "}")
+        elif am:
+            parts.append("ambiguous: {" + ", ".join(am[0]) + "}")
+        else:
+            parts.append(nm)
+    if not out["named"] or leftover:
+        out["unnamed_residual_structure"] = True
+        parts.append("unnamed residual structure")
+    out["verdict"] = "; ".join(parts)
+    out["_state"] = {"evaluation": current, "active": active}
+    return out
+
+
+def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> dict:
+    """Fit the named coefficients (and noise scales) and give confidence intervals.
+
+    The coefficients maximise the Laplace marginal likelihood (not a plug-in
+    regression on smoothed states, which is biased); the intervals come from
+    the curvature of the log marginal likelihood (observed information,
+    noise scales profiled out).
+
+    **Returns:** a dict with `model` (the fitted
+    [`eqsmooth.discover.ChainModel`][]), `coefficients` (name, value,
+    standard error, interval, sign check) and `noise_scales`.
+    """
+    st = found["_state"]
+    model, scales, nuis = st["model"], st["scales"], st["nuisance"]
+    active = named["_state"]["active"]
+    start = named["_state"]["evaluation"]
+    free = np.concatenate([np.asarray(active, int), nuis])
+    ev = fit(model, data, free, start.z, start.xhat, scales) if len(free) else start
+    K = len(model.candidates)
+    coefs = []
+    if active:
+        info = -ev.hessian[np.ix_(free, free)]
+        cov = np.linalg.pinv(info)
+        zq = normal_quantile(0.5 + level / 2)
+        for i, k in enumerate(active):
+            c = model.candidates[k]
+            value = float(ev.z[k])
+            se = float(np.sqrt(max(cov[i, i], 0.0)))
+            coefs.append(
+                {
+                    "name": c.name,
+                    "value": value,
+                    "std_error": se,
+                    "interval": [value - zq * se, value + zq * se],
+                    "level": level,
+                    "sign_ok": bool(c.sign == 0 or np.sign(value) in (0, c.sign)),
+                }
+            )
+    return {
+        "model": fitted_model(model, ev.z),
+        "log_marginal": ev.log_marginal,
+        "coefficients": coefs,
+        "noise_scales": {
+            "process": float(np.exp(ev.z[K])),
+            "measurement": float(np.exp(ev.z[K + 1])),
+        },
+    }
+
+
+def _model_metrics(model: ChainModel, data: Sequences, horizon: int) -> dict:
+    K = len(model.candidates)
+    z = np.concatenate([np.asarray(model.coefficients), [0.0, 0.0]])
+    ev = evaluate(model, data, z, np.asarray(data.initial_states), np.ones(max(K, 1)))
+    innov = innovation_tests(model, data)
+    errs = np.asarray(k_step_errors(model, data, horizon))
+    B, T = data.num_sequences, data.length
+    return {
+        "log_marginal_per_step": ev.log_marginal / (B * T),
+        "nis_mean": innov["nis_mean"],
+        "nis_p_value": innov["nis_p_value"],
+        "whiteness_p_values": [w["p_value"] for w in innov["whiteness"]],
+        "k_step_rmse": np.sqrt(errs.mean(axis=1)).tolist(),
+    }
+
+
+def show(
+    before: ChainModel, after: ChainModel, heldout: Sequences, *, horizon: int = 10
+) -> dict:
+    """Held-out before/after comparison of two fitted models.
+
+    Log marginal likelihood per time step (Laplace), NIS with its two-sided
+    p-value, Ljung-Box p-values and the k-step open-loop prediction RMSE for
+    `k = 1..horizon` (predictions start from the filtered state at `t` and
+    run the model's mean dynamics, so they are genuine forecasts).
+    """
+    if heldout.length <= horizon + 1:
+        raise ValueError(
+            f"show: held-out sequences of length {heldout.length} are too short for "
+            f"horizon {horizon}"
+        )
+    b = _model_metrics(before, heldout, horizon)
+    a = _model_metrics(after, heldout, horizon)
+    return {
+        "before": b,
+        "after": a,
+        "log_marginal_gain_per_step": a["log_marginal_per_step"]
+        - b["log_marginal_per_step"],
+        "k_step_rmse_ratio": (
+            np.asarray(a["k_step_rmse"]) / np.asarray(b["k_step_rmse"])
+        ).tolist(),
+    }
+
+
+def discover(
+    model: ChainModel,
+    data: Sequences,
+    heldout: Sequences | None = None,
+    *,
+    alpha: float = 0.05,
+    fit_noise: bool = True,
+    covariance: str = "auto",
+    max_terms: int = 3,
+    horizon: int = 10,
+) -> dict:
+    """Run find, name, add and (with held-out data) show; return one report.
+
+    **Arguments:**
+
+    - `model`: the nominal [`eqsmooth.discover.ChainModel`][] with its library.
+    - `data`: identification sequences.
+    - `heldout`: validation sequences for the before/after comparison, or
+        `None`.
+    - `alpha`, `fit_noise`, `covariance`: see [`eqsmooth.discover.find`][].
+    - `max_terms`: see [`eqsmooth.discover.name`][].
+    - `horizon`: see [`eqsmooth.discover.show`][].
+
+    **Returns:** a JSON-serialisable dict with `verdict`, `find`, `name`,
+    `add` and `show`, plus the fitted model under the key `"model"` (remove
+    it before serialising, or use [`eqsmooth.discover.to_json`][]).
+    """
+    found = find(model, data, alpha=alpha, fit_noise=fit_noise, covariance=covariance)
+    named = name(found, data, max_terms=max_terms)
+    added = add(found, named, data)
+    report = {
+        "verdict": named["verdict"],
+        "find": found,
+        "name": named,
+        "add": {k: v for k, v in added.items() if k != "model"},
+        "model": added["model"],
+    }
+    if heldout is not None:
+        before = fitted_model(found["_state"]["model"], found["_state"]["evaluation"].z)
+        report["show"] = show(before, added["model"], heldout, horizon=horizon)
+    return report
+
+
+def to_json(report: dict) -> dict:
+    """A copy of a report without internal state, models or arrays."""
+
+    def clean(x):
+        if isinstance(x, dict):
+            return {
+                k: clean(v)
+                for k, v in x.items()
+                if not k.startswith("_") and k not in ("model", "whitened_innovations")
+            }
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return x.tolist()
+        if isinstance(x, np.floating | np.integer | np.bool_):
+            return x.item()
+        return x
+
+    return clean(report)
