@@ -1,0 +1,186 @@
+"""Data parallelism: a step sharded over 2 (virtual CPU) devices equals one device."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from eqsmooth.learn import (
+    initialize_distributed,
+    make_mesh,
+    make_train_step,
+    replicate,
+    shard_batch,
+)
+
+
+def _loss(model, batch):
+    pred = model["w"] * batch["x"] + model["b"]
+    return jnp.mean((pred - batch["y"]) ** 2)
+
+
+def test_one_device_mesh_is_a_no_op():
+    mesh = make_mesh(jax.devices()[:1])
+    model = {"w": jnp.asarray(0.3), "b": jnp.asarray(-0.1)}
+    batch = {"x": jnp.linspace(0.0, 1.0, 6), "y": jnp.linspace(1.0, 2.0, 6)}
+    opt = optax.sgd(0.1)
+    plain = make_train_step(_loss, opt)(model, opt.init(model), batch)
+    meshed = make_train_step(_loss, opt, mesh=mesh)(
+        replicate(model, mesh),
+        replicate(opt.init(model), mesh),
+        shard_batch(batch, mesh),
+    )
+    for a, b in zip(
+        jax.tree_util.tree_leaves(plain), jax.tree_util.tree_leaves(meshed)
+    ):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_initialize_distributed_without_arguments_does_nothing():
+    assert initialize_distributed() is False
+    assert jax.process_count() == 1
+
+
+_SCRIPT = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp, numpy as np, optax
+    import eqsmooth as eqs
+    from eqsmooth.learn import (
+        make_mesh, make_train_step, replicate, shard_batch, surrogate_loss, train,
+    )
+
+    assert len(jax.devices()) == 2, jax.devices()
+    T, B = 5, 4
+    t = np.arange(T)
+
+    def walk(a, b, data, params):
+        return b - a * params
+
+    def obs(x, data, params):
+        return x - data
+
+    def per_example(model, ex):
+        graph = eqs.FactorGraph([
+            eqs.FunctionFactor(
+                walk, (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+                eqs.IsotropicNoise(jnp.exp(model["log_q"])), params=model["coeff"],
+            ),
+            eqs.FunctionFactor(
+                obs, (eqs.Var("x", t),), eqs.DiagonalNoise(jnp.exp(model["log_r"])),
+                data=ex["meas"],
+            ),
+        ])
+        return surrogate_loss(graph, {"x": ex["truth"]})
+
+    def loss(model, batch):
+        return jnp.mean(jax.vmap(lambda ex: per_example(model, ex))(batch))
+
+    rng = np.random.default_rng(0)
+    truth = np.cumsum(rng.normal(size=(8, T, 2)), axis=1)
+    data = {"truth": truth, "meas": truth + 0.3 * rng.normal(size=truth.shape)}
+    model = {
+        "log_q": jnp.asarray(0.1), "log_r": jnp.array([0.5, -0.2]),
+        "coeff": jnp.asarray(0.9),
+    }
+    batch = jax.tree_util.tree_map(lambda a: jnp.asarray(a[:B]), data)
+    opt = optax.sgd(1.0)  # new = old - grad
+    mesh = make_mesh()
+    single = make_train_step(loss, opt)
+    sharded = make_train_step(loss, opt, mesh=mesh)
+    m1, _, met1 = single(model, opt.init(model), batch)
+    sb = shard_batch(batch, mesh)
+    shard_shapes = sorted(s.data.shape for s in sb["meas"].addressable_shards)
+    m2, _, met2 = sharded(replicate(model, mesh), replicate(opt.init(model), mesh), sb)
+    g1 = jax.tree_util.tree_map(lambda a, b: a - b, model, m1)
+    g2 = jax.tree_util.tree_map(lambda a, b: a - b, model, m2)
+    grad_diff = max(
+        float(jnp.max(jnp.abs(a - b)))
+        for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g2))
+    )
+    grad_max = max(float(jnp.max(jnp.abs(a))) for a in jax.tree_util.tree_leaves(g1))
+    try:
+        shard_batch(jax.tree_util.tree_map(lambda a: a[:3], batch), mesh)
+        odd_error = ""
+    except ValueError as err:
+        odd_error = str(err)
+
+    # The training loop (a cheap regression loss): 5 steps with and without mesh.
+    def line_loss(m, b):
+        return jnp.mean((m["w"] * b["x"] + m["coeff"] - b["y"]) ** 2)
+
+    xs = rng.normal(size=16)
+    line_data = {"x": xs, "y": 2.0 * xs + 1.0}
+    line0 = {"w": jnp.asarray(0.0), "coeff": model["coeff"]}
+    kw = dict(optimizer=optax.adam(1e-2), num_steps=5, batch_size=4, progress=False)
+    r1 = train(line0, line_loss, line_data, **kw)
+    r2 = train(line0, line_loss, line_data, mesh=mesh, **kw)
+    train_diff = max(
+        float(jnp.max(jnp.abs(a - b)))
+        for a, b in zip(
+            jax.tree_util.tree_leaves(r1.model), jax.tree_util.tree_leaves(r2.model)
+        )
+    )
+    out_sharding = m2["log_r"].sharding
+    print("RESULT", json.dumps({
+        "loss1": float(met1["loss"]), "loss2": float(met2["loss"]),
+        "grad_diff": grad_diff, "grad_max": grad_max,
+        "shard_shapes": [list(s) for s in shard_shapes],
+        "replicated_out": bool(out_sharding.is_fully_replicated),
+        "out_devices": len(out_sharding.device_set),
+        "odd_error": odd_error,
+        "train_diff": train_diff,
+        "train_moved": float(jnp.abs(r1.model["coeff"] - model["coeff"])),
+    }))
+    """
+)
+
+
+@pytest.fixture(scope="module")
+def two_device_result(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sharding") / "sharded_step.py"
+    path.write_text(_SCRIPT)
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        JAX_PLATFORMS="cpu",
+    )
+    proc = subprocess.run(
+        [sys.executable, str(path)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT ") :])
+
+
+def test_sharded_step_matches_single_device(two_device_result):
+    r = two_device_result
+    assert abs(r["loss1"] - r["loss2"]) <= 1e-12 * max(1.0, abs(r["loss1"]))
+    assert r["grad_max"] > 1e-3  # the comparison is not vacuous
+    assert r["grad_diff"] <= 1e-12
+    # The batch really was split: two shards of 2 sequences each.
+    assert r["shard_shapes"] == [[2, 5, 2], [2, 5, 2]]
+    assert r["replicated_out"] and r["out_devices"] == 2
+
+
+def test_sharded_training_loop_matches_single_device(two_device_result):
+    r = two_device_result
+    assert r["train_moved"] > 1e-4
+    assert r["train_diff"] <= 1e-12
+
+
+def test_shard_batch_rejects_indivisible_batch(two_device_result):
+    assert "multiple of the device count" in two_device_result["odd_error"]
