@@ -1,7 +1,8 @@
 """Pose-graph optimisation on the standard g2o data sets, against GTSAM.
 
 For every file: load it with `eqsmooth.io.load_g2o` (gauge prior on the first
-pose, σ = 1e-6), solve with `LevenbergMarquardt(PCG())` (or `--solver dense`)
+pose, σ = 1e-6), solve with `LevenbergMarquardt(PCG())` (block-Jacobi; or
+`--preconditioner chain` for `ChainPreconditioner()`, or `--solver dense`)
 from the file's initial values, and solve the same problem with GTSAM's
 `LevenbergMarquardtOptimizer` in the same run. GTSAM gets exactly the same
 factors (`eqsmooth.io.to_gtsam`: same measurements, same information
@@ -125,6 +126,7 @@ def bench_one(name, pg, args, solver, solver_name, have_gtsam):
             "num_poses": pg.num_poses,
             "num_edges": pg.num_edges,
             "solver": solver_name,
+            "initial_damping": solver.initial_damping,
             "max_steps": args.max_steps,
             "dtype": "float64",
             "se3_information": pg.se3_information,
@@ -237,6 +239,12 @@ def main(argv=None):
     parser.add_argument("--md", default=None, help="write the markdown report here")
     parser.add_argument("--files", nargs="*", default=None, help="subset of files")
     parser.add_argument("--solver", choices=["pcg", "dense"], default="pcg")
+    parser.add_argument(
+        "--preconditioner",
+        choices=["jacobi", "chain"],
+        default="jacobi",
+        help="PCG preconditioner: BlockJacobi() or ChainPreconditioner()",
+    )
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--budget-s", type=float, default=120.0, help="per file")
@@ -253,9 +261,18 @@ def main(argv=None):
         have_gtsam = False
         print("note: gtsam not installed (pip install gtsam); no reference timings")
 
-    linear = eqs.PCG() if args.solver == "pcg" else eqs.DenseCholesky()
+    if args.solver == "pcg":
+        pre = (
+            eqs.solve.ChainPreconditioner()
+            if args.preconditioner == "chain"
+            else eqs.solve.BlockJacobi()
+        )
+        linear = eqs.PCG(preconditioner=pre)
+        solver_name = f"LevenbergMarquardt(PCG(preconditioner={type(pre).__name__}()))"
+    else:
+        linear = eqs.DenseCholesky()
+        solver_name = "LevenbergMarquardt(DenseCholesky())"
     solver = eqs.LevenbergMarquardt(linear)
-    solver_name = f"LevenbergMarquardt({type(linear).__name__}())"
 
     problems = []
     if DATA.exists():
@@ -289,14 +306,15 @@ def main(argv=None):
             f"{rec['median_s']:.3f} s (compile {rec['compile_s']:.1f} s){ref}",
             flush=True,
         )
+        # Written after every file, so a long run that is cut off keeps its rows.
+        if args.md:
+            write_markdown(args.md, records, machine(), solver_name, args.max_steps)
+        if args.json:
+            write_json(args.json, records)
 
     table = table_of(records)
     print()
     print(table)
-    if args.md:
-        write_markdown(args.md, records, machine(), solver_name, args.max_steps)
-    if args.json:
-        write_json(args.json, records)
 
 
 if __name__ == "__main__":

@@ -419,7 +419,8 @@ def _solve_file(name: str, max_steps: int):
 
 
 _SOLVED = {}
-_STEPS = {"intel.g2o": 6, "smallGrid3D.g2o": 20}
+# LM runs to convergence (ftol = 1e-8): intel takes about 15 steps.
+_STEPS = {"intel.g2o": 50, "smallGrid3D.g2o": 50}
 
 
 def _solved(name: str, max_steps: int):
@@ -432,24 +433,16 @@ def _solved(name: str, max_steps: int):
     "name, factor", [("intel.g2o", 10.0), ("smallGrid3D.g2o", 300.0)]
 )
 def test_real_data_cost_decreases(name, factor):
+    import eqsmooth as eqs
+
     pg, sol = _solved(name, _STEPS[name])
+    assert sol.result == eqs.RESULTS.successful  # converged, not out of steps
     initial, final = float(sol.stats["initial_cost"]), float(sol.stats["final_cost"])
     np.testing.assert_allclose(initial, _cost(pg, pg.values), rtol=1e-12)
     assert final < initial / factor, (initial, final)
 
 
-_PCG_STALLS = pytest.mark.xfail(
-    strict=False,
-    reason="with PCG()'s defaults, CG on intel needs ~2000 iterations to meet "
-    "lineax's componentwise tolerance, stops at max_steps=500 and LM rejects the "
-    "step; 6 LM steps end at cost 23.85 instead of 22.502",
-)
-
-
-@pytest.mark.parametrize(
-    "name, rtol",
-    [pytest.param("intel.g2o", 1e-6, marks=_PCG_STALLS), ("smallGrid3D.g2o", 1e-6)],
-)
+@pytest.mark.parametrize("name, rtol", [("intel.g2o", 1e-6), ("smallGrid3D.g2o", 1e-6)])
 def test_real_data_matches_gtsam(name, rtol):
     gtsam = pytest.importorskip(
         "gtsam", reason="GTSAM not installed (pip install gtsam)"

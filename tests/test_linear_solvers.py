@@ -112,6 +112,37 @@ def loop_problem(seed: int, N: int = 8):
     return graph, values
 
 
+def closure_problem(seed: int, N: int = 9):
+    """One group numbered along a trajectory: odometry plus loop closures (not a
+    chain), with a prior on a middle variable: what ChainPreconditioner is for."""
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(seed)
+    a = np.concatenate([np.arange(N - 1), [0, 2, 8]])
+    b = np.concatenate([np.arange(1, N), [5, 7, 3]])
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _dynamics,
+                (eqs.Var("p", a), eqs.Var("v", a), eqs.Var("p", b), eqs.Var("v", b)),
+                eqs.IsotropicNoise(2.0),
+                data=jnp.asarray(rng.normal(size=(len(a), 2))),
+            ),
+            eqs.PriorFactor(
+                eqs.Var("p", [4]), jnp.zeros((1, 2)), eqs.IsotropicNoise(1.0)
+            ),
+            eqs.PriorFactor(
+                eqs.Var("v", [4]), jnp.zeros((1, 2)), eqs.IsotropicNoise(1.0)
+            ),
+        ]
+    )
+    values = {
+        "p": jnp.asarray(rng.normal(size=(N, 2))),
+        "v": jnp.asarray(rng.normal(size=(N, 2))),
+    }
+    return graph, values
+
+
 def random_damping(lin, seed):
     rng = np.random.default_rng(seed)
     return {
@@ -160,7 +191,10 @@ def _solvers():
     return {
         "dense": eqs.DenseCholesky(),
         "tridiag": eqs.BlockTridiagonal(),
-        "pcg": eqs.PCG(rtol=1e-13, atol=1e-14, max_steps=200),
+        "pcg": eqs.PCG(rtol=1e-13, max_steps=200),
+        "pcg-chain": eqs.PCG(
+            rtol=1e-13, max_steps=200, preconditioner=eqs.solve.ChainPreconditioner()
+        ),
     }
 
 
@@ -174,13 +208,18 @@ def _loop_lin(seed):
     return _linearize(*loop_problem(seed))
 
 
+@ft.cache
+def _closure_lin(seed):
+    return _linearize(*closure_problem(seed))
+
+
 # ---------------------------------------------------------------------------
 # Agreement with the reference
 # ---------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg"])
+@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "pcg-chain"])
 def test_chain_matches_reference(name, damped):
     import eqsmooth as eqs
 
@@ -207,6 +246,68 @@ def test_graph_matches_reference(name, damped):
     np.testing.assert_allclose(
         flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
     )
+
+
+@pytest.mark.parametrize("damped", [False, True])
+@pytest.mark.parametrize("name", ["dense", "pcg", "pcg-chain"])
+def test_loop_closures_match_reference(name, damped):
+    import eqsmooth as eqs
+
+    for seed in (0, 1):
+        lin = _closure_lin(seed)
+        damping = random_damping(lin, seed) if damped else None
+        delta, result = _solve(_solvers()[name], lin, damping)
+        assert result == eqs.RESULTS.successful
+        np.testing.assert_allclose(
+            flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
+        )
+
+
+def _residual_norms(lin, damping, delta):
+    J, r = (np.asarray(a) for a in _dense_jacobian(lin))
+    H = J.T @ J
+    if damping is not None:
+        H = H + np.diag(flat(lin, damping))
+    b = -J.T @ r
+    return np.linalg.norm(b - H @ flat(lin, delta)), np.linalg.norm(b)
+
+
+@pytest.mark.parametrize("rtol", [1e-3, 1e-8])
+def test_pcg_stops_on_residual_norm(rtol):
+    """‖b − Hδ‖₂ ≤ rtol‖b‖₂ at exit, and not grossly tighter than asked
+    (lineax's per-component test would run on to the smallest entries)."""
+    import eqsmooth as eqs
+
+    lin = _closure_lin(0)
+    delta, result = _solve(eqs.PCG(rtol=rtol), lin, None)
+    assert result == eqs.RESULTS.successful
+    res, b = _residual_norms(lin, None, delta)
+    assert res <= rtol * b * (1 + 1e-6)
+    if rtol == 1e-3:
+        # One fewer iteration would not have met the tolerance: the last
+        # iterate is not far below it.
+        assert res > 1e-3 * rtol * b
+
+
+def test_chain_preconditioner_is_exact_on_chains():
+    """On a chain M = JᵀJ + damping, so one CG iteration solves the system."""
+    import eqsmooth as eqs
+
+    lin = _chain_lin(0)
+    damping = random_damping(lin, 0)
+    solver = eqs.PCG(
+        rtol=1e-10,
+        max_steps=1,
+        accept_inexact=False,
+        preconditioner=eqs.solve.ChainPreconditioner(),
+    )
+    delta, result = _solve(solver, lin, damping)
+    assert result == eqs.RESULTS.successful
+    np.testing.assert_allclose(
+        flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
+    )
+    with pytest.raises(ValueError, match="same number of variables"):
+        _solve(solver, _loop_lin(0), None)
 
 
 def test_chain_float32_keeps_dtype():
@@ -278,13 +379,34 @@ def test_singular_system_reports_and_stays_finite(name):
         assert np.all(flat(lin, delta) == 0)
 
 
-def test_pcg_out_of_steps_is_a_result_code():
+def test_pcg_out_of_steps():
+    """By default the last iterate counts (LM's gain ratio judges it); it
+    decreases the quadratic model. `accept_inexact=False` reports it."""
+    import eqsmooth as eqs
+    from eqsmooth.solve._least_squares import predicted_decrease
+
+    lin = _closure_lin(0)
+    delta, result = _solve(eqs.PCG(max_steps=2), lin, None)
+    assert result == eqs.RESULTS.successful
+    assert np.all(np.isfinite(flat(lin, delta)))
+    assert float(eqx.filter_jit(predicted_decrease)(lin, delta)) > 0
+    res, b = _residual_norms(lin, None, delta)
+    assert res > 1e-6 * b  # really inexact
+    strict = eqs.PCG(max_steps=2, accept_inexact=False)
+    delta2, result = _solve(strict, lin, None)
+    assert result == eqs.RESULTS.max_steps_reached
+    np.testing.assert_array_equal(flat(lin, delta2), flat(lin, delta))
+
+
+def test_pcg_rejects_bad_config():
     import eqsmooth as eqs
 
-    lin = _loop_lin(0)
-    delta, result = _solve(eqs.PCG(max_steps=2), lin, None)
-    assert result == eqs.RESULTS.max_steps_reached
-    assert np.all(np.isfinite(flat(lin, delta)))
+    with pytest.raises(ValueError, match="rtol"):
+        eqs.PCG(rtol=0.0, atol=0.0)
+    with pytest.raises(ValueError, match="max_steps"):
+        eqs.PCG(max_steps=0)
+    with pytest.raises(TypeError, match="AbstractPreconditioner"):
+        eqs.PCG(preconditioner="jacobi")  # pyright: ignore
 
 
 # ---------------------------------------------------------------------------
@@ -334,7 +456,7 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg"])
+@pytest.mark.parametrize("name", ["tridiag", "pcg", "pcg-chain"])
 def test_vmap_over_graphs(name):
     import eqsmooth as eqs
 
@@ -356,8 +478,10 @@ def test_vmap_over_graphs(name):
         np.testing.assert_allclose(got, ref, atol=1e-9)
 
 
-def test_grad_matches_finite_differences():
-    """Reverse mode through lineax's solve rule: w.r.t. data and values."""
+@pytest.mark.parametrize("name", ["tridiag", "pcg"])
+def test_grad_matches_finite_differences(name):
+    """Reverse mode through lineax's solve rule: w.r.t. data and values (one
+    Gauss-Newton step's solve, differentiated)."""
     import eqsmooth as eqs
 
     graph, values = chain_problem(2)
@@ -372,7 +496,7 @@ def test_grad_matches_finite_differences():
 
     loss = eqx.filter_jit(loss)
     data = graph.factors[0].data
-    solver = eqs.BlockTridiagonal()
+    solver = _solvers()[name]
     g_data, g_vals = eqx.filter_jit(jax.grad(loss, argnums=(1, 2)))(
         solver, data, values
     )

@@ -34,5 +34,10 @@ from ._logdet import (
     normal_log_det as normal_log_det,
 )
 from ._marginals import marginal_covariances as marginal_covariances
-from ._pcg import PCG as PCG
+from ._pcg import (
+    AbstractPreconditioner as AbstractPreconditioner,
+    BlockJacobi as BlockJacobi,
+    ChainPreconditioner as ChainPreconditioner,
+    PCG as PCG,
+)
 from ._solution import RESULTS as RESULTS, Solution as Solution
