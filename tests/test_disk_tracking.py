@@ -1,5 +1,6 @@
 """Visual disk tracking example: data generator, models, a tiny training run."""
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -116,3 +117,118 @@ def test_dynamics_statistics(stats_fold):
     vel = stats_fold.velocities.reshape(-1, 2)
     assert np.all(np.abs(pos.std(axis=0) - D.POSITION_STD) < 2.5), pos.std(axis=0)
     assert np.all(np.abs(vel.std(axis=0) - 6.6) < 0.6), vel.std(axis=0)
+
+
+# ---------------------------------------------------------------------------
+# Models and a tiny end-to-end run
+# ---------------------------------------------------------------------------
+
+
+def test_model_shapes_and_noise_heads():
+    import jax
+    import jax.numpy as jnp
+    from disk_tracking import models as M
+
+    key = jax.random.key(0)
+    sensor = M.VirtualSensor(key)
+    img = jnp.zeros((120, 120, 3), dtype=jnp.uint8)
+    assert sensor.features(img).shape == (240,)
+    assert sensor(img).shape == (2,)
+    counts = jnp.array([0.0, 50.0, 149.0], dtype=jnp.float32)
+    const = M.ConstantNoise(4.0)
+    np.testing.assert_allclose(const(counts), 0.25, rtol=1e-6)
+    het = M.HeteroscedasticNoise(4.0, key)
+    # Starts constant at 1/sigma (zero last layer), positive everywhere.
+    np.testing.assert_allclose(het(counts), 0.25, rtol=1e-5)
+    lstm = M.LstmTracker(key, bidirectional=True, hidden=8)
+    out = lstm(jnp.zeros((3, 120, 120, 3), jnp.uint8), jnp.zeros(4, jnp.float32))
+    assert out.shape == (3, 2)
+
+
+def test_smoother_beats_its_measurements():
+    import jax
+    import jax.numpy as jnp
+    from disk_tracking import models as M
+
+    import eqsmooth as eqs
+
+    f = D.generate_fold(seed=0, fold=0, num_sequences=8, num_frames=20)
+    truth = jnp.asarray(f.states, jnp.float64)
+    rng = np.random.default_rng(0)
+    meas = truth[..., :2] + 5.0 * jnp.asarray(rng.normal(size=(8, 20, 2)))
+
+    def smooth(m):
+        graph = M.build_smoother_graph(
+            m, jnp.full((20,), 0.2), jnp.asarray(1.0 / M.DYNAMICS_SIGMAS)
+        )
+        solver = eqs.GaussNewton(eqs.BlockTridiagonal())
+        return eqs.least_squares(graph, {"x": M.initial_guess(m)}, solver).value["x"]
+
+    est = jax.vmap(smooth)(meas)
+    raw = np.sqrt(np.mean((meas - truth[..., :2]) ** 2))
+    smoothed = np.sqrt(np.mean((est[..., :2] - truth[..., :2]) ** 2))
+    assert smoothed < 0.75 * raw, (smoothed, raw)
+
+
+def test_tiny_training_run(tmp_path):
+    import equinox as eqx
+    import jax
+    from disk_tracking import report, train
+
+    cfg = train.Config(
+        test_folds=(0,),
+        train_folds=(1,),
+        sequences_per_fold=6,
+        num_frames=6,
+        max_val_sequences=2,
+        max_test_sequences=3,
+        sensor_steps=2,
+        sensor_batch=2,
+        fg_steps=2,
+        fg_batch=2,
+        lstm_steps=1,
+        lstm_batch=1,
+        lstm_subsequence=4,
+        lstm_hidden=8,
+        eval_every=1,
+        eval_batch=12,
+        fg_lr=1e-2,
+        # One of each kind keeps the compile time (most of this test) small.
+        methods=(
+            "smoother_hetero_surrogate",
+            "smoother_const_nll",
+            "ekf_hetero_nll",
+            "lstm_bi",
+        ),
+        quick=True,
+    )
+    # optax's Adam mixes int and float scalars, which strict promotion rejects.
+    with jax.numpy_dtype_promotion("standard"):
+        res = train.run_fold(cfg, 0, tmp_path, log=lambda *a: None)
+    recs = res["records"]
+    assert set(recs) == {"virtual_sensor", *cfg.methods}
+    for name, r in recs.items():
+        assert np.isfinite(r["test_rmse"]), name
+    # Every training loss gives a finite, non-zero gradient for the noise MLP.
+    test = res["test"]
+    meas = jax.numpy.asarray(test.sensor[0], "float32")
+    counts = jax.numpy.asarray(test.fold.visible_pixels[0], "float32")
+    truth = jax.numpy.asarray(test.fold.states[0], "float32")
+    het = res["models"]["smoother_hetero_surrogate"]
+    for loss in (
+        lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3),
+        lambda m: train.joint_nll_one(m, meas, counts, truth),
+        lambda m: train.ekf_mse_one(m, meas, counts, truth),
+        lambda m: train.ekf_nll_one(m, meas, counts, truth),
+    ):
+        g = eqx.filter_grad(loss)(het)
+        w = np.asarray(g.noise.mlp.layers[-1].weight)
+        assert np.all(np.isfinite(w)) and np.any(w != 0)
+        # The dynamics noise is fixed (the paper's setting): no gradient.
+        assert np.all(np.asarray(g.log_dynamics_sqrt_precision) == 0)
+    assert (tmp_path / "fold_0" / "sensor_fold0.eqx").exists()
+    record, table = report.write_results(
+        tmp_path, dataclasses.asdict(cfg), [res], {"total_s": 0.0}
+    )
+    assert "QUICK" in table and "smoother, heteroscedastic" in table
+    assert (tmp_path / "results.json").exists()

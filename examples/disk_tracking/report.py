@@ -1,0 +1,223 @@
+"""Results table (markdown + JSON) and the two figures of the disk experiment."""
+
+import json
+import math
+import platform
+import subprocess
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import data as D
+
+
+# The paper's numbers (its own code, 10 folds, per-coordinate RMSE in pixels,
+# mean ± standard error), as stated in the issue that specifies this run.
+PAPER = {
+    "smoother_hetero_surrogate": "2.336 ± 0.072",
+    "smoother_hetero_nll": "2.606 ± 0.114",
+    "smoother_hetero_implicit": "—",
+    "smoother_const_surrogate": "8.104 ± 0.167",
+    "smoother_const_nll": "8.182 ± 0.175",
+    "ekf_hetero_mse": "3.083 ± 0.095",
+    "ekf_hetero_nll": "3.118 ± 0.078",
+    "ekf_const_mse": "9.324 ± 0.188",
+    "ekf_const_nll": "9.273 ± 0.171",
+    "lstm_uni": "2.565 ± 0.054",
+    "lstm_bi": "2.044 ± 0.046",
+    "virtual_sensor": "≈ 10.2",
+}
+
+LABELS = {
+    "smoother_hetero_surrogate": "smoother, heteroscedastic, surrogate loss (K=3)",
+    "smoother_hetero_nll": "smoother, heteroscedastic, joint NLL",
+    "smoother_hetero_implicit": "smoother, heteroscedastic, implicit adjoint (ours)",
+    "smoother_const_surrogate": "smoother, constant, surrogate loss (K=3)",
+    "smoother_const_nll": "smoother, constant, joint NLL",
+    "ekf_hetero_mse": "EKF, heteroscedastic, E2E MSE",
+    "ekf_hetero_nll": "EKF, heteroscedastic, marginal NLL",
+    "ekf_const_mse": "EKF, constant, E2E MSE",
+    "ekf_const_nll": "EKF, constant, marginal NLL",
+    "lstm_uni": "LSTM, unidirectional",
+    "lstm_bi": "LSTM, bidirectional",
+    "virtual_sensor": "virtual sensor alone",
+}
+
+
+def git_hash() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+            check=True,
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "."],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent.parent,
+            check=True,
+        ).stdout.strip()
+        return out.stdout.strip() + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def machine() -> dict:
+    return dict(
+        platform=platform.platform(),
+        processor=platform.processor(),
+        jax=jax.__version__,
+        devices=[str(d) for d in jax.devices()],
+    )
+
+
+def summarise(fold_results: list[dict]) -> dict[str, dict]:
+    """Mean and standard error over folds of each method's test RMSE."""
+    methods = list(fold_results[0]["records"])
+    out = {}
+    for m in methods:
+        vals = np.array([fr["records"][m]["test_rmse"] for fr in fold_results])
+        se = float(vals.std(ddof=0) / math.sqrt(len(vals))) if len(vals) > 1 else None
+        out[m] = dict(mean=float(vals.mean()), stderr=se, folds=vals.tolist())
+    return out
+
+
+def markdown_table(summary: dict[str, dict], folds: list[int], quick: bool) -> str:
+    title = (
+        "QUICK RUN (small data, few steps: not comparable with the paper)"
+        if quick
+        else "full protocol"
+    )
+    head = (
+        f"Disk tracking, {title}; test folds {folds}; per-coordinate position "
+        "RMSE in pixels (mean ± std/√n over folds)\n\n"
+        "| method | this run | paper |\n|---|---|---|\n"
+    )
+    order = [k for k in LABELS if k in summary]
+    rows = []
+    for m in order:
+        s = summary[m]
+        ours = f"{s['mean']:.3f}"
+        if s["stderr"] is not None:
+            ours += f" ± {s['stderr']:.3f}"
+        rows.append(f"| {LABELS[m]} | {ours} | {PAPER[m]} |")
+    return head + "\n".join(rows) + "\n"
+
+
+def write_results(
+    out: Path,
+    cfg_dict: dict,
+    fold_results: list[dict],
+    timings: dict,
+) -> tuple[dict, str]:
+    summary = summarise(fold_results)
+    folds = [fr["fold"] for fr in fold_results]
+    table = markdown_table(summary, folds, cfg_dict["quick"])
+    record = dict(
+        benchmark="disk_tracking",
+        quick=cfg_dict["quick"],
+        config=cfg_dict,
+        seed=dict(data=cfg_dict["data_seed"], model=cfg_dict["model_seed"]),
+        git_hash=git_hash(),
+        machine=machine(),
+        timings=timings,
+        summary=summary,
+        folds=[
+            dict(fold=fr["fold"], records=fr["records"], timings=fr["timings"])
+            for fr in fold_results
+        ],
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(record, indent=1, default=_jsonable))
+    (out / "results.md").write_text(table)
+    return record, table
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
+    """(a) trajectories over a first frame; (b) learned σ vs visible pixels."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not installed: no figures")
+        return []
+    tag = " (QUICK RUN)" if quick else ""
+    saved = []
+    test = fold_result["test"]
+    preds = fold_result["test_predictions"]
+    models = fold_result["models"]
+
+    # (a) The paper's Fig. 4: a test sequence over its first frame.
+    # The first test sequence in which the target is at some point mostly hidden.
+    occluded = np.nonzero(test.fold.visible_pixels.min(axis=1) < 60)[0]
+    seq = int(occluded[0]) if occluded.size else 0
+    image = test.fold.images(np.array([seq]), np.array([0]))[0]
+    h = D.IMAGE_SIZE // 2
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    ax.imshow(image, extent=(-h - 0.5, h - 0.5, h - 0.5, -h - 0.5))
+    truth = test.fold.positions[seq]
+    ax.plot(*truth.T, "w-o", ms=3, lw=2, label="ground truth")
+    styles = {
+        "virtual_sensor": ("x--", "virtual sensor"),
+        "smoother_const_surrogate": ("s-", "smoother, constant noise"),
+        "smoother_hetero_surrogate": ("^-", "smoother, heteroscedastic noise"),
+    }
+    for name, (style, label) in styles.items():
+        if name in preds:
+            ax.plot(*preds[name][seq].T, style, ms=3, lw=1.2, label=label)
+    ax.set_xlim(-h, h)
+    ax.set_ylim(h, -h)
+    ax.legend(fontsize=7, loc="lower left")
+    ax.set_title(f"Test sequence {seq}, first frame{tag}", fontsize=9)
+    path = out / "fig_trajectories.png"
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    saved.append(path)
+
+    # (b) The paper's Fig. 5: learned uncertainty vs visible pixels.
+    counts = jnp.arange(0, 150, dtype=jnp.float32)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, model in models.items():
+        if name.startswith("lstm"):
+            continue
+        sigma = 1.0 / np.asarray(model.noise(counts))
+        ls = "-" if "hetero" in name else ":"
+        ax.plot(np.asarray(counts), sigma, ls, label=name.replace("_", " "))
+    # Empirical sensor error per visible-pixel bin (validation split).
+    val = fold_result["val"]
+    err = np.sqrt(np.mean((val.sensor - val.fold.positions) ** 2, axis=-1)).ravel()
+    c = val.fold.visible_pixels.ravel()
+    bins = np.linspace(0, 150, 11)
+    idx = np.digitize(c, bins) - 1
+    centres, emp = [], []
+    for b in range(len(bins) - 1):
+        sel = idx == b
+        if sel.sum() >= 3:
+            centres.append(0.5 * (bins[b] + bins[b + 1]))
+            emp.append(np.sqrt(np.mean(err[sel] ** 2)))
+    ax.plot(centres, emp, "ko", label="sensor RMSE per bin (validation)")
+    ax.set_xlabel("visible red pixels")
+    ax.set_ylabel("σ of the position measurement (px)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=6)
+    ax.set_title(f"Learned uncertainty vs visibility{tag}", fontsize=9)
+    path = out / "fig_uncertainty.png"
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    saved.append(path)
+    return saved

@@ -1,0 +1,792 @@
+"""Training stages of the disk tracking experiment and its evaluation.
+
+Stages (one test fold at a time):
+
+1. data: training folds (minus a validation split) and the test fold;
+2. pretrain the virtual sensor (MSE on positions), select on validation;
+3. run the frozen sensor once over every sequence (its positions are all the
+   smoothers and EKFs need, so their training costs no CNN passes);
+4. smoothers: {constant, heteroscedastic} noise x {surrogate loss (K = 3
+   unrolled Gauss-Newton steps from ground truth), joint NLL};
+5. EKFs: the same noise heads x {E2E MSE, marginal NLL};
+6. LSTMs: uni- and bidirectional, end to end from images;
+7. test RMSE (per coordinate, pixels) of every model selected on validation.
+
+Model selection never looks at the test fold.
+
+Parts marked `LOCAL FALLBACK` are small local implementations used until the
+library's versions land (`eqsmooth.learn` losses/optimiser, `eqsmooth.filters`
+EKF).
+"""
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import eqsmooth as eqs
+
+from . import data as D, models as M
+
+
+try:  # progress bars when tqdm is installed (the `examples` extra)
+    from tqdm.auto import tqdm
+except ImportError:  # pragma: no cover
+
+    def tqdm(it, **kwargs):
+        return it
+
+
+# ---------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Config:
+    """Everything that defines a run (saved with the results)."""
+
+    data_seed: int = 0
+    model_seed: int = 0
+    num_folds: int = D.NUM_FOLDS
+    sequences_per_fold: int = D.SEQUENCES_PER_FOLD
+    num_frames: int = D.FRAMES_PER_SEQUENCE
+    test_folds: tuple[int, ...] = tuple(range(D.NUM_FOLDS))
+    # Training folds used with each test fold (None: all the others).
+    train_folds: tuple[int, ...] | None = None
+    val_fraction: float = 0.1  # of the training sequences, for model selection
+    # Sequences actually used per split (None: all); quick mode sets these.
+    max_train_sequences: int | None = None
+    max_val_sequences: int | None = None
+    max_test_sequences: int | None = None
+    # Virtual sensor pretraining.
+    sensor_steps: int = 85_000  # ~30 epochs of 91k images at batch 32
+    sensor_batch: int = 32
+    sensor_lr: float = 1e-4
+    sensor_warmup: int = 50
+    # Smoothers and EKFs (noise heads only; the sensor is frozen).
+    fg_steps: int = 4_300  # ~30 epochs of 4.5k sequences at batch 32
+    fg_batch: int = 32
+    fg_lr: float = 1e-4
+    surrogate_steps: int = 3  # K unrolled Gauss-Newton steps
+    eval_solver_steps: int = 10
+    # LSTMs.
+    lstm_steps: int = 51_000  # ~60 epochs of 13.6k subsequences at batch 16
+    lstm_batch: int = 16
+    lstm_lr: float = 1e-4
+    lstm_subsequence: int = 10
+    lstm_hidden: int = 64
+    lstm_init_from_sensor: bool = False  # beyond the paper; quick mode uses it
+    # Common.
+    warmup: int = 50
+    clip_norm: float = 10.0
+    eval_every: int = 500
+    eval_batch: int = 256  # images per sensor forward pass in evaluation
+    images_on_device: bool = False  # pre-render training images (GPU runs)
+    methods: tuple[str, ...] = (
+        "smoother_const_surrogate",
+        "smoother_const_nll",
+        "smoother_hetero_surrogate",
+        "smoother_hetero_nll",
+        "smoother_hetero_implicit",
+        "ekf_const_mse",
+        "ekf_const_nll",
+        "ekf_hetero_mse",
+        "ekf_hetero_nll",
+        "lstm_uni",
+        "lstm_bi",
+    )
+    cache_dir: str | None = None
+    sensor_weights_dir: str | None = None  # reuse sensor_fold{k}.eqx from here
+    quick: bool = False
+    dtype: str = "float32"
+
+
+def quick_config(**overrides) -> Config:
+    """A small configuration that runs end to end in minutes on 2 CPU cores."""
+    cfg = Config(
+        test_folds=(0,),
+        train_folds=(1, 2),
+        sequences_per_fold=60,
+        max_train_sequences=96,
+        max_val_sequences=12,
+        max_test_sequences=40,
+        sensor_steps=150,
+        sensor_batch=16,
+        sensor_lr=2e-3,
+        fg_steps=150,
+        fg_batch=16,
+        fg_lr=1e-2,
+        lstm_steps=30,
+        lstm_batch=4,
+        lstm_lr=1e-3,
+        lstm_init_from_sensor=True,
+        warmup=10,
+        eval_every=25,
+        quick=True,
+    )
+    return dataclasses.replace(cfg, **overrides)
+
+
+# ---------------------------------------------------------------------------
+# Data splits
+# ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Split:
+    """Sequences of one split plus, once computed, the sensor's positions."""
+
+    fold: D.DiskFold
+    images: Any = None  # optional device array (N, T, 120, 120, 3) uint8
+    sensor: np.ndarray | None = None  # (N, T, 2) virtual-sensor positions
+
+    @property
+    def n(self) -> int:
+        return self.fold.num_sequences
+
+    def get_images(self, seqs, frames=None) -> jax.Array:
+        if self.images is not None:
+            seqs = jnp.asarray(seqs)
+            if frames is None:
+                return self.images[seqs]
+            return self.images[seqs, jnp.asarray(frames)]
+        return jnp.asarray(self.fold.images(seqs, frames))
+
+
+def make_splits(cfg: Config, test_fold: int) -> tuple[Split, Split, Split]:
+    """Training, validation (from the training folds) and test splits."""
+    load = dict(
+        seed=cfg.data_seed,
+        num_sequences=cfg.sequences_per_fold,
+        num_frames=cfg.num_frames,
+        cache_dir=Path(cfg.cache_dir) if cfg.cache_dir else None,
+    )
+    train_folds = cfg.train_folds
+    if train_folds is None:
+        train_folds = tuple(k for k in range(cfg.num_folds) if k != test_fold)
+    if test_fold in train_folds:
+        raise ValueError(f"test fold {test_fold} is also a training fold")
+    pool = D.concatenate([D.load_fold(fold=k, **load) for k in train_folds])
+    test = D.load_fold(fold=test_fold, **load)
+    perm = np.random.default_rng([cfg.data_seed, test_fold, 1]).permutation(
+        pool.num_sequences
+    )
+    n_val = max(1, int(round(cfg.val_fraction * pool.num_sequences)))
+    if cfg.max_val_sequences is not None:
+        n_val = min(n_val, cfg.max_val_sequences)
+    val_idx, train_idx = perm[:n_val], perm[n_val:]
+    if cfg.max_train_sequences is not None:
+        train_idx = train_idx[: cfg.max_train_sequences]
+    test_idx = np.arange(test.num_sequences)
+    if cfg.max_test_sequences is not None:
+        test_idx = test_idx[: cfg.max_test_sequences]
+    splits = (
+        Split(pool.subset(np.sort(train_idx))),
+        Split(pool.subset(np.sort(val_idx))),
+        Split(test.subset(test_idx)),
+    )
+    if cfg.images_on_device:
+        for s in splits[:2]:
+            chunks = [
+                jnp.asarray(s.fold.images(np.arange(i, min(i + 64, s.n))))
+                for i in range(0, s.n, 64)
+            ]
+            s.images = jnp.concatenate(chunks)
+    return splits
+
+
+# ---------------------------------------------------------------------------
+# Generic training loop with validation-based model selection
+# ---------------------------------------------------------------------------
+
+
+def make_optimizer(cfg: Config, lr: float) -> optax.GradientTransformation:
+    # LOCAL FALLBACK for eqsmooth.learn.make_optimizer (clip + Adam + warm-up).
+    schedule = optax.linear_schedule(0.0, lr, max(cfg.warmup, 1))
+    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), optax.adam(schedule))
+
+
+@dataclasses.dataclass
+class FitResult:
+    model: Any
+    best_val: float
+    best_step: int
+    history: list[tuple[int, float, float]]  # (step, train loss, val rmse)
+    seconds: float
+
+
+def fit(
+    name: str,
+    model,
+    loss_fn: Callable,
+    sample_batch: Callable[[np.random.Generator], Any],
+    validate: Callable[[Any], float],
+    steps: int,
+    lr: float,
+    cfg: Config,
+    seed: int,
+) -> FitResult:
+    """Adam on `loss_fn(model, batch)`; keep the model with the best validation."""
+    opt = make_optimizer(cfg, lr)
+    params, static = eqx.partition(model, eqx.is_inexact_array)
+    opt_state = opt.init(params)
+
+    @eqx.filter_jit
+    def step(params, opt_state, batch):
+        def f(p):
+            return loss_fn(eqx.combine(p, static), batch)
+
+        loss, grads = jax.value_and_grad(f)(params)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    best_val = validate(model)
+    best, best_step = params, 0
+    history = [(0, float("nan"), best_val)]
+    losses = []
+    bar = tqdm(range(1, steps + 1), desc=name, leave=False)
+    for i in bar:
+        params, opt_state, loss = step(params, opt_state, sample_batch(rng))
+        losses.append(float(loss))
+        if i % cfg.eval_every == 0 or i == steps:
+            val = validate(eqx.combine(params, static))
+            mean_loss = float(np.mean(losses))
+            losses = []
+            history.append((i, mean_loss, val))
+            if math.isfinite(val) and val < best_val:
+                best_val, best, best_step = val, params, i
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(loss=f"{mean_loss:.4g}", val=f"{val:.3f}")
+    return FitResult(
+        eqx.combine(best, static),
+        best_val,
+        best_step,
+        history,
+        time.perf_counter() - t0,
+    )
+
+
+def rmse(pred: np.ndarray, truth: np.ndarray) -> float:
+    """Per-coordinate position RMSE in pixels."""
+    return float(np.sqrt(np.mean((np.asarray(pred) - np.asarray(truth)) ** 2)))
+
+
+# ---------------------------------------------------------------------------
+# Stage 2-3: virtual sensor
+# ---------------------------------------------------------------------------
+
+
+_predict = eqx.filter_jit(M.predict_positions)
+
+
+def sensor_positions(sensor: M.VirtualSensor, split: Split, batch: int) -> np.ndarray:
+    """The sensor's positions `(N, T, 2)` for every frame of a split."""
+    T = split.fold.num_frames
+    seq, frame = np.divmod(np.arange(split.n * T), T)
+    out = np.empty((split.n * T, 2), dtype=np.float32)
+    for i in range(0, out.shape[0], batch):
+        sl = slice(i, i + batch)
+        ims = split.get_images(seq[sl], frame[sl])
+        if ims.shape[0] < batch:  # pad: one compiled shape
+            pad = jnp.zeros((batch - ims.shape[0],) + ims.shape[1:], ims.dtype)
+            ims = jnp.concatenate([ims, pad])
+        out[sl] = np.asarray(_predict(sensor, ims))[: out[sl].shape[0]]
+    return out.reshape(split.n, T, 2)
+
+
+def sensor_loss(sensor, batch):
+    images, positions = batch
+    pred = M.predict_positions(sensor, images)
+    return jnp.mean(((pred - positions) / D.POSITION_STD) ** 2)
+
+
+def pretrain_sensor(cfg: Config, train: Split, val: Split, key) -> FitResult:
+    sensor = M.VirtualSensor(key)
+    sensor = jax.tree_util.tree_map(
+        lambda x: x.astype(cfg.dtype) if eqx.is_inexact_array(x) else x, sensor
+    )
+    T = train.fold.num_frames
+
+    def sample(rng):
+        seqs = rng.integers(0, train.n, cfg.sensor_batch)
+        frames = rng.integers(0, T, cfg.sensor_batch)
+        pos = train.fold.positions[seqs, frames].astype(cfg.dtype)
+        return train.get_images(seqs, frames), jnp.asarray(pos)
+
+    def validate(s):
+        pred = sensor_positions(s, val, cfg.eval_batch)
+        return rmse(pred, val.fold.positions)
+
+    return fit(
+        "virtual sensor",
+        sensor,
+        sensor_loss,
+        sample,
+        validate,
+        cfg.sensor_steps,
+        cfg.sensor_lr,
+        cfg,
+        seed=cfg.model_seed,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Stage 4: smoothers
+# ---------------------------------------------------------------------------
+
+
+class SmootherModel(eqx.Module):
+    """A noise head plus the (fixed or learned) dynamics square-root precision."""
+
+    noise: M.AbstractNoiseHead
+    log_dynamics_sqrt_precision: jax.Array
+
+    def graph(self, measurements, visible_pixels) -> eqs.FactorGraph:
+        return M.build_smoother_graph(
+            measurements,
+            self.noise(visible_pixels),
+            jnp.exp(self.log_dynamics_sqrt_precision),
+        )
+
+
+def make_smoother_model(kind: str, sigma: float, key, dtype) -> SmootherModel:
+    if kind == "const":
+        noise = M.ConstantNoise(sigma, dtype=dtype)
+    elif kind == "hetero":
+        noise = M.HeteroscedasticNoise(sigma, key, dtype=dtype)
+    else:
+        raise ValueError(f"unknown noise kind {kind!r}")
+    return SmootherModel(noise, jnp.asarray(-np.log(M.DYNAMICS_SIGMAS), dtype=dtype))
+
+
+def _fixed_dynamics(model: SmootherModel) -> SmootherModel:
+    # The paper keeps the dynamics noise fixed: stop its gradient.
+    return eqx.tree_at(
+        lambda m: m.log_dynamics_sqrt_precision,
+        model,
+        jax.lax.stop_gradient(model.log_dynamics_sqrt_precision),
+    )
+
+
+def surrogate_loss_one(model: SmootherModel, meas, counts, truth, K: int):
+    """K unrolled Gauss-Newton steps from the ground truth; MSE of positions.
+
+    LOCAL FALLBACK for eqsmooth.learn.surrogate_loss (the paper's loss).
+    """
+    graph = _fixed_dynamics(model).graph(meas, counts)
+    solver = eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=K)
+    sol = eqs.least_squares(
+        graph, {"x": truth}, solver, adjoint=eqs.UnrolledAdjoint(), throw=False
+    )
+    err = (sol.value["x"][:, :2] - truth[:, :2]) / D.POSITION_STD
+    return jnp.mean(err * err)
+
+
+def implicit_loss_one(model: SmootherModel, meas, counts, truth, max_steps: int):
+    """MSE of the converged MAP positions, differentiated implicitly.
+
+    Beyond the paper: Gauss-Newton runs to convergence and the gradient comes
+    from the optimality condition ([`eqsmooth.ImplicitAdjoint`][]) instead of
+    K unrolled steps.
+    """
+    graph = _fixed_dynamics(model).graph(meas, counts)
+    solver = eqs.GaussNewton(eqs.BlockTridiagonal())
+    sol = eqs.least_squares(
+        graph,
+        {"x": truth},
+        solver,
+        max_steps=max_steps,
+        adjoint=eqs.ImplicitAdjoint(),
+        throw=False,
+    )
+    err = (sol.value["x"][:, :2] - truth[:, :2]) / D.POSITION_STD
+    return jnp.mean(err * err)
+
+
+def joint_nll_one(model: SmootherModel, meas, counts, truth):
+    """Joint NLL of the ground truth, per frame. LOCAL FALLBACK for eqsmooth.learn."""
+    graph = _fixed_dynamics(model).graph(meas, counts)
+    return graph.negative_log_likelihood({"x": truth}) / truth.shape[0]
+
+
+def smooth_one(model: SmootherModel, meas, counts, max_steps: int):
+    """MAP trajectory `(T, 4)` by Gauss-Newton from the sensor's positions."""
+    graph = model.graph(meas, counts)
+    solver = eqs.GaussNewton(eqs.BlockTridiagonal())
+    sol = eqs.least_squares(
+        graph,
+        {"x": M.initial_guess(meas)},
+        solver,
+        max_steps=max_steps,
+        throw=False,
+    )
+    return sol.value["x"]
+
+
+@eqx.filter_jit
+def _smooth_batch(model, meas, counts, max_steps: int):
+    return jax.vmap(smooth_one, in_axes=(None, 0, 0, None))(
+        model, meas, counts, max_steps
+    )
+
+
+def _padded_batches(n: int, batch: int):
+    """Index arrays of length `batch` covering 0..n-1 (the last one padded).
+
+    One compiled shape for every split size; padded rows repeat the last index
+    and are dropped by the caller (`[:count]`).
+    """
+    for i in range(0, n, batch):
+        idx = np.arange(i, min(i + batch, n))
+        count = idx.shape[0]
+        yield np.concatenate([idx, np.full(batch - count, n - 1)]), count
+
+
+def smooth_split(model, split: Split, cfg: Config, batch: int = 32) -> np.ndarray:
+    out = []
+    for idx, count in _padded_batches(split.n, batch):
+        meas = jnp.asarray(split.sensor[idx], cfg.dtype)
+        counts = jnp.asarray(split.fold.visible_pixels[idx], cfg.dtype)
+        res = _smooth_batch(model, meas, counts, cfg.eval_solver_steps)
+        out.append(np.asarray(res)[:count])
+    return np.concatenate(out)
+
+
+def _sequence_sampler(split: Split, cfg: Config):
+    def sample(rng):
+        seqs = rng.integers(0, split.n, cfg.fg_batch)
+        return (
+            jnp.asarray(split.sensor[seqs], cfg.dtype),
+            jnp.asarray(split.fold.visible_pixels[seqs], cfg.dtype),
+            jnp.asarray(split.fold.states[seqs], cfg.dtype),
+        )
+
+    return sample
+
+
+def train_smoother(
+    cfg: Config, kind: str, loss: str, train: Split, val: Split, sigma: float, key
+) -> FitResult:
+    model = make_smoother_model(kind, sigma, key, cfg.dtype)
+    K = cfg.surrogate_steps
+
+    def loss_fn(m, batch):
+        meas, counts, truth = batch
+        if loss == "surrogate":
+            per = jax.vmap(surrogate_loss_one, in_axes=(None, 0, 0, 0, None))(
+                m, meas, counts, truth, K
+            )
+        elif loss == "implicit":
+            per = jax.vmap(implicit_loss_one, in_axes=(None, 0, 0, 0, None))(
+                m, meas, counts, truth, cfg.eval_solver_steps
+            )
+        else:
+            per = jax.vmap(joint_nll_one, in_axes=(None, 0, 0, 0))(
+                m, meas, counts, truth
+            )
+        return jnp.mean(per)
+
+    def validate(m):
+        return rmse(smooth_split(m, val, cfg)[..., :2], val.fold.positions)
+
+    return fit(
+        f"smoother {kind} {loss}",
+        model,
+        loss_fn,
+        _sequence_sampler(train, cfg),
+        validate,
+        cfg.fg_steps,
+        cfg.fg_lr,
+        cfg,
+        seed=cfg.model_seed + 1,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Stage 5: EKFs
+# ---------------------------------------------------------------------------
+
+
+def ekf_one(model: SmootherModel, meas, counts, x0):
+    """EKF means `(T, 4)` and covariances `(T, 4, 4)` from the true first state.
+
+    LOCAL FALLBACK for eqsmooth.filters (same dynamics and measurement models
+    as the smoother's factors). As in the paper, the filter starts at the
+    ground-truth first state with a tiny covariance.
+    """
+    dtype = meas.dtype
+    q = jnp.exp(-2 * jax.lax.stop_gradient(model.log_dynamics_sqrt_precision))
+    Q = jnp.diag(q.astype(dtype))
+    r = 1.0 / model.noise(counts) ** 2  # (T,) measurement variances
+    eye2 = jnp.eye(2, dtype=dtype)
+    eye4 = jnp.eye(4, dtype=dtype)
+    H = jnp.concatenate([eye2, jnp.zeros((2, 2), dtype)], axis=1)
+
+    def correct(x, P, z, rt):
+        S = P[:2, :2] + rt * eye2
+        K = jnp.linalg.solve(S, P[:2, :]).T  # (4, 2) = P Hᵀ S⁻¹
+        x = x + K @ (z - x[:2])
+        A = eye4 - K @ H
+        P = A @ P @ A.T + rt * (K @ K.T)  # Joseph form
+        return x, 0.5 * (P + P.T)
+
+    def step(carry, inp):
+        x, P = carry
+        z, rt = inp
+        F = jax.jacfwd(M.disk_dynamics)(x)
+        x = M.disk_dynamics(x)
+        P = F @ P @ F.T + Q
+        x, P = correct(x, P, z, rt)
+        return (x, P), (x, P)
+
+    P0 = 1e-4 * eye4
+    x0c, P0c = correct(x0, P0, meas[0], r[0])
+    _, (xs, Ps) = jax.lax.scan(step, (x0c, P0c), (meas[1:], r[1:]))
+    return (
+        jnp.concatenate([x0c[None], xs]),
+        jnp.concatenate([P0c[None], Ps]),
+    )
+
+
+def ekf_mse_one(model, meas, counts, truth):
+    xs, _ = ekf_one(model, meas, counts, truth[0])
+    err = (xs[:, :2] - truth[:, :2]) / D.POSITION_STD
+    return jnp.mean(err * err)
+
+
+def ekf_nll_one(model, meas, counts, truth):
+    """Marginal NLL of the true positions under the filter's position marginals."""
+    xs, Ps = ekf_one(model, meas, counts, truth[0])
+    e = truth[:, :2] - xs[:, :2]
+    S = Ps[:, :2, :2]
+    L = jnp.linalg.cholesky(S)
+    w = jax.scipy.linalg.solve_triangular(L, e[..., None], lower=True)[..., 0]
+    logdet = 2 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=1, axis2=2)), axis=1)
+    return jnp.mean(0.5 * jnp.sum(w * w, axis=1) + 0.5 * logdet)
+
+
+@eqx.filter_jit
+def _ekf_batch(model, meas, counts, x0):
+    return jax.vmap(ekf_one, in_axes=(None, 0, 0, 0))(model, meas, counts, x0)
+
+
+def ekf_split(model, split: Split, cfg: Config, batch: int = 32) -> np.ndarray:
+    out = []
+    for idx, count in _padded_batches(split.n, batch):
+        meas = jnp.asarray(split.sensor[idx], cfg.dtype)
+        counts = jnp.asarray(split.fold.visible_pixels[idx], cfg.dtype)
+        x0 = jnp.asarray(split.fold.states[idx, 0], cfg.dtype)
+        out.append(np.asarray(_ekf_batch(model, meas, counts, x0)[0])[:count])
+    return np.concatenate(out)
+
+
+def train_ekf(
+    cfg: Config, kind: str, loss: str, train: Split, val: Split, sigma: float, key
+) -> FitResult:
+    model = make_smoother_model(kind, sigma, key, cfg.dtype)
+    one = ekf_mse_one if loss == "mse" else ekf_nll_one
+
+    def loss_fn(m, batch):
+        meas, counts, truth = batch
+        return jnp.mean(jax.vmap(one, in_axes=(None, 0, 0, 0))(m, meas, counts, truth))
+
+    def validate(m):
+        return rmse(ekf_split(m, val, cfg)[..., :2], val.fold.positions)
+
+    return fit(
+        f"ekf {kind} {loss}",
+        model,
+        loss_fn,
+        _sequence_sampler(train, cfg),
+        validate,
+        cfg.fg_steps,
+        cfg.fg_lr,
+        cfg,
+        seed=cfg.model_seed + 2,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Stage 6: LSTMs
+# ---------------------------------------------------------------------------
+
+
+def lstm_loss(model: M.LstmTracker, batch):
+    images, states = batch
+    pred = jax.vmap(model)(images, states[:, 0])
+    return jnp.mean(((pred - states[..., :2]) / D.POSITION_STD) ** 2)
+
+
+@eqx.filter_jit
+def _lstm_batch(model, images, x0):
+    return jax.vmap(model)(images, x0)
+
+
+def lstm_split(model, split: Split, cfg: Config) -> np.ndarray:
+    per = max(1, cfg.eval_batch // split.fold.num_frames)
+    out = []
+    for idx, count in _padded_batches(split.n, per):
+        ims = split.get_images(idx)
+        x0 = jnp.asarray(split.fold.states[idx, 0], cfg.dtype)
+        out.append(np.asarray(_lstm_batch(model, ims, x0))[:count])
+    return np.concatenate(out)
+
+
+def train_lstm(
+    cfg: Config,
+    bidirectional: bool,
+    train: Split,
+    val: Split,
+    key,
+    sensor: M.VirtualSensor | None,
+) -> FitResult:
+    model = M.LstmTracker(key, bidirectional, hidden=cfg.lstm_hidden)
+    if cfg.lstm_init_from_sensor and sensor is not None:
+        # Beyond the paper (quick mode): start the encoder from the pretrained
+        # sensor's convolutions and hidden dense layers.
+        model = eqx.tree_at(lambda m: m.encoder.convs, model, sensor.convs)
+        model = eqx.tree_at(
+            lambda m: m.encoder.mlp.layers[:-1], model, sensor.mlp.layers[:-1]
+        )
+    model = jax.tree_util.tree_map(
+        lambda x: x.astype(cfg.dtype) if eqx.is_inexact_array(x) else x, model
+    )
+    T, L = train.fold.num_frames, cfg.lstm_subsequence
+
+    def sample(rng):
+        seqs = rng.integers(0, train.n, cfg.lstm_batch)
+        start = rng.integers(0, T - L + 1, cfg.lstm_batch)
+        frames = start[:, None] + np.arange(L)[None]
+        seq_rep = np.repeat(seqs[:, None], L, axis=1)
+        ims = train.get_images(seq_rep.ravel(), frames.ravel())
+        ims = ims.reshape((cfg.lstm_batch, L) + ims.shape[1:])
+        states = train.fold.states[seq_rep, frames].astype(cfg.dtype)
+        return ims, jnp.asarray(states)
+
+    def validate(m):
+        return rmse(lstm_split(m, val, cfg), val.fold.positions)
+
+    return fit(
+        f"lstm {'bi' if bidirectional else 'uni'}",
+        model,
+        lstm_loss,
+        sample,
+        validate,
+        cfg.lstm_steps,
+        cfg.lstm_lr,
+        cfg,
+        seed=cfg.model_seed + 3,
+    )
+
+
+# ---------------------------------------------------------------------------
+# One fold, end to end
+# ---------------------------------------------------------------------------
+
+
+def run_fold(cfg: Config, test_fold: int, out: Path, log=print) -> dict:
+    """Run every stage for one test fold; save weights; return the results."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    train, val, test = make_splits(cfg, test_fold)
+    timings["data_s"] = time.perf_counter() - t0
+    log(
+        f"fold {test_fold}: {train.n} training, {val.n} validation, {test.n} test "
+        f"sequences of {cfg.num_frames} frames"
+    )
+    key = jax.random.key(cfg.model_seed)
+    k_sensor, k_noise, k_lstm = jax.random.split(key, 3)
+    fold_dir = out / f"fold_{test_fold}"
+    fold_dir.mkdir(parents=True, exist_ok=True)
+    records: dict[str, dict] = {}
+
+    # Stage 2: virtual sensor.
+    t = time.perf_counter()
+    sensor_file = None
+    if cfg.sensor_weights_dir is not None:
+        sensor_file = Path(cfg.sensor_weights_dir) / f"sensor_fold{test_fold}.eqx"
+    if sensor_file is not None and sensor_file.exists():
+        like = M.VirtualSensor(k_sensor)
+        like = jax.tree_util.tree_map(
+            lambda x: x.astype(cfg.dtype) if eqx.is_inexact_array(x) else x, like
+        )
+        sensor = eqx.tree_deserialise_leaves(sensor_file, like)
+        log(f"loaded the virtual sensor from {sensor_file}")
+        sensor_fit = None
+    else:
+        sensor_fit = pretrain_sensor(cfg, train, val, k_sensor)
+        sensor = sensor_fit.model
+        eqx.tree_serialise_leaves(fold_dir / f"sensor_fold{test_fold}.eqx", sensor)
+    timings["sensor_s"] = time.perf_counter() - t
+
+    # Stage 3: sensor positions for every split (frozen sensor).
+    t = time.perf_counter()
+    for s in (train, val, test):
+        s.sensor = sensor_positions(sensor, s, cfg.eval_batch)
+    timings["sensor_positions_s"] = time.perf_counter() - t
+    val_sensor_rmse = rmse(val.sensor, val.fold.positions)
+    records["virtual_sensor"] = dict(
+        test_rmse=rmse(test.sensor, test.fold.positions),
+        val_rmse=val_sensor_rmse,
+        best_step=None if sensor_fit is None else sensor_fit.best_step,
+        seconds=timings["sensor_s"],
+        history=None if sensor_fit is None else sensor_fit.history,
+    )
+    log(
+        f"virtual sensor: val RMSE {val_sensor_rmse:.3f} px, test RMSE "
+        f"{records['virtual_sensor']['test_rmse']:.3f} px"
+    )
+
+    models: dict[str, Any] = {}
+    test_predictions: dict[str, np.ndarray] = {"virtual_sensor": test.sensor}
+    for method in cfg.methods:
+        parts = method.split("_")
+        t = time.perf_counter()
+        if parts[0] in ("smoother", "ekf"):
+            kind, loss = parts[1], parts[2]
+            trainer = train_smoother if parts[0] == "smoother" else train_ekf
+            res = trainer(cfg, kind, loss, train, val, val_sensor_rmse, k_noise)
+            runner = smooth_split if parts[0] == "smoother" else ekf_split
+            pred = runner(res.model, test, cfg)[..., :2]
+        elif parts[0] == "lstm":
+            res = train_lstm(cfg, parts[1] == "bi", train, val, k_lstm, sensor)
+            pred = lstm_split(res.model, test, cfg)
+        else:
+            raise ValueError(f"unknown method {method!r}")
+        models[method] = res.model
+        test_predictions[method] = pred
+        records[method] = dict(
+            test_rmse=rmse(pred, test.fold.positions),
+            val_rmse=res.best_val,
+            best_step=res.best_step,
+            seconds=time.perf_counter() - t,
+            history=res.history,
+        )
+        rec = records[method]
+        log(
+            f"{method}: val RMSE {res.best_val:.3f} (step {res.best_step}), test "
+            f"RMSE {rec['test_rmse']:.3f} px ({rec['seconds']:.0f} s)"
+        )
+        if parts[0] in ("smoother", "ekf"):
+            eqx.tree_serialise_leaves(fold_dir / f"{method}.eqx", res.model)
+    timings["total_s"] = time.perf_counter() - t0
+    return dict(
+        fold=test_fold,
+        records=records,
+        timings=timings,
+        models=models,
+        test=test,
+        val=val,
+        test_predictions=test_predictions,
+    )
