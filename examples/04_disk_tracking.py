@@ -39,6 +39,11 @@ def parse_args(argv=None) -> tuple[train.Config, Path]:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("--quick", action="store_true", help="small CPU run (minutes)")
+    p.add_argument(
+        "--pretrain-sensor",
+        action="store_true",
+        help="quick mode: pretrain the sensor even if committed weights exist",
+    )
     p.add_argument("--out", type=Path, default=Path("results/disk_tracking"))
     p.add_argument("--folds", type=int, nargs="+", help="test folds to run")
     p.add_argument(
@@ -79,7 +84,15 @@ def parse_args(argv=None) -> tuple[train.Config, Path]:
         k: v
         for k, v in vars(a).items()
         if v is not None
-        and k not in ("quick", "out", "folds", "methods", "images_on_device")
+        and k
+        not in (
+            "quick",
+            "out",
+            "folds",
+            "methods",
+            "images_on_device",
+            "pretrain_sensor",
+        )
     }
     if a.folds is not None:
         overrides["test_folds"] = tuple(a.folds)
@@ -88,7 +101,7 @@ def parse_args(argv=None) -> tuple[train.Config, Path]:
     if a.images_on_device:
         overrides["images_on_device"] = True
     cfg = (
-        train.quick_config(**overrides)
+        train.quick_config(a.pretrain_sensor, **overrides)
         if a.quick
         else dataclasses.replace(train.Config(), **overrides)
     )
