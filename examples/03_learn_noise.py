@@ -23,7 +23,10 @@ It prints the position RMSE of each smoother on held-out sequences, the
 learned noise levels next to the true ones, and saves a plot and the
 training logs (JSON lines) under `--out`.
 
-Runtime on 2 CPU cores: about 40 s with `--quick`, a few minutes without.
+Runtime with `--quick`: about 50 s of CPU time, nearly all of it compiling
+the two training steps (measured on a shared 2-core machine, where the wall
+time was 2.5 min under heavy load); the full run trains 5x longer on more
+data.
 
     python examples/03_learn_noise.py --quick --out results/learn_noise
 """

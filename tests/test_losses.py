@@ -253,3 +253,19 @@ def test_surrogate_gradient_se2():
 def test_surrogate_loss_rejects_non_dict_truth():
     with pytest.raises(TypeError, match="truth"):
         surrogate_loss(_GRAPH, _TRUTH)
+
+
+def test_stack_trees_batches_graphs_for_vmap():
+    from eqsmooth.learn import stack_trees
+
+    pairs = [random_chain(seed, T=6)[::2] for seed in (0, 1)]  # (graph, truth)
+    graphs = stack_trees([g for g, _ in pairs])
+    truths = stack_trees([{"x": t} for _, t in pairs])
+    batched = jax.vmap(joint_nll)(graphs, truths)
+    for i, (g, t) in enumerate(pairs):
+        np.testing.assert_allclose(
+            float(batched[i]), float(joint_nll(g, {"x": t})), rtol=1e-12
+        )
+    other, _, _ = random_chain(0, T=7)
+    with pytest.raises(ValueError, match="differs in structure"):
+        stack_trees([pairs[0][0], other])

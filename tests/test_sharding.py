@@ -121,7 +121,11 @@ _SCRIPT = textwrap.dedent(
     xs = rng.normal(size=16)
     line_data = {"x": xs, "y": 2.0 * xs + 1.0}
     line0 = {"w": jnp.asarray(0.0), "coeff": model["coeff"]}
-    kw = dict(optimizer=optax.adam(1e-2), num_steps=5, batch_size=4, progress=False)
+    xv = rng.normal(size=5)  # 5 = a full batch of 4 (sharded) + 1 (replicated)
+    kw = dict(
+        optimizer=optax.adam(1e-2), num_steps=5, batch_size=4, progress=False,
+        valid_data={"x": xv, "y": 2.0 * xv}, eval_every=2,
+    )
     r1 = train(line0, line_loss, line_data, **kw)
     r2 = train(line0, line_loss, line_data, mesh=mesh, **kw)
     train_diff = max(
@@ -140,6 +144,7 @@ _SCRIPT = textwrap.dedent(
         "odd_error": odd_error,
         "train_diff": train_diff,
         "train_moved": float(jnp.abs(r1.model["coeff"] - model["coeff"])),
+        "valid": [r1.best_valid_loss, r2.best_valid_loss, r1.best_step, r2.best_step],
     }))
     """
 )
@@ -180,6 +185,8 @@ def test_sharded_training_loop_matches_single_device(two_device_result):
     r = two_device_result
     assert r["train_moved"] > 1e-4
     assert r["train_diff"] <= 1e-12
+    v1, v2, s1, s2 = r["valid"]
+    assert abs(v1 - v2) <= 1e-12 * abs(v1) and s1 == s2
 
 
 def test_shard_batch_rejects_indivisible_batch(two_device_result):

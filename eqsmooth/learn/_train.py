@@ -349,6 +349,9 @@ def train(
                 f"{seed} and {metadata} (delete it or pass resume=False)"
             )
         state = load_checkpoint(ckpt, state)
+        # Temporary files of a run killed while writing its checkpoint.
+        for stale in ckpt.parent.glob(f".{ckpt.name}.*.tmp"):
+            stale.unlink(missing_ok=True)
         if log is not None:
             history = _rewrite_log(log, state.step)
     elif log is not None and log.exists():
