@@ -238,7 +238,7 @@ def test_bad_inputs():
 
 _SCRIPT = textwrap.dedent(
     """
-    import sys, time
+    import json, sys, time
     import jax
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx, jax.numpy as jnp, numpy as np
@@ -251,6 +251,7 @@ _SCRIPT = textwrap.dedent(
     xv = rng.normal(size=(16, 2))
     yv = np.sin(xv[:, :1]) + xv[:, 1:] ** 2
     model = eqx.nn.MLP(2, 1, 8, 2, key=jax.random.key(0))
+    executed = []
 
     def loss(m, batch):
         pred = jax.vmap(m)(batch["x"])
@@ -263,9 +264,11 @@ _SCRIPT = textwrap.dedent(
         num_steps=45, batch_size=8, seed=3, has_aux=True,
         valid_data={"x": xv, "y": yv}, eval_every=4,
         checkpoint_path=ckpt, checkpoint_every=3, log_path=log, progress=False,
-        callback=lambda step, rec: time.sleep(sleep),
+        callback=lambda step, rec: (executed.append(step), time.sleep(sleep)),
     )
     eqx.tree_serialise_leaves(out, (res.model, res.best_model, res.best_step))
+    with open(out + ".steps.json", "w") as f:
+        json.dump(executed, f)
     """
 )
 
@@ -312,6 +315,11 @@ def test_kill_and_resume_is_bitwise_identical(tmp_path):
     resumed, _ = _run(tmp_path, "killed", 0.0)
     assert resumed.wait(timeout=180) == 0, _stderr(kdir)
     assert full.wait(timeout=180) == 0, _stderr(full_dir)
+    # The resumed process really started from the checkpoint.
+    resumed_steps = json.loads((kdir / "out.eqx.steps.json").read_text())
+    assert resumed_steps == list(range(stopped_at + 1, 46))
+    full_steps = json.loads((full_dir / "out.eqx.steps.json").read_text())
+    assert full_steps == list(range(1, 46))
     # Final model, best model and best step: the same bytes.
     assert (kdir / "out.eqx").read_bytes() == (full_dir / "out.eqx").read_bytes()
     a = (kdir / "ckpt.eqx").read_bytes()
