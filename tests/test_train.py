@@ -130,7 +130,7 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
     )
     valid = {r["step"]: r["valid_loss"] for r in res.history if "valid_loss" in r}
     assert sorted(valid) == list(range(0, 61, 5))
-    best_step = min(valid, key=valid.get)
+    best_step = min(valid, key=lambda k: valid[k])
     assert 0 < best_step < 60
     assert res.best_step == best_step
     assert res.best_valid_loss == valid[best_step]

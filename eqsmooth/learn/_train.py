@@ -145,8 +145,8 @@ def _num_examples(data: PyTree, name: str) -> int:
     leaves = jax.tree_util.tree_leaves(data)
     if not leaves:
         raise ValueError(f"train: {name} has no array leaves")
-    sizes = {np.shape(x)[0] if np.ndim(x) else None for x in leaves}
-    if len(sizes) != 1 or None in sizes:
+    sizes = {np.shape(x)[0] if np.ndim(x) else -1 for x in leaves}
+    if len(sizes) != 1 or -1 in sizes:
         raise ValueError(
             f"train: every leaf of {name} needs the same leading (example) axis; "
             f"got shapes {[np.shape(x) for x in leaves]}"
@@ -416,6 +416,7 @@ def train(
             e, pos = divmod(s, steps_per_epoch)
             if e != epoch:
                 epoch, order = e, epoch_order(seed, e, n)
+            assert order is not None
             batch = _take(data, order[pos * batch_size : (pos + 1) * batch_size])
             batch = (
                 jax.tree_util.tree_map(jnp.asarray, batch)
@@ -431,6 +432,7 @@ def train(
             if done % log_every == 0 or evaluate_now or done == num_steps:
                 record = {"step": done, "epoch": e, **_floats(metrics)}
                 if evaluate_now:
+                    assert evaluator is not None
                     v = float(evaluator(model, valid, batch_size))
                     record["valid_loss"] = v
                     if v < best_metric:
