@@ -185,53 +185,69 @@ def test_rts_equals_factor_graph_map(linear_run):
 # ------------------------------------------------------------------- SE(2)
 
 
+DT = 0.5
+
+
 def _se2_trans(a, b, data, params):
+    # Constant-velocity motion of a mixed state {pose: SE2, vel: body twist}.
     import eqsmooth as eqs
 
-    return eqs.local(a @ eqs.SE2.exp(data), b)
+    pred = {"pose": a["pose"] @ eqs.SE2.exp(DT * a["vel"]), "vel": a["vel"]}
+    return eqs.local(pred, b)
 
 
 def _se2_meas(x, data, params):
-    return x.translation() - data
+    return x["pose"].translation() - data
 
 
 def _se2_problem(meas_scale, trans_scale, seed=0):
     import eqsmooth as eqs
 
     rng = np.random.default_rng(seed)
-    u = jnp.asarray(np.array([0.4, 0.05, 0.3]) + 0.05 * rng.normal(size=(T - 1, 3)))
+    vel = [np.array([0.8, 0.1, 0.6])]
     poses = [eqs.SE2.identity(dtype=jnp.float64)]
-    for k in range(T - 1):
-        step = eqs.SE2.exp(u[k] + 0.05 * jnp.asarray(rng.normal(size=3)))
-        poses.append(poses[-1] @ step)
-    truth = eqs.SE2(jnp.stack([p.parameters() for p in poses]))
-    z = truth.translation() + 0.1 * jnp.asarray(rng.normal(size=(T, 2)))
+    for _ in range(T - 1):
+        poses.append(poses[-1] @ eqs.SE2.exp(jnp.asarray(DT * vel[-1])))
+        vel.append(vel[-1] + 0.05 * rng.normal(size=3))
+    truth = {
+        "pose": eqs.SE2(jnp.stack([p.parameters() for p in poses])),
+        "vel": jnp.asarray(np.stack(vel)),
+    }
+    z = truth["pose"].translation() + 0.1 * jnp.asarray(rng.normal(size=(T, 2)))
     t = np.arange(T)
     sig = jnp.asarray(np.linspace(0.1, 0.3, T))  # heteroscedastic rows
+    sqrt_prec = jnp.asarray([50.0, 50.0, 30.0, 20.0, 20.0, 20.0])
     trans = eqs.FunctionFactor(
         _se2_trans,
-        (eqs.Var("pose", t[:-1]), eqs.Var("pose", t[1:])),
-        eqs.DiagonalNoise(trans_scale * jnp.asarray([20.0, 20.0, 10.0])),
-        data=u,
+        (eqs.Var("s", t[:-1]), eqs.Var("s", t[1:])),
+        eqs.DiagonalNoise(trans_scale * sqrt_prec),
     )
     meas = eqs.FunctionFactor(
         _se2_meas,
-        (eqs.Var("pose", t),),
+        (eqs.Var("s", t),),
         eqs.IsotropicNoise(meas_scale / sig),
         data=z,
     )
-    return trans, meas, truth, u
+    return trans, meas, truth
+
+
+def _se2_initial(truth):
+    import eqsmooth as eqs
+
+    mean0 = {
+        "pose": truth["pose"][0] @ eqs.SE2.exp(jnp.asarray([0.05, -0.05, 0.02])),
+        "vel": truth["vel"][0] + 0.1,
+    }
+    return mean0, 0.01 * jnp.eye(6)
 
 
 def _se2_losses(meas_scale, trans_scale, reset):
     import eqsmooth as eqs
 
-    trans, meas, truth, _ = _se2_problem(meas_scale, trans_scale)
-    mean0 = eqs.SE2.identity(dtype=jnp.float64)
-    sol = eqs.filters.ekf(
-        trans, [meas], mean0, 0.01 * jnp.eye(3), reset_covariance=reset
-    )
-    w = jnp.asarray([1.0, 1.0, 4.0])
+    trans, meas, truth = _se2_problem(meas_scale, trans_scale)
+    mean0, cov0 = _se2_initial(truth)
+    sol = eqs.filters.ekf(trans, [meas], mean0, cov0, reset_covariance=reset)
+    w = jnp.asarray([1.0, 1.0, 4.0, 0.5, 0.5, 0.5])
     return jnp.stack(
         [
             eqs.filters.ekf_mse_loss(sol, truth, w),
@@ -250,31 +266,31 @@ _se2_jac_jit = jax.jit(jax.jacrev(_se2_losses, argnums=(0, 1)), static_argnums=2
 def test_se2_prediction_and_jacobians():
     import eqsmooth as eqs
 
-    trans, meas, truth, u = _se2_problem(1.0, 1.0)
-    sol = eqs.filters.ekf(trans, [meas], truth[0], 0.01 * jnp.eye(3))
+    trans, meas, truth = _se2_problem(1.0, 1.0)
+    mean0, cov0 = _se2_initial(truth)
+    sol = eqs.filters.ekf(trans, [meas], mean0, cov0)
     assert np.all(np.isfinite(sol.covariance))
-    # One Newton step is exact for b ⊖ f(a): x_{t+1|t} = x_{t|t} exp(u_t).
-    pred = sol.mean[: T - 1] @ eqs.SE2.exp(u)
+    # One Newton step is exact for b ⊖ f(a): x_{t+1|t} = f(x_{t|t}).
+    pose, vel = sol.mean["pose"][: T - 1], sol.mean["vel"][: T - 1]
+    pred = pose @ eqs.SE2.exp(DT * vel)
     np.testing.assert_allclose(
-        eqs.local(pred, sol.predicted_mean[1:], batch_ndim=1), 0.0, atol=1e-12
+        eqs.local(pred, sol.predicted_mean["pose"][1:], batch_ndim=1), 0.0, atol=1e-12
     )
-    # F = Ad(exp(u)⁻¹) for right perturbations.
+    np.testing.assert_allclose(sol.predicted_mean["vel"][1:], vel, atol=1e-12)
+    # F = [[Ad(exp(v dt)⁻¹), Jr(v dt) dt], [0, I]] for right perturbations.
+    F = np.asarray(sol.transition_jacobian)
     np.testing.assert_allclose(
-        sol.transition_jacobian, eqs.SE2.exp(-u).adjoint(), atol=1e-10
+        F[:, :3, :3], eqs.SE2.exp(-DT * vel).adjoint(), atol=1e-10
     )
-    # More Newton steps change nothing when one is exact.
-    sol2 = eqs.filters.ekf(
-        trans, [meas], truth[0], 0.01 * jnp.eye(3), prediction_steps=2
-    )
-    np.testing.assert_allclose(sol2.covariance, sol.covariance, atol=1e-12)
     np.testing.assert_allclose(
-        sol2.mean.parameters(), sol.mean.parameters(), atol=1e-12
+        F[:, :3, 3:], DT * eqs.SE2.right_jacobian(DT * vel), atol=1e-10
     )
+    np.testing.assert_allclose(F[:, 3:, :3], 0.0, atol=1e-12)
+    np.testing.assert_allclose(F[:, 3:, 3:], np.broadcast_to(np.eye(3), (T - 1, 3, 3)))
     # The filter tracks the truth better than the raw measurements' noise.
     err = eqs.local(truth, sol.mean, batch_ndim=1)
-    assert np.sqrt(np.mean(np.asarray(err[:, :2]) ** 2)) < 0.2
+    assert np.sqrt(np.mean(np.asarray(err[:, :2]) ** 2)) < 0.1
     rts = eqs.filters.rts_smoother(sol)
-    assert np.all(np.isfinite(rts.covariance))
     # Positive definite beliefs.
     assert np.all(np.linalg.eigvalsh(np.asarray(sol.covariance)) > 0)
     assert np.all(np.linalg.eigvalsh(np.asarray(rts.covariance)) > 0)
@@ -324,6 +340,18 @@ def test_vmap_over_sequences(linear_run):
     single = run(shift[1])
     np.testing.assert_allclose(batched.mean[1], single.mean, atol=1e-12)
     np.testing.assert_allclose(batched.log_likelihood[1], single.log_likelihood)
+
+
+@pytest.mark.slow
+def test_more_newton_steps_change_nothing_when_one_is_exact():
+    import eqsmooth as eqs
+
+    trans, meas, truth = _se2_problem(1.0, 1.0)
+    mean0, cov0 = _se2_initial(truth)
+    sol = eqs.filters.ekf(trans, [meas], mean0, cov0)
+    sol2 = eqs.filters.ekf(trans, [meas], mean0, cov0, prediction_steps=2)
+    np.testing.assert_allclose(sol2.covariance, sol.covariance, atol=1e-12)
+    np.testing.assert_allclose(sol2.mean["vel"], sol.mean["vel"], atol=1e-12)
 
 
 # ------------------------------------------------------------------- errors

@@ -8,7 +8,7 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ..factors import AbstractFactor
 from ..manifold import local, retract, tangent_dim
@@ -141,7 +141,7 @@ def ekf(
     transition: AbstractFactor,
     measurements: Sequence[AbstractFactor],
     initial_mean: PyTree,
-    initial_covariance: Float[Array, "d d"],
+    initial_covariance: Float[ArrayLike, "d d"],
     *,
     prediction_steps: int = 1,
     reset_covariance: bool = False,
