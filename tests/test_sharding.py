@@ -2,6 +2,7 @@
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -16,6 +17,7 @@ from eqsmooth.learn import (
     initialize_distributed,
     make_mesh,
     make_train_step,
+    read_checkpoint_header,
     replicate,
     shard_batch,
 )
@@ -191,3 +193,88 @@ def test_sharded_training_loop_matches_single_device(two_device_result):
 
 def test_shard_batch_rejects_indivisible_batch(two_device_result):
     assert "multiple of the device count" in two_device_result["odd_error"]
+
+
+_MULTI = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    import jax.numpy as jnp, numpy as np, optax
+    from eqsmooth.learn import initialize_distributed, make_mesh, train
+
+    nproc, pid, port, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
+    if nproc > 1:
+        assert initialize_distributed(f"localhost:{port}", nproc, pid)
+    assert jax.process_count() == nproc
+
+    def loss(m, b):
+        return jnp.mean((m["w"] * b["x"] + m["b"] - b["y"]) ** 2)
+
+    rng = np.random.default_rng(0)
+    x, xv = rng.normal(size=16), rng.normal(size=5)
+    res = train(
+        {"w": jnp.asarray(0.0), "b": jnp.asarray(0.0)}, loss,
+        {"x": x, "y": 2 * x + 1}, optimizer=optax.adam(0.1), num_steps=6,
+        batch_size=4, valid_data={"x": xv, "y": 1.5 * xv}, eval_every=2,
+        checkpoint_path=out + "/ckpt.eqx", checkpoint_every=2,
+        log_path=out + f"/log{pid}.jsonl", progress=False,
+        mesh=make_mesh() if nproc > 1 else None,
+    )
+    final = {k: float(np.asarray(v.addressable_data(0))) for k, v in res.model.items()}
+    print("RESULT", json.dumps({"model": final, "best_step": res.best_step,
+                                "best": res.best_valid_loss}), flush=True)
+    if nproc > 1:
+        jax.distributed.shutdown()
+    """
+)
+
+
+def _free_port():
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        return sock.getsockname()[1]
+
+
+def test_multi_process_training_matches_single_process(tmp_path):
+    # Two processes with one CPU device each, joined by jax.distributed (gloo
+    # collectives): the multi-host path of shard_batch / replicate / train.
+    script = tmp_path / "multi.py"
+    script.write_text(_MULTI)
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    port = str(_free_port())
+    dirs = {"multi": tmp_path / "multi", "single": tmp_path / "single"}
+    for d in dirs.values():
+        d.mkdir()
+    runs = [
+        (n, pid, dirs["multi" if n == 2 else "single"])
+        for n, pid in [(2, 0), (2, 1), (1, 0)]
+    ]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), str(n), str(pid), port, str(d)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for n, pid, d in runs
+    ]
+    results = []
+    for p in procs:
+        out, _ = p.communicate(timeout=240)
+        assert p.returncode == 0, out[-3000:]
+        line = [x for x in out.splitlines() if x.startswith("RESULT ")][-1]
+        results.append(json.loads(line[len("RESULT ") :]))
+    single = results[2]
+    for r in results[:2]:
+        for k in ("w", "b"):
+            assert abs(r["model"][k] - single["model"][k]) <= 1e-12
+        assert r["best_step"] == single["best_step"]
+        assert abs(r["best"] - single["best"]) <= 1e-12
+    assert abs(single["model"]["w"]) > 0.1  # it trained
+    # Only process 0 wrote the log; the checkpoint holds the final step.
+    assert sorted(p.name for p in dirs["multi"].iterdir()) == ["ckpt.eqx", "log0.jsonl"]
+    assert read_checkpoint_header(dirs["multi"] / "ckpt.eqx")["step"] == 6

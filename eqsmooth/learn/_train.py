@@ -297,7 +297,11 @@ def train(
     - `progress`: show a tqdm progress bar.
     - `mesh`: data-parallel training over this mesh's devices (see
         [`eqsmooth.learn.make_train_step`][]); `batch_size` must be a
-        multiple of the device count.
+        multiple of the device count. In a multi-host run (see
+        [`eqsmooth.learn.initialize_distributed`][]) every process calls
+        `train` with the same arguments and data; the checkpoint must be on a
+        file system all processes see, and only process 0 writes it and the
+        log.
     - `filter_spec`: which leaves of `model` are trained.
     - `callback`: called as `callback(step, record)` after every step.
 
@@ -339,6 +343,11 @@ def train(
     metadata = {"num_examples": n, "batch_size": batch_size}
     ckpt = None if checkpoint_path is None else Path(checkpoint_path)
     log = None if log_path is None else Path(log_path)
+    # In a multi-host run every process reads the checkpoint (a shared file
+    # system), and only process 0 writes checkpoints and logs.
+    writer = jax.process_index() == 0
+    if not writer:
+        log = None
     history: list[dict] = []
     if ckpt is not None and resume and ckpt.exists():
         header = read_checkpoint_header(ckpt)
@@ -350,7 +359,7 @@ def train(
             )
         state = load_checkpoint(ckpt, state)
         # Temporary files of a run killed while writing its checkpoint.
-        for stale in ckpt.parent.glob(f".{ckpt.name}.*.tmp"):
+        for stale in ckpt.parent.glob(f".{ckpt.name}.*.tmp") if writer else ():
             stale.unlink(missing_ok=True)
         if log is not None:
             history = _rewrite_log(log, state.step)
@@ -378,7 +387,7 @@ def train(
         )
 
     def checkpoint(step):
-        if ckpt is None:
+        if ckpt is None or not writer:
             return
         save_checkpoint(
             ckpt,
@@ -404,7 +413,9 @@ def train(
             logfile.flush()
 
     bar = tqdm(
-        total=num_steps, initial=min(state.step, num_steps), disable=not progress
+        total=num_steps,
+        initial=min(state.step, num_steps),
+        disable=not (progress and writer),
     )
     try:
         if evaluator is not None and state.step == 0:
