@@ -1,0 +1,358 @@
+"""Adjoints of least_squares: gradients against float64 finite differences.
+
+Every check differentiates a scalar loss of the solution with respect to a
+dict `theta` of graph parameters (a shared coefficient, noise square-root
+precisions, measurements; group-valued measurements are perturbed in tangent
+coordinates, `meas ⊕ e`) and compares with central differences along random
+directions. Compiled functions are cached per (problem, solver, adjoint).
+"""
+
+import functools as ft
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+T = 5
+EPS = 1e-5
+
+
+# ---------------------------------------------------------------------------
+# Problems: (graph, truth, theta0, setter); setter(graph, theta) -> graph
+# ---------------------------------------------------------------------------
+
+
+def _set_euclid(graph, theta):
+    graph = eqx.tree_at(lambda g: g.factors[0].params, graph, theta["p"])
+    graph = eqx.tree_at(lambda g: g.factors[1].noise.sqrt_precision, graph, theta["s"])
+    return eqx.tree_at(lambda g: g.factors[1].data, graph, theta["m"])
+
+
+def _set_robust(graph, theta):
+    graph = eqx.tree_at(lambda g: g.factors[0].params, graph, theta["p"])
+    graph = eqx.tree_at(
+        lambda g: g.factors[1].noise.base.sqrt_precision, graph, theta["s"]
+    )
+    graph = eqx.tree_at(lambda g: g.factors[1].noise.scale, graph, theta["k"])
+    return eqx.tree_at(lambda g: g.factors[1].data, graph, theta["m"])
+
+
+def euclid_problem(seed=0, p=0.5):
+    from helpers import random_chain
+
+    graph, _, truth = random_chain(seed, T=T)
+    theta = {
+        "p": jnp.asarray(p),
+        "s": graph.factors[1].noise.sqrt_precision,
+        "m": graph.factors[1].data,
+    }
+    return graph, {"x": truth}, theta, _set_euclid
+
+
+def robust_problem():
+    from helpers import random_chain
+
+    graph, _, truth = random_chain(1, T=T, robust=True)
+    # A small Huber threshold puts some rows in the linear (robust) branch.
+    theta = {
+        "p": jnp.asarray(0.5),
+        "s": graph.factors[1].noise.base.sqrt_precision,
+        "k": jnp.asarray(0.3),
+        "m": graph.factors[1].data,
+    }
+    return graph, {"x": truth}, theta, _set_robust
+
+
+def _odometry(a, b, data, params):
+    pred = type(a).exp(params * data)
+    return (pred.inverse() @ (a.inverse() @ b)).log()
+
+
+def _set_pose(graph, theta):
+    import eqsmooth as eqs
+
+    graph = eqx.tree_at(lambda g: g.factors[0].params, graph, theta["p"])
+    graph = eqx.tree_at(lambda g: g.factors[0].noise.sqrt_precision, graph, theta["s"])
+    graph = eqx.tree_at(lambda g: g.factors[0].data, graph, theta["d"])
+    graph = eqx.tree_at(lambda g: g.factors[1].noise.sqrt_precision, graph, theta["q"])
+    value = graph.factors[1].value
+    return eqx.tree_at(
+        lambda g: g.factors[1].value, graph, eqs.retract(value, theta["e"])
+    )
+
+
+def pose_problem(group: str, seed: int = 0):
+    """SE(2) or SE(3) pose chain: odometry with a learnable scale, noisy priors."""
+    import eqsmooth as eqs
+
+    G = {"se2": eqs.SE2, "se3": eqs.SE3}[group]
+    d = G.tangent_dim
+    rng = np.random.default_rng(seed)
+    steps = jnp.asarray(rng.normal(size=(T - 1, d)) * 0.3 + 0.5)
+    truth = [G.identity()]
+    for k in range(T - 1):
+        truth.append(truth[-1] @ G.exp(steps[k]))
+    truth = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *truth)
+    t = np.arange(T)
+    twists = steps + 0.05 * jnp.asarray(rng.normal(size=(T - 1, d)))
+    priors = truth @ G.exp(jnp.asarray(0.1 * rng.normal(size=(T, d))))
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _odometry,
+                (eqs.Var("pose", t[:-1]), eqs.Var("pose", t[1:])),
+                eqs.DiagonalNoise(jnp.linspace(5.0, 10.0, d)),
+                data=twists / 1.1,
+                params=jnp.asarray(1.1),
+            ),
+            eqs.PriorFactor(eqs.Var("pose", t), priors, eqs.IsotropicNoise(4.0)),
+        ]
+    )
+    theta = {
+        "p": jnp.asarray(1.1),
+        "s": graph.factors[0].noise.sqrt_precision,
+        "d": graph.factors[0].data,
+        "q": jnp.asarray(4.0),
+        "e": jnp.zeros((T, d)),
+    }
+    return graph, {"pose": truth}, theta, _set_pose
+
+
+# ---------------------------------------------------------------------------
+# Loss and its compiled value-and-gradient
+# ---------------------------------------------------------------------------
+
+
+def _loss(theta, graph, truth, setter, solver, adjoint, max_steps):
+    import eqsmooth as eqs
+
+    graph = setter(graph, theta)
+    sol = eqs.least_squares(
+        graph, truth, solver, adjoint=adjoint, max_steps=max_steps, throw=False
+    )
+    total = jnp.zeros(())
+    for name in sorted(truth):
+        err = eqs.local(truth[name], sol.value[name], batch_ndim=1)
+        weights = jnp.linspace(0.5, 1.5, err.size).reshape(err.shape)
+        total = total + jnp.sum(err * err) + jnp.sum(weights * err)
+    return total
+
+
+_value_and_grad = eqx.filter_jit(jax.value_and_grad(_loss))
+
+
+def _fd_check(problem, solver, adjoint, max_steps=20, seed=0, rtol=1e-6):
+    graph, truth, theta, setter = problem
+    args = (graph, truth, setter, solver, adjoint, max_steps)
+    _, grad = _value_and_grad(theta, *args)
+    for leaf in jax.tree_util.tree_leaves(grad):
+        assert np.all(np.isfinite(leaf))
+        # Every parameter reaches the loss: no gradient leaf is identically zero.
+        assert np.max(np.abs(leaf)) > 1e-8
+    rng = np.random.default_rng(seed)
+    for _ in range(2):
+        u = jax.tree_util.tree_map(
+            lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype), theta
+        )
+        plus = jax.tree_util.tree_map(lambda x, v: x + EPS * v, theta, u)
+        minus = jax.tree_util.tree_map(lambda x, v: x - EPS * v, theta, u)
+        fd = (_value_and_grad(plus, *args)[0] - _value_and_grad(minus, *args)[0]) / (
+            2 * EPS
+        )
+        ad = sum(
+            jnp.sum(g * v)
+            for g, v in zip(
+                jax.tree_util.tree_leaves(grad), jax.tree_util.tree_leaves(u)
+            )
+        )
+        np.testing.assert_allclose(ad, fd, rtol=rtol, atol=1e-9)
+    return grad
+
+
+@ft.cache
+def _solvers():
+    import eqsmooth as eqs
+
+    dense = eqs.DenseCholesky()
+    return {
+        "k3": eqs.FixedStepGaussNewton(dense, num_steps=3),
+        # Converged to rounding level from the truth (checked below).
+        "conv": eqs.FixedStepGaussNewton(dense, num_steps=40),
+        "tridiag": eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=40),
+        # Stops early on its tolerances.
+        "gn": eqs.GaussNewton(dense, ftol=1e-10, gtol=1e-10, xtol=1e-10),
+    }
+
+
+def _tree_close(a, b, rtol, atol=1e-10):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_allclose(x, y, rtol=rtol, atol=atol)
+
+
+# ---------------------------------------------------------------------------
+# Tests
+# ---------------------------------------------------------------------------
+
+
+# Lie-group graphs take 30 s (SE(2)) to minutes (SE(3)) to compile on 2 shared
+# cores; the default run keeps the SE(2) implicit check, the rest is slow.
+_SLOW_SE3 = pytest.param("se3", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize(
+    "kind", ["euclid", pytest.param("se2", marks=pytest.mark.slow), _SLOW_SE3]
+)
+def test_unrolled_matches_finite_differences(kind):
+    import eqsmooth as eqs
+
+    problem = euclid_problem() if kind == "euclid" else pose_problem(kind)
+    _fd_check(problem, _solvers()["k3"], eqs.UnrolledAdjoint())
+
+
+@pytest.mark.parametrize("kind", ["euclid", "robust", "se2", _SLOW_SE3])
+def test_implicit_exact_matches_finite_differences_of_argmin(kind):
+    import eqsmooth as eqs
+
+    problem = {
+        "euclid": euclid_problem,
+        "robust": robust_problem,
+        "se2": ft.partial(pose_problem, "se2"),
+        "se3": ft.partial(pose_problem, "se3"),
+    }[kind]()
+    graph, truth, theta, setter = problem
+    # The forward solve really is at a stationary point.
+    sol = eqs.least_squares(setter(graph, theta), truth, _solvers()["conv"])
+    name = next(iter(truth))
+    g = jax.grad(
+        lambda d: setter(graph, theta).cost({name: eqs.retract(sol.value[name], d)})
+    )(jnp.zeros((T, sum(eqs.manifold.tangent_dims(truth[name], 1)))))
+    assert float(jnp.max(jnp.abs(g))) < 1e-10
+    _fd_check(problem, _solvers()["conv"], eqs.ImplicitAdjoint())
+
+
+def test_implicit_gauss_newton_exact_for_linear_problem():
+    import eqsmooth as eqs
+
+    # With the shared coefficient at 0 the chain is linear in the states, so
+    # the Gauss-Newton matrix is the exact Hessian.
+    _fd_check(
+        euclid_problem(p=0.0),
+        _solvers()["conv"],
+        eqs.ImplicitAdjoint(hessian="gauss_newton"),
+    )
+
+
+def test_implicit_equals_unrolled_to_convergence():
+    import eqsmooth as eqs
+
+    graph, truth, theta, setter = euclid_problem(seed=3)
+    args = (graph, truth, setter, _solvers()["conv"])
+    v1, g_unrolled = _value_and_grad(theta, *args, eqs.UnrolledAdjoint(), 20)
+    v2, g_implicit = _value_and_grad(theta, *args, eqs.ImplicitAdjoint(), 20)
+    np.testing.assert_allclose(v1, v2, rtol=1e-12)
+    _tree_close(g_implicit, g_unrolled, rtol=1e-6)
+    # The same with the block-tridiagonal solver preconditioning CG.
+    args = (graph, truth, setter, _solvers()["tridiag"])
+    _, g_tridiag = _value_and_grad(theta, *args, eqs.ImplicitAdjoint(), 20)
+    _tree_close(g_tridiag, g_unrolled, rtol=1e-6)
+    # Gauss-Newton-only implicit gradient: close, not equal (nonzero residuals).
+    _, g_gn = _value_and_grad(
+        theta, graph, truth, setter, _solvers()["conv"],
+        eqs.ImplicitAdjoint(hessian="gauss_newton"), 20,
+    )  # fmt: skip
+    _tree_close(g_gn, g_unrolled, rtol=0.2, atol=1e-3)
+    with pytest.raises(AssertionError):
+        _tree_close(g_gn, g_unrolled, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_implicit_se2_equals_unrolled_to_convergence():
+    import eqsmooth as eqs
+
+    graph, truth, theta, setter = pose_problem("se2")
+    args = (graph, truth, setter, _solvers()["conv"])
+    _, g_unrolled = _value_and_grad(theta, *args, eqs.UnrolledAdjoint(), 20)
+    _, g_implicit = _value_and_grad(theta, *args, eqs.ImplicitAdjoint(), 20)
+    _tree_close(g_implicit, g_unrolled, rtol=1e-6)
+
+
+def test_truncated_all_steps_equals_unrolled():
+    import eqsmooth as eqs
+
+    graph, truth, theta, setter = euclid_problem(seed=2)
+    args = (graph, truth, setter, _solvers()["k3"])
+    v1, g1 = _value_and_grad(theta, *args, eqs.UnrolledAdjoint(), 20)
+    v2, g2 = _value_and_grad(theta, *args, eqs.TruncatedAdjoint(3), 20)
+    assert v1 == v2
+    _tree_close(g1, g2, rtol=1e-12, atol=0.0)
+
+
+def test_truncated_early_stopping():
+    import eqsmooth as eqs
+
+    graph, truth, theta, setter = euclid_problem(seed=4)
+    start = {"x": truth["x"] + 0.3}
+
+    def run(adjoint, max_steps=12):
+        return _value_and_grad(
+            theta, graph, start, setter, _solvers()["gn"], adjoint, max_steps
+        )
+
+    sol = eqs.least_squares(setter(graph, theta), start, _solvers()["gn"], max_steps=12)
+    n = int(sol.stats["num_steps"])
+    assert 2 < n < 8  # stops early: the last iterations come from the ring buffer
+    v_unrolled, g_unrolled = run(eqs.UnrolledAdjoint())
+    # k >= number of steps taken: restarts from the initial values, = unrolled.
+    v_long, g_long = run(eqs.TruncatedAdjoint(8))
+    np.testing.assert_allclose(v_long, v_unrolled, rtol=1e-13)
+    _tree_close(g_long, g_unrolled, rtol=1e-10)
+    # k = 1 after convergence: one live Gauss-Newton step from the stopped
+    # solution, i.e. the Gauss-Newton implicit gradient.
+    v_short, g_short = run(eqs.TruncatedAdjoint(1))
+    v_gn, g_gn = run(eqs.ImplicitAdjoint(hessian="gauss_newton"))
+    np.testing.assert_allclose(v_short, v_unrolled, rtol=1e-13)
+    _tree_close(g_short, g_gn, rtol=1e-5, atol=1e-8)
+
+
+def test_vmap_batch_matches_loop():
+    import eqsmooth as eqs
+
+    problems = [euclid_problem(seed=s) for s in range(3)]
+    setter = problems[0][3]
+    graphs = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[0] for p in problems])
+    truths = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[1] for p in problems])
+    thetas = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[2] for p in problems])
+    for key, adjoint in [
+        ("k3", eqs.UnrolledAdjoint()),
+        ("conv", eqs.ImplicitAdjoint()),
+    ]:
+        solver = _solvers()[key]
+
+        @eqx.filter_jit
+        def batched(thetas, graphs, truths):
+            fn = jax.value_and_grad(_loss)
+            return eqx.filter_vmap(
+                lambda th, g, tr: fn(th, g, tr, setter, solver, adjoint, 20)
+            )(thetas, graphs, truths)
+
+        values, grads = batched(thetas, graphs, truths)
+        for i, (g, tr, th, _) in enumerate(problems):
+            v, gr = _value_and_grad(th, g, tr, setter, solver, adjoint, 20)
+            np.testing.assert_allclose(values[i], v, rtol=1e-10)
+            _tree_close(jax.tree_util.tree_map(lambda x: x[i], grads), gr, rtol=1e-8)
+
+
+def test_adjoint_validation():
+    import eqsmooth as eqs
+
+    with pytest.raises(ValueError, match="num_steps"):
+        eqs.TruncatedAdjoint(0)
+    # (The jaxtyping/beartype hook may reject the Literal before __check_init__.)
+    with pytest.raises((ValueError, TypeError)):
+        eqs.ImplicitAdjoint(hessian="newton")  # pyright: ignore
+    graph, truth, _, _ = euclid_problem()
+    with pytest.raises(TypeError, match="adjoint"):
+        eqs.least_squares(graph, truth, _solvers()["k3"], adjoint="unrolled")  # pyright: ignore
