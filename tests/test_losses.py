@@ -230,6 +230,7 @@ def _se2_loss(log_sigmas):
     )
 
 
+@pytest.mark.slow  # ~30-60 s of compilation on 2 cores
 def test_surrogate_gradient_se2():
     # Only ratios of noise scales move the MAP; the prior is fixed, so the
     # odometry sigmas are identifiable and have a nonzero gradient.
