@@ -247,7 +247,7 @@ def _se2_losses(meas_scale, trans_scale, reset):
     trans, meas, truth = _se2_problem(meas_scale, trans_scale)
     mean0, cov0 = _se2_initial(truth)
     sol = eqs.filters.ekf(trans, [meas], mean0, cov0, reset_covariance=reset)
-    w = jnp.asarray([1.0, 1.0, 4.0, 0.5, 0.5, 0.5])
+    w = {"pose": jnp.asarray([1.0, 1.0, 4.0]), "vel": jnp.asarray(0.5)}
     return jnp.stack(
         [
             eqs.filters.ekf_mse_loss(sol, truth, w),
@@ -424,7 +424,8 @@ def test_clear_errors():
     )
     with pytest.raises(eqx.EquinoxRuntimeError, match="not finite"):
         eqs.filters.ekf(trans, [bad], m0, p0)
-    with pytest.raises(ValueError, match="weights must have shape"):
-        eqs.filters.ekf_mse_loss(
-            eqs.filters.ekf(trans, [meas1], m0, p0), jnp.zeros((T, 2)), jnp.ones(3)
-        )
+    sol = eqs.filters.ekf(trans, [meas1], m0, p0)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        eqs.filters.ekf_mse_loss(sol, jnp.zeros((T, 2)), jnp.ones(3))
+    with pytest.raises(ValueError, match="leading time axis of length"):
+        eqs.filters.ekf_marginal_nll(sol, jnp.zeros((T + 1, 2)))

@@ -6,17 +6,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from ..learn import manifold_mse
 from ..manifold import local
 from ._ekf import EKFSolution
 from ._rts import RTSSolution
 
 
-def _errors(mean: PyTree, truth: PyTree, at_mean: bool) -> Float[Array, "T d"]:
-    # Manifold error per time step: truth ⊖ mean in the tangent at the mean
-    # (where the covariance lives), or mean ⊖ truth at the truth.
-    if at_mean:
-        return jax.vmap(local)(mean, truth)
-    return jax.vmap(local)(truth, mean)
+def _errors_at_mean(mean: PyTree, truth: PyTree) -> Float[Array, "T d"]:
+    # truth ⊖ mean in the tangent at the mean, where the covariance lives.
+    return jax.vmap(local)(mean, truth)
 
 
 def _check_truth(belief, truth, where: str) -> None:
@@ -32,35 +30,33 @@ def _check_truth(belief, truth, where: str) -> None:
 def ekf_mse_loss(
     belief: EKFSolution | RTSSolution,
     truth: PyTree,
-    weights: Float[Array, " d"] | None = None,
+    weights: PyTree | None = None,
 ) -> Float[Array, ""]:
     """End-to-end MSE of the estimated means against ground truth.
 
-    `mean_t Σ_j w_j e_{t,j}²` with `e_t = mean_t ⊖ truth_t` (manifold
+    [`eqsmooth.learn.manifold_mse`][] of the means against the truth: the
+    error of every time step is `mean_t ⊖ truth_t` (manifold
     [`eqsmooth.manifold.local`][], so Lie-group states are compared in their
-    tangent space). This is the paper's "E2E MSE" EKF baseline loss when
-    `belief` is an [`eqsmooth.filters.EKFSolution`][]; it applies equally to
-    an [`eqsmooth.filters.RTSSolution`][].
+    tangent space), and the loss is `Σ w e² / (number of error entries)`,
+    the same normalisation as the smoother's
+    [`eqsmooth.learn.surrogate_loss`][], so the two are comparable. This is
+    the paper's "E2E MSE" EKF baseline loss when `belief` is an
+    [`eqsmooth.filters.EKFSolution`][]; it applies equally to an
+    [`eqsmooth.filters.RTSSolution`][].
 
     **Arguments:**
 
     - `belief`: the filter (or RTS smoother) output.
     - `truth`: ground-truth states, the state pytree with a leading axis `T`.
-    - `weights`: per tangent component weights `(d,)` (default: all ones),
-        e.g. to balance metres against radians.
+    - `weights`: `None` or per-component weights with the structure of the
+        state (or a prefix of it), e.g. `jnp.array([1.0, 1.0, 10.0])` for an
+        SE(2) state or `{"pose": ..., "vel": ...}` for a dict state; see
+        [`eqsmooth.learn.manifold_mse`][].
 
     **Returns:** a scalar.
     """
     _check_truth(belief, truth, "ekf_mse_loss")
-    e = _errors(belief.mean, truth, at_mean=False)
-    d = e.shape[-1]
-    if weights is None:
-        weights = jnp.ones((d,), dtype=e.dtype)
-    elif weights.shape != (d,):
-        raise ValueError(
-            f"ekf_mse_loss: weights must have shape ({d},), got {weights.shape}"
-        )
-    return jnp.mean(jnp.sum(weights.astype(e.dtype)[None] * e * e, axis=-1))
+    return manifold_mse(truth, belief.mean, weights)
 
 
 def ekf_marginal_nll(
@@ -84,7 +80,7 @@ def ekf_marginal_nll(
     **Returns:** a scalar.
     """
     _check_truth(belief, truth, "ekf_marginal_nll")
-    e = _errors(belief.mean, truth, at_mean=True)
+    e = _errors_at_mean(belief.mean, truth)
     P = belief.covariance
     d = e.shape[-1]
     chol = jnp.linalg.cholesky(P)
