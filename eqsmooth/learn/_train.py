@@ -151,7 +151,10 @@ def _num_examples(data: PyTree, name: str) -> int:
             f"train: every leaf of {name} needs the same leading (example) axis; "
             f"got shapes {[np.shape(x) for x in leaves]}"
         )
-    return sizes.pop()
+    size = sizes.pop()
+    if size == 0:
+        raise ValueError(f"train: {name} has no examples")
+    return size
 
 
 def _to_host(data: PyTree) -> PyTree:
