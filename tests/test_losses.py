@@ -30,6 +30,13 @@ def _dot(a, b):
 
 _GRAPH, _INIT, _TRUTH = random_chain(0, T=6)
 _MLP = eqx.nn.MLP(1, 1, 4, 1, activation=jnp.tanh, key=jax.random.key(0))
+_SENSOR = eqx.nn.MLP(2, 2, 4, 1, activation=jnp.tanh, key=jax.random.key(1))
+
+
+def _meas_with_net(x, data, params):
+    # A learned correction of the measurement (a tiny "virtual sensor"),
+    # held in the factor's shared params.
+    return x - data - 0.1 * params(data)
 
 
 def _chain_graph(theta):
@@ -49,7 +56,11 @@ def _chain_graph(theta):
                 params=theta["coeff"],
             ),
             eqs.FunctionFactor(
-                meas.fn, meas.variables, eqs.DiagonalNoise(sp), data=meas.data
+                _meas_with_net,
+                meas.variables,
+                eqs.DiagonalNoise(sp),
+                data=meas.data,
+                params=theta["sensor"],
             ),
         ]
     )
@@ -60,6 +71,7 @@ _THETA = {
     "log_sp_dyn": jnp.log(jnp.asarray(3.0)),
     "coeff": jnp.asarray(0.5),
     "mlp": _MLP,
+    "sensor": _SENSOR,
 }
 _SOLVER = eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=3)
 
@@ -76,7 +88,7 @@ _surrogate_vg = eqx.filter_jit(eqx.filter_value_and_grad(_chain_surrogate))
 _nll_vg = eqx.filter_jit(eqx.filter_value_and_grad(_chain_nll))
 
 
-@pytest.mark.parametrize("which", ["log_sp", "coeff", "all"])
+@pytest.mark.parametrize("which", ["log_sp", "coeff", "sensor", "all"])
 def test_surrogate_gradient_matches_finite_differences(which):
     value, grad = _surrogate_vg(_THETA)
     assert np.isfinite(float(value)) and float(value) > 0
