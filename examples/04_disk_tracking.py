@@ -29,6 +29,10 @@ from pathlib import Path
 
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+try:
+    import eqsmooth  # noqa: F401
+except ImportError:  # not installed (e.g. a bare GPU image): use the checkout
+    sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
 
 from disk_tracking import report, train  # noqa: E402
 

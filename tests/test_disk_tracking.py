@@ -195,11 +195,14 @@ def test_tiny_training_run(tmp_path):
         fg_lr=1e-2,
         # One of each kind keeps the compile time (most of this test) small.
         methods=(
-            "smoother_hetero_surrogate",
+            "smoother_hetero_surrogate_learndyn",
             "smoother_const_nll",
             "ekf_hetero_nll",
             "lstm_bi",
+            "smoother_hetero_finetune",
         ),
+        finetune_steps=1,
+        finetune_batch=1,
         quick=True,
     )
     # optax's Adam mixes int and float scalars, which strict promotion rejects.
@@ -214,7 +217,12 @@ def test_tiny_training_run(tmp_path):
     meas = jax.numpy.asarray(test.sensor[0], "float32")
     counts = jax.numpy.asarray(test.fold.visible_pixels[0], "float32")
     truth = jax.numpy.asarray(test.fold.states[0], "float32")
-    het = res["models"]["smoother_hetero_surrogate"]
+    learned = res["models"]["smoother_hetero_surrogate_learndyn"]
+    g = eqx.filter_grad(lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3))(
+        learned
+    )
+    assert np.any(np.asarray(g.log_dynamics_sqrt_precision) != 0)
+    het = dataclasses.replace(learned, learn_dynamics=False)
     for loss in (
         lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3),
         lambda m: train.joint_nll_one(m, meas, counts, truth),

@@ -19,6 +19,8 @@ PAPER = {
     "smoother_hetero_surrogate": "2.336 ± 0.072",
     "smoother_hetero_nll": "2.606 ± 0.114",
     "smoother_hetero_implicit": "—",
+    "smoother_hetero_surrogate_learndyn": "—",
+    "smoother_hetero_finetune": "—",
     "smoother_const_surrogate": "8.104 ± 0.167",
     "smoother_const_nll": "8.182 ± 0.175",
     "ekf_hetero_mse": "3.083 ± 0.095",
@@ -34,6 +36,12 @@ LABELS = {
     "smoother_hetero_surrogate": "smoother, heteroscedastic, surrogate loss (K=3)",
     "smoother_hetero_nll": "smoother, heteroscedastic, joint NLL",
     "smoother_hetero_implicit": "smoother, heteroscedastic, implicit adjoint (ours)",
+    "smoother_hetero_surrogate_learndyn": (
+        "smoother, heteroscedastic, surrogate, learned dynamics noise (ours)"
+    ),
+    "smoother_hetero_finetune": (
+        "smoother, heteroscedastic, CNN fine-tuned through the smoother (ours)"
+    ),
     "smoother_const_surrogate": "smoother, constant, surrogate loss (K=3)",
     "smoother_const_nll": "smoother, constant, joint NLL",
     "ekf_hetero_mse": "EKF, heteroscedastic, E2E MSE",
@@ -195,6 +203,8 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
     for name, model in models.items():
         if name.startswith("lstm"):
             continue
+        if name == "smoother_hetero_finetune":
+            model = model.smoother
         sigma = 1.0 / np.asarray(model.noise(counts))
         ls = "-" if "hetero" in name else ":"
         ax.plot(np.asarray(counts), sigma, ls, label=name.replace("_", " "))

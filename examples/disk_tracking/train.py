@@ -84,6 +84,10 @@ class Config:
     lstm_subsequence: int = 10
     lstm_hidden: int = 64
     lstm_init_from_sensor: bool = False  # beyond the paper; quick mode uses it
+    # Beyond the paper: fine-tune the sensor through the smoother.
+    finetune_steps: int = 2_000
+    finetune_batch: int = 8  # sequences (x 20 images) per step
+    finetune_lr: float = 1e-5
     # Common.
     warmup: int = 50
     clip_norm: float = 10.0
@@ -96,12 +100,14 @@ class Config:
         "smoother_hetero_surrogate",
         "smoother_hetero_nll",
         "smoother_hetero_implicit",
+        "smoother_hetero_surrogate_learndyn",
         "ekf_const_mse",
         "ekf_const_nll",
         "ekf_hetero_mse",
         "ekf_hetero_nll",
         "lstm_uni",
         "lstm_bi",
+        "smoother_hetero_finetune",  # needs smoother_hetero_surrogate first
     )
     cache_dir: str | None = None
     sensor_weights_dir: str | None = None  # reuse sensor_fold{k}.eqx from here
@@ -143,6 +149,11 @@ def quick_config(pretrain_sensor: bool = False, **overrides) -> Config:
         lstm_batch=4,
         lstm_lr=1e-3,
         lstm_init_from_sensor=True,
+        # Fine-tuning the CNN through the smoother costs 20 CNN passes per
+        # sequence: left out of the quick run (pass --methods to add it).
+        methods=tuple(m for m in Config.methods if m != "smoother_hetero_finetune"),
+        finetune_steps=20,
+        finetune_batch=2,
         warmup=10,
         eval_every=25,
         quick=True,
@@ -366,6 +377,7 @@ class SmootherModel(eqx.Module):
 
     noise: M.AbstractNoiseHead
     log_dynamics_sqrt_precision: jax.Array
+    learn_dynamics: bool = eqx.field(static=True, default=False)
 
     def graph(self, measurements, visible_pixels) -> eqs.FactorGraph:
         return M.build_smoother_graph(
@@ -386,7 +398,10 @@ def make_smoother_model(kind: str, sigma: float, key, dtype) -> SmootherModel:
 
 
 def _fixed_dynamics(model: SmootherModel) -> SmootherModel:
-    # The paper keeps the dynamics noise fixed: stop its gradient.
+    # The paper keeps the dynamics noise fixed: stop its gradient (unless the
+    # model learns it, an extension).
+    if model.learn_dynamics:
+        return model
     return eqx.tree_at(
         lambda m: m.log_dynamics_sqrt_precision,
         model,
@@ -499,9 +514,18 @@ def _sequence_sampler(split: Split, cfg: Config):
 
 
 def train_smoother(
-    cfg: Config, kind: str, loss: str, train: Split, val: Split, sigma: float, key
+    cfg: Config,
+    kind: str,
+    loss: str,
+    train: Split,
+    val: Split,
+    sigma: float,
+    key,
+    learn_dynamics: bool = False,
 ) -> FitResult:
     model = make_smoother_model(kind, sigma, key, cfg.dtype)
+    if learn_dynamics:
+        model = dataclasses.replace(model, learn_dynamics=True)
     K = cfg.surrogate_steps
 
     def loss_fn(m, batch):
@@ -524,7 +548,7 @@ def train_smoother(
         return rmse(smooth_split(m, val, cfg)[..., :2], val.fold.positions)
 
     return fit(
-        f"smoother {kind} {loss}",
+        f"smoother {kind} {loss}{' +dynamics' if learn_dynamics else ''}",
         model,
         loss_fn,
         _sequence_sampler(train, cfg),
@@ -533,6 +557,73 @@ def train_smoother(
         cfg.fg_lr,
         cfg,
         seed=cfg.model_seed + 1,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Beyond the paper: fine-tune the CNN end to end through the smoother
+# ---------------------------------------------------------------------------
+
+
+class FinetuneModel(eqx.Module):
+    """The virtual sensor and a smoother model, trained together."""
+
+    sensor: M.VirtualSensor
+    smoother: SmootherModel
+
+
+def finetune_loss_one(model: FinetuneModel, images, counts, truth, K: int):
+    """The surrogate loss with the sensor's positions computed inside the loss."""
+    meas = jax.vmap(model.sensor)(images)
+    return surrogate_loss_one(model.smoother, meas, counts, truth, K)
+
+
+def finetune_eval(model: FinetuneModel, split: Split, cfg: Config) -> np.ndarray:
+    """Positions `(N, T, 2)`: the fine-tuned sensor, then the smoother."""
+    moved = dataclasses.replace(
+        split, sensor=sensor_positions(model.sensor, split, cfg.eval_batch)
+    )
+    return smooth_split(model.smoother, moved, cfg)[..., :2]
+
+
+def train_finetune(
+    cfg: Config,
+    train: Split,
+    val: Split,
+    sensor: M.VirtualSensor,
+    smoother: SmootherModel,
+) -> FitResult:
+    model = FinetuneModel(sensor, smoother)
+    K = cfg.surrogate_steps
+
+    def loss_fn(m, batch):
+        images, counts, truth = batch
+        per = jax.vmap(finetune_loss_one, in_axes=(None, 0, 0, 0, None))(
+            m, images, counts, truth, K
+        )
+        return jnp.mean(per)
+
+    def sample(rng):
+        seqs = rng.integers(0, train.n, cfg.finetune_batch)
+        return (
+            train.get_images(seqs),
+            jnp.asarray(train.fold.visible_pixels[seqs], cfg.dtype),
+            jnp.asarray(train.fold.states[seqs], cfg.dtype),
+        )
+
+    def validate(m):
+        return rmse(finetune_eval(m, val, cfg), val.fold.positions)
+
+    return fit(
+        "fine-tune sensor + smoother",
+        model,
+        loss_fn,
+        sample,
+        validate,
+        cfg.finetune_steps,
+        cfg.finetune_lr,
+        cfg,
+        seed=cfg.model_seed + 4,
     )
 
 
@@ -752,12 +843,31 @@ def run_fold(cfg: Config, test_fold: int, out: Path, log=print) -> dict:
     for method in cfg.methods:
         parts = method.split("_")
         t = time.perf_counter()
-        if parts[0] in ("smoother", "ekf"):
-            kind, loss = parts[1], parts[2]
-            trainer = train_smoother if parts[0] == "smoother" else train_ekf
-            res = trainer(cfg, kind, loss, train, val, val_sensor_rmse, k_noise)
-            runner = smooth_split if parts[0] == "smoother" else ekf_split
-            pred = runner(res.model, test, cfg)[..., :2]
+        if method == "smoother_hetero_finetune":
+            start = models.get("smoother_hetero_surrogate")
+            if start is None:
+                start = make_smoother_model(
+                    "hetero", val_sensor_rmse, k_noise, cfg.dtype
+                )
+            res = train_finetune(cfg, train, val, sensor, start)
+            pred = finetune_eval(res.model, test, cfg)
+        elif parts[0] == "smoother":
+            res = train_smoother(
+                cfg,
+                parts[1],
+                parts[2],
+                train,
+                val,
+                val_sensor_rmse,
+                k_noise,
+                learn_dynamics=parts[-1] == "learndyn",
+            )
+            pred = smooth_split(res.model, test, cfg)[..., :2]
+        elif parts[0] == "ekf":
+            res = train_ekf(
+                cfg, parts[1], parts[2], train, val, val_sensor_rmse, k_noise
+            )
+            pred = ekf_split(res.model, test, cfg)[..., :2]
         elif parts[0] == "lstm":
             res = train_lstm(cfg, parts[1] == "bi", train, val, k_lstm, sensor)
             pred = lstm_split(res.model, test, cfg)
@@ -779,6 +889,10 @@ def run_fold(cfg: Config, test_fold: int, out: Path, log=print) -> dict:
         )
         if parts[0] in ("smoother", "ekf"):
             eqx.tree_serialise_leaves(fold_dir / f"{method}.eqx", res.model)
+        if method == "smoother_hetero_finetune":
+            test_predictions["sensor_finetuned"] = sensor_positions(
+                res.model.sensor, test, cfg.eval_batch
+            )
     timings["total_s"] = time.perf_counter() - t0
     return dict(
         fold=test_fold,
