@@ -68,6 +68,13 @@ def parse_args(argv=None) -> tuple[train.Config, Path]:
         action="store_true",
         help="render training/validation images once and keep them on the device",
     )
+    p.add_argument(
+        "--matmul-precision",
+        default="highest",
+        choices=["default", "high", "highest"],
+        help="jax_default_matmul_precision (GPUs may use TF32 by default, too "
+        "coarse for the Gauss-Newton normal equations)",
+    )
     for name in (
         "sequences_per_fold",
         "sensor_steps",
@@ -96,6 +103,7 @@ def parse_args(argv=None) -> tuple[train.Config, Path]:
             "methods",
             "images_on_device",
             "pretrain_sensor",
+            "matmul_precision",
         )
     }
     if a.folds is not None:
@@ -109,6 +117,10 @@ def parse_args(argv=None) -> tuple[train.Config, Path]:
         if a.quick
         else dataclasses.replace(train.Config(), **overrides)
     )
+    if a.matmul_precision != "default":
+        import jax
+
+        jax.config.update("jax_default_matmul_precision", a.matmul_precision)
     return cfg, a.out
 
 

@@ -38,7 +38,10 @@ from . import data as D, models as M
 
 try:  # progress bars when tqdm is installed (the `examples` extra)
     from tqdm.auto import tqdm
+
+    _HAVE_TQDM = True
 except ImportError:  # pragma: no cover
+    _HAVE_TQDM = False
 
     def tqdm(it, **kwargs):
         return it
@@ -277,9 +280,10 @@ def fit(
 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    best_val = validate(model)
+    val0 = validate(model)
+    best_val = val0 if math.isfinite(val0) else math.inf
     best, best_step = params, 0
-    history = [(0, float("nan"), best_val)]
+    history = [(0, float("nan"), val0)]
     losses = []
     bar = tqdm(range(1, steps + 1), desc=name, leave=False)
     for i in bar:
@@ -292,7 +296,7 @@ def fit(
             history.append((i, mean_loss, val))
             if math.isfinite(val) and val < best_val:
                 best_val, best, best_step = val, params, i
-            if hasattr(bar, "set_postfix"):
+            if _HAVE_TQDM:
                 bar.set_postfix(loss=f"{mean_loss:.4g}", val=f"{val:.3f}")
     return FitResult(
         eqx.combine(best, static),
