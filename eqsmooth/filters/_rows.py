@@ -59,7 +59,9 @@ def check_gaussian(noise: AbstractNoiseModel, where: str) -> None:
     if not robust:
         # Probe user-defined models: a Gaussian model has rho(s) = s. Skipped
         # when the noise parameters are traced (the value is then unknown).
-        s = jnp.asarray([0.25, 4.0, 100.0])
+        leaves = [x for x in jax.tree_util.tree_leaves(noise) if eqx.is_array(x)]
+        dtype = jnp.result_type(*leaves) if leaves else None
+        s = jnp.asarray([0.25, 4.0, 100.0], dtype=dtype)
         value, _ = noise.rho(s)
         if not isinstance(value, jax.core.Tracer):
             robust = not np.allclose(np.asarray(value), np.asarray(s))
