@@ -145,6 +145,7 @@ def main(argv=None):
         "BlockTridiagonal": eqs.BlockTridiagonal(),
         "PCG": eqs.PCG(),
         "DenseCholesky": eqs.DenseCholesky(),
+        "SparseLU": eqs.solve.SparseLU(),
     }
     records = []
     for problem, build in [("disk", disk_problem), ("se2vel", se2vel_problem)]:
@@ -153,7 +154,7 @@ def main(argv=None):
             for name, ls in solvers.items():
                 if name == "DenseCholesky" and T > 1000:
                     continue
-                if name == "PCG" and T > 10_000:
+                if name in ("PCG", "SparseLU") and T > 10_000:
                     continue
                 it = make_iteration(ls)
                 first, median, _ = time_fn(

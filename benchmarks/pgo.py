@@ -1,8 +1,9 @@
 """Pose-graph optimisation on the standard g2o data sets, against GTSAM.
 
 For every file: load it with `eqsmooth.io.load_g2o` (gauge prior on the first
-pose, σ = 1e-6), solve with `LevenbergMarquardt(PCG())` (block-Jacobi; or
-`--preconditioner chain` for `ChainPreconditioner()`, or `--solver dense`)
+pose, σ = 1e-6), solve with `LevenbergMarquardt(SparseLU())` (host sparse
+direct solves; or `--solver pcg` for `PCG()` with block-Jacobi, plus
+`--preconditioner chain` for `ChainPreconditioner()`; or `--solver dense`)
 from the file's initial values, and solve the same problem with GTSAM's
 `LevenbergMarquardtOptimizer` in the same run. GTSAM gets exactly the same
 factors (`eqsmooth.io.to_gtsam`: same measurements, same information
@@ -205,7 +206,7 @@ def write_markdown(path, records, m: dict, solver_name: str, max_steps: int):
     """The report: how it was made, the table, and which rows reached GTSAM."""
     reached = [r["file"] for r in records if r.get("cost_ratio", 2.0) <= 1 + 1e-6]
     missed = [r["file"] for r in records if r.get("cost_ratio", 0.0) > 1 + 1e-6]
-    git = m["git"] + (" (plus uncommitted changes)" if _dirty() else "")
+    git = m["git"] + (" (plus uncommitted changes)" if m.get("dirty") else "")
     lines = [
         "# Pose-graph optimisation: eqsmooth vs GTSAM",
         "",
@@ -238,7 +239,9 @@ def main(argv=None):
     parser.add_argument("--json", default=None, help="write records here")
     parser.add_argument("--md", default=None, help="write the markdown report here")
     parser.add_argument("--files", nargs="*", default=None, help="subset of files")
-    parser.add_argument("--solver", choices=["pcg", "dense"], default="pcg")
+    parser.add_argument(
+        "--solver", choices=["sparse", "pcg", "dense"], default="sparse"
+    )
     parser.add_argument(
         "--preconditioner",
         choices=["jacobi", "chain"],
@@ -269,6 +272,9 @@ def main(argv=None):
         )
         linear = eqs.PCG(preconditioner=pre)
         solver_name = f"LevenbergMarquardt(PCG(preconditioner={type(pre).__name__}()))"
+    elif args.solver == "sparse":
+        linear = eqs.solve.SparseLU()
+        solver_name = "LevenbergMarquardt(SparseLU())"
     else:
         linear = eqs.DenseCholesky()
         solver_name = "LevenbergMarquardt(DenseCholesky())"
@@ -290,6 +296,8 @@ def main(argv=None):
         pg, _ = synthetic_pose_graph_2d(300 if args.quick else 2000, seed=0)
         problems.append(("synthetic_2d", pg))
 
+    m = machine()  # git hash and tree state when the run started
+    m["dirty"] = _dirty()
     records = []
     for name, pg in problems:
         rec = bench_one(name, pg, args, solver, solver_name, have_gtsam)
@@ -308,9 +316,9 @@ def main(argv=None):
         )
         # Written after every file, so a long run that is cut off keeps its rows.
         if args.md:
-            write_markdown(args.md, records, machine(), solver_name, args.max_steps)
+            write_markdown(args.md, records, m, solver_name, args.max_steps)
         if args.json:
-            write_json(args.json, records)
+            write_json(args.json, records, extra={"machine": m})
 
     table = table_of(records)
     print()

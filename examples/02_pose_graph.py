@@ -3,8 +3,10 @@
 What it shows: how to load a standard pose-graph benchmark with
 `eqsmooth.io.load_g2o` (one stacked between-factor for all edges, full
 information matrices, a prior fixing the gauge), solve it with
-Levenberg-Marquardt on the manifold and a sparse linear solver (block-Jacobi
-preconditioned conjugate gradients by default, or dense Cholesky for small
+Levenberg-Marquardt on the manifold and a sparse linear solver (conjugate
+gradients with a block-Jacobi preconditioner by default; `--solver pcg-chain`
+for the odometry-chain preconditioner, `--solver sparse` for SciPy's sparse
+LU on the host, much faster on large graphs; `--solver dense` for small
 graphs), write the result with `eqsmooth.io.save_g2o`, and plot the initial
 and optimised trajectories. It steps the solver by hand (`init` / `step` /
 `terminate`, each jitted) to print a table of cost, damping and time per
@@ -16,8 +18,8 @@ them). When the default file is absent, the script makes a synthetic 2-D pose
 graph with `eqsmooth.io.synthetic_pose_graph_2d` instead, so it always runs.
 
 Runtime on 2 CPU cores: about 20 s with `--quick` (intel.g2o, 10 iterations,
-mostly compilation); about 20 s by default on intel.g2o; 3-D files such as
-sphere2500.g2o take minutes with PCG.
+mostly compilation); about 20 s by default on intel.g2o; larger and 3-D
+files take longer (see benchmarks/results/pgo.md for measured solve times).
 
     python examples/02_pose_graph.py --quick --out results/pgo
     python examples/02_pose_graph.py --file ../shared/data/g2o/sphere2500.g2o
@@ -53,7 +55,9 @@ def parse_args(argv=None):
     )
     p.add_argument("--out", type=Path, default=Path("results/02_pose_graph"))
     p.add_argument("--quick", action="store_true", help="few iterations (CI)")
-    p.add_argument("--solver", choices=["pcg", "dense"], default="pcg")
+    p.add_argument(
+        "--solver", choices=["pcg", "pcg-chain", "sparse", "dense"], default="pcg"
+    )
     p.add_argument("--max-steps", type=int, default=None, help="LM iterations")
     p.add_argument(
         "--invalid-information",
@@ -148,11 +152,19 @@ def main(argv=None):
     args = parse_args(argv)
     pg, source = load(args)
     max_steps = args.max_steps or (10 if args.quick else 100)
-    linear = eqs.PCG() if args.solver == "pcg" else eqs.DenseCholesky()
+    if args.solver == "dense":
+        linear, name = eqs.DenseCholesky(), "DenseCholesky()"
+    elif args.solver == "sparse":
+        linear, name = eqs.solve.SparseLU(), "SparseLU()"
+    elif args.solver == "pcg-chain":
+        linear = eqs.PCG(preconditioner=eqs.solve.ChainPreconditioner())
+        name = "PCG(preconditioner=ChainPreconditioner())"
+    else:
+        linear, name = eqs.PCG(), "PCG()"
     solver = eqs.LevenbergMarquardt(linear)
     print(
         f"{source}: {pg.kind}, {pg.num_poses} poses, {pg.num_edges} edges; "
-        f"LevenbergMarquardt({type(linear).__name__}()), at most {max_steps} steps"
+        f"LevenbergMarquardt({name}), at most {max_steps} steps"
     )
     t0 = time.perf_counter()
     values, state, times, result, initial_cost = solve_with_table(pg, solver, max_steps)

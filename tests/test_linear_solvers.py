@@ -195,6 +195,7 @@ def _solvers():
         "pcg-chain": eqs.PCG(
             rtol=1e-13, max_steps=200, preconditioner=eqs.solve.ChainPreconditioner()
         ),
+        "sparse": eqs.solve.SparseLU(),
     }
 
 
@@ -219,7 +220,7 @@ def _closure_lin(seed):
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "pcg-chain"])
+@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "pcg-chain", "sparse"])
 def test_chain_matches_reference(name, damped):
     import eqsmooth as eqs
 
@@ -234,7 +235,8 @@ def test_chain_matches_reference(name, damped):
 
 
 @pytest.mark.parametrize(
-    "name, damped", [("dense", False), ("pcg", False), ("pcg", True)]
+    "name, damped",
+    [("dense", False), ("pcg", False), ("pcg", True), ("sparse", False)],
 )
 def test_graph_matches_reference(name, damped):
     import eqsmooth as eqs
@@ -249,7 +251,7 @@ def test_graph_matches_reference(name, damped):
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("name", ["dense", "pcg", "pcg-chain"])
+@pytest.mark.parametrize("name", ["dense", "pcg", "pcg-chain", "sparse"])
 def test_loop_closures_match_reference(name, damped):
     import eqsmooth as eqs
 
@@ -361,7 +363,7 @@ def _gauge_free_chain(T=7):
     return _linearize(graph, {"x": jnp.asarray(rng.normal(size=(T, 2)))})
 
 
-@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg"])
+@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "sparse"])
 def test_singular_system_reports_and_stays_finite(name):
     import eqsmooth as eqs
 
@@ -456,7 +458,7 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg", "pcg-chain"])
+@pytest.mark.parametrize("name", ["tridiag", "pcg", "pcg-chain", "sparse"])
 def test_vmap_over_graphs(name):
     import eqsmooth as eqs
 
@@ -478,7 +480,7 @@ def test_vmap_over_graphs(name):
         np.testing.assert_allclose(got, ref, atol=1e-9)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg"])
+@pytest.mark.parametrize("name", ["tridiag", "pcg", "sparse"])
 def test_grad_matches_finite_differences(name):
     """Reverse mode through lineax's solve rule: w.r.t. data and values (one
     Gauss-Newton step's solve, differentiated)."""
