@@ -400,7 +400,7 @@ def test_synthetic_pose_graph_2d():
 # ----------------------------------------------------------------- real data
 
 
-def _solve_file(name: str, max_steps: int):
+def _solve_file(name: str, max_steps: int, linear: str):
     import eqsmooth as eqs
     from eqsmooth.io import load_g2o
 
@@ -408,10 +408,11 @@ def _solve_file(name: str, max_steps: int):
     if not path.exists():
         pytest.skip(f"{path} not found: the g2o data sets live in ../shared/data/g2o")
     pg = load_g2o(path)
+    solver = eqs.solve.SparseLU() if linear == "sparse" else eqs.PCG()
     sol = eqs.least_squares(
         pg.graph,
         pg.values,
-        eqs.LevenbergMarquardt(eqs.PCG()),
+        eqs.LevenbergMarquardt(solver),
         max_steps=max_steps,
         throw=False,
     )
@@ -419,14 +420,15 @@ def _solve_file(name: str, max_steps: int):
 
 
 _SOLVED = {}
-# LM runs to convergence (ftol = 1e-8): intel takes about 15 steps.
+# LM runs to convergence (ftol = 1e-8): intel takes 4 (SparseLU) to 14 (PCG)
+# steps.
 _STEPS = {"intel.g2o": 50, "smallGrid3D.g2o": 50}
 
 
-def _solved(name: str, max_steps: int):
-    if name not in _SOLVED:
-        _SOLVED[name] = _solve_file(name, max_steps)
-    return _SOLVED[name]
+def _solved(name: str, linear: str = "pcg"):
+    if (name, linear) not in _SOLVED:
+        _SOLVED[name, linear] = _solve_file(name, _STEPS[name], linear)
+    return _SOLVED[name, linear]
 
 
 @pytest.mark.parametrize(
@@ -435,21 +437,28 @@ def _solved(name: str, max_steps: int):
 def test_real_data_cost_decreases(name, factor):
     import eqsmooth as eqs
 
-    pg, sol = _solved(name, _STEPS[name])
+    pg, sol = _solved(name)
     assert sol.result == eqs.RESULTS.successful  # converged, not out of steps
     initial, final = float(sol.stats["initial_cost"]), float(sol.stats["final_cost"])
     np.testing.assert_allclose(initial, _cost(pg, pg.values), rtol=1e-12)
     assert final < initial / factor, (initial, final)
 
 
-@pytest.mark.parametrize("name, rtol", [("intel.g2o", 1e-6), ("smallGrid3D.g2o", 1e-6)])
-def test_real_data_matches_gtsam(name, rtol):
+@pytest.mark.parametrize(
+    "name, linear, rtol",
+    [
+        ("intel.g2o", "pcg", 1e-6),
+        ("intel.g2o", "sparse", 1e-6),
+        ("smallGrid3D.g2o", "pcg", 1e-6),
+    ],
+)
+def test_real_data_matches_gtsam(name, linear, rtol):
     gtsam = pytest.importorskip(
         "gtsam", reason="GTSAM not installed (pip install gtsam)"
     )
     from eqsmooth.io import from_gtsam, to_gtsam
 
-    pg, sol = _solved(name, _STEPS[name])
+    pg, sol = _solved(name, linear)
     graph, initial = to_gtsam(pg)
     np.testing.assert_allclose(
         graph.error(initial), float(sol.stats["initial_cost"]), rtol=1e-10
