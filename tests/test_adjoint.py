@@ -345,6 +345,32 @@ def test_vmap_batch_matches_loop():
             _tree_close(jax.tree_util.tree_map(lambda x: x[i], grads), gr, rtol=1e-8)
 
 
+@pytest.mark.parametrize("key", ["k3", "conv"])
+def test_grad_of_vmapped_loss_with_shared_parameters(key):
+    """Training shape: parameters shared by the batch, grad of the batch sum."""
+    import eqsmooth as eqs
+
+    adjoint = {"k3": eqs.UnrolledAdjoint(), "conv": eqs.ImplicitAdjoint()}[key]
+    solver = _solvers()[key]
+    problems = [euclid_problem(seed=s) for s in range(3)]
+    setter, theta = problems[0][3], problems[0][2]
+    graphs = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[0] for p in problems])
+    truths = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[1] for p in problems])
+
+    @eqx.filter_jit
+    @jax.grad
+    def batched(theta, graphs, truths):
+        losses = eqx.filter_vmap(
+            lambda g, tr: _loss(theta, g, tr, setter, solver, adjoint, 20)
+        )(graphs, truths)
+        return jnp.sum(losses)
+
+    grads = batched(theta, graphs, truths)
+    loop = [_value_and_grad(theta, g, tr, setter, solver, adjoint, 20)[1]
+            for g, tr, _, _ in problems]  # fmt: skip
+    _tree_close(grads, jax.tree_util.tree_map(lambda *a: sum(a), *loop), rtol=1e-8)
+
+
 def test_adjoint_validation():
     import eqsmooth as eqs
 

@@ -259,7 +259,15 @@ class ImplicitAdjoint(AbstractAdjoint):
 
 
 def _zeros(lin: Linearization) -> Tangent:
-    return {g.name: jnp.zeros((g.count, g.dim), lin.dtype) for g in lin.layout}
+    # Zeros that (trivially) depend on the linearisation: under `vmap` the
+    # output of the custom-vjp function must be batched like its inputs. A
+    # constant output would be unbatched, and JAX would then sum its cotangent
+    # over the batch before the backward pass, mixing the batch elements.
+    keep = jnp.isfinite(lin.cost) | True
+    return {
+        g.name: jnp.where(keep, jnp.zeros((g.count, g.dim), lin.dtype), 0.0)
+        for g in lin.layout
+    }
 
 
 def _dot(a: Tangent, b: Tangent):
