@@ -10,6 +10,7 @@ from ._model import (
     batch_scores,
     ChainModel,
     map_states,
+    NUM_SCALES,
     Sequences,
     z_of,
 )
@@ -48,7 +49,7 @@ def _eval_feature(feature, x, u):
 def _step_sizes(model: ChainModel, scales: np.ndarray) -> np.ndarray:
     # A perturbation of 1e-4 state units per step for coefficients and 1e-4
     # in the log noise scales: far above rounding, far below curvature scale.
-    return np.concatenate([1e-4 / scales, [1e-4, 1e-4]])
+    return np.concatenate([1e-4 / scales, [1e-4] * NUM_SCALES])
 
 
 def evaluate(

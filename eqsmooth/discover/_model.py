@@ -181,14 +181,20 @@ class ChainModel(eqx.Module):
     def with_coefficients(self, coefficients: Float[ArrayLike, " K"]) -> "ChainModel":
         return eqx.tree_at(lambda m: m.coefficients, self, jnp.asarray(coefficients))
 
-    def with_noise_scales(self, log_q: float, log_r: float) -> "ChainModel":
-        """Multiply the process / measurement sigmas by `exp(log_q)`, `exp(log_r)`."""
+    def with_noise_scales(
+        self,
+        log_q: Float[ArrayLike, ""],
+        log_r: Float[ArrayLike, ""],
+        log_p0: Float[ArrayLike, ""] = 0.0,
+    ) -> "ChainModel":
+        """Multiply the process, measurement and prior sigmas by `exp(·)`."""
         return eqx.tree_at(
-            lambda m: (m.process_sigma, m.measurement_sigma),
+            lambda m: (m.process_sigma, m.measurement_sigma, m.prior_sigma),
             self,
             (
                 self.process_sigma * jnp.exp(log_q),
                 self.measurement_sigma * jnp.exp(log_r),
+                self.prior_sigma * jnp.exp(log_p0),
             ),
         )
 
@@ -261,17 +267,20 @@ def _measurement_residual(x, data, model: ChainModel):
 
 
 # ---------------------------------------------------------------------------
-# Likelihoods of a batch; z = [coefficients (K), log q-scale, log r-scale]
+# Likelihoods of a batch; z = [coefficients (K), log q-, r- and prior scales]
 # ---------------------------------------------------------------------------
+
+
+NUM_SCALES = 3  # process, measurement and prior noise scales
 
 
 def apply_z(model: ChainModel, z: Float[Array, " P"]) -> ChainModel:
     K = len(model.candidates)
-    return model.with_coefficients(z[:K]).with_noise_scales(z[K], z[K + 1])
+    return model.with_coefficients(z[:K]).with_noise_scales(z[K], z[K + 1], z[K + 2])
 
 
 def z_of(model: ChainModel) -> np.ndarray:
-    return np.concatenate([np.asarray(model.coefficients), np.zeros(2)])
+    return np.concatenate([np.asarray(model.coefficients), np.zeros(NUM_SCALES)])
 
 
 _SOLVER = GaussNewton(BlockTridiagonal())
@@ -377,7 +386,9 @@ def ekf_innovations(model: ChainModel, data: Sequences):
 
 
 @eqx.filter_jit
-def simulate(model: ChainModel, x0: Float[Array, "B n"], inputs: Float[Array, "B T k"]):
+def simulate(
+    model: ChainModel, x0: Float[ArrayLike, "B n"], inputs: Float[ArrayLike, "B T k"]
+):
     """Noise-free open-loop states `(B, T, n)` from `x0`, and measurements."""
 
     def one(x0, u):

@@ -5,28 +5,28 @@ import jax.scipy.special as jss
 import numpy as np
 
 
-def chi2_sf(x: float, df: float) -> float:
+def chi2_sf(x, df) -> float:
     """Upper tail `P(χ²_df > x)`."""
     if df <= 0:
         return 1.0
     return float(jss.gammaincc(jnp.asarray(df / 2.0), jnp.asarray(max(x, 0.0) / 2.0)))
 
 
-def chi2_two_sided(x: float, df: float) -> float:
+def chi2_two_sided(x, df) -> float:
     """Two-sided p-value of a chi-square statistic (too small or too large)."""
     upper = chi2_sf(x, df)
     return float(min(1.0, 2.0 * min(upper, 1.0 - upper)))
 
 
-def normal_two_sided(z: float) -> float:
+def normal_two_sided(z) -> float:
     return float(jss.erfc(jnp.asarray(abs(z) / np.sqrt(2.0))))
 
 
-def normal_quantile(p: float) -> float:
+def normal_quantile(p) -> float:
     return float(jss.ndtri(jnp.asarray(p)))
 
 
-def ljung_box(e: np.ndarray, lags: int) -> tuple[float, float]:
+def ljung_box(e, lags) -> tuple[float, float]:
     """Pooled Ljung-Box statistic of whitened series `e` `(B, T)`.
 
     Autocorrelations are pooled over sequences (each sequence contributes its
