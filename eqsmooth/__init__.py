@@ -6,6 +6,7 @@ The most used names are re-exported here; the subpackages are
 """
 
 from . import (
+    discover as discover,
     factors as factors,
     filters as filters,
     io as io,

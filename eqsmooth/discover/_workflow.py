@@ -392,7 +392,7 @@ def name(
     data: Sequences,
     *,
     max_terms: int = 3,
-    equivalence_corr: float = 0.98,
+    equivalence_corr: float = 0.95,
 ) -> dict:
     """Name the missing effect(s) by forward selection on the Laplace evidence.
 
@@ -403,7 +403,7 @@ def name(
     named if its likelihood-ratio test passes a Bonferroni gate
     (`p < alpha / number of remaining candidates`). A runner-up within
     `ln 20` log-units makes the step "ambiguous"; when the two candidates'
-    nuisance-adjusted information correlation exceeds `equivalence_corr` the
+    observed-information correlation exceeds `equivalence_corr` the
     data cannot tell them apart and they are reported as an equivalence set.
     If the decision test fires but no candidate passes the gate, or the
     innovation diagnostics of the final model stay significant, the verdict
@@ -426,7 +426,7 @@ def name(
         st["scales"],
         st["nuisance"],
     )
-    alpha, I_eff = st["alpha"], st["I_eff"]
+    alpha = st["alpha"]
     names = [c.name for c in model.candidates]
     out = {
         "named": [],
@@ -665,9 +665,10 @@ def to_json(report: dict) -> dict:
     def clean(x):
         if isinstance(x, dict):
             return {
-                k: clean(v)
+                str(k): clean(v)
                 for k, v in x.items()
-                if not k.startswith("_") and k not in ("model", "whitened_innovations")
+                if not str(k).startswith("_")
+                and k not in ("model", "whitened_innovations")
             }
         if isinstance(x, list | tuple):
             return [clean(v) for v in x]
