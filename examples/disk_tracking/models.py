@@ -34,6 +34,11 @@ DYNAMICS_SIGMAS = np.array(
     + [D.VELOCITY_NOISE_STD, D.VELOCITY_NOISE_STD]
 )
 VELOCITY_STD = 6.6  # scale of the velocities (pixels / frame), for the LSTM input
+# Smallest square-root precision a noise head returns (σ ≤ 100 px, nearly the
+# image size). Without it a head can drive the precision to zero, and the
+# smoother's normal equations (no prior on the first state) become singular
+# in float32: their condition number grows like 20 / s².
+SQRT_PRECISION_FLOOR = 1e-2
 
 
 # ---------------------------------------------------------------------------
@@ -141,25 +146,32 @@ class AbstractNoiseHead(eqx.Module):
         """Square-root precision for each frame."""
 
 
+def _above_floor(sigma: float) -> float:
+    return max(1.0 / sigma - SQRT_PRECISION_FLOOR, 1e-3)
+
+
 class ConstantNoise(AbstractNoiseHead):
-    """One learned square-root precision shared by every frame (log-parametrised)."""
+    """One learned square-root precision shared by every frame.
+
+    `σ⁻¹ = floor + exp(θ)`, starting at `σ⁻¹ = 1/sigma`.
+    """
 
     log_sqrt_precision: Float[Array, ""]
 
     def __init__(self, sigma: float, dtype=jnp.float32):
-        self.log_sqrt_precision = jnp.asarray(-np.log(sigma), dtype=dtype)
+        self.log_sqrt_precision = jnp.asarray(np.log(_above_floor(sigma)), dtype=dtype)
 
     def __call__(self, visible_pixels):
-        s = jnp.exp(self.log_sqrt_precision)
+        s = SQRT_PRECISION_FLOOR + jnp.exp(self.log_sqrt_precision)
         return jnp.broadcast_to(s, visible_pixels.shape)
 
 
 class HeteroscedasticNoise(AbstractNoiseHead):
-    """`σ⁻¹(c) = s₀ · softplus(MLP(ĉ) + softplus⁻¹(1))`, `ĉ` the normalised count.
+    """`σ⁻¹(c) = floor + s₀ softplus(MLP(ĉ) + softplus⁻¹(1))`, `ĉ` the normalised count.
 
     The MLP has 4 hidden layers of 64 ReLU units; its last layer starts at
-    zero, so training starts from the constant `s₀` (the inverse of the
-    virtual sensor's RMSE).
+    zero, so training starts from the constant `σ⁻¹ = 1/sigma` (the inverse
+    of the virtual sensor's validation RMSE).
     """
 
     mlp: eqx.nn.MLP
@@ -176,7 +188,7 @@ class HeteroscedasticNoise(AbstractNoiseHead):
             (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)),
         )
         self.mlp = eqx.tree_at(lambda m: m.layers[-1], mlp, last)
-        self.base = float(1.0 / sigma)
+        self.base = _above_floor(sigma)
 
     def __call__(self, visible_pixels):
         dtype = self.mlp.layers[0].weight.dtype
@@ -185,7 +197,7 @@ class HeteroscedasticNoise(AbstractNoiseHead):
         )
         out = jax.vmap(self.mlp)(c[:, None])[:, 0]
         shift = float(np.log(np.expm1(1.0)))  # softplus(shift) = 1
-        return self.base * jax.nn.softplus(out + shift)
+        return SQRT_PRECISION_FLOOR + self.base * jax.nn.softplus(out + shift)
 
 
 # ---------------------------------------------------------------------------
