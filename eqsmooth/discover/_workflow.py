@@ -236,8 +236,19 @@ def score_test(
         # test conservative (a smaller statistic), never anti-conservative.
         I_eff = -ev.hessian[np.ix_(test, test)]
         g = np.sum(G, axis=0)[test]
-        w, V = np.linalg.eigh(0.5 * (I_eff + I_eff.T))
-        keep = w > 1e-10 * max(w.max(), 1e-300)
+        # Standardise first (the statistic is invariant to the units of the
+        # coefficients, the rank cut-off must be too): the raw information of
+        # candidates spans many decades (cubic stiffness ~ p⁶ against a sensor
+        # bias ~ 1), and a cut-off relative to the largest raw eigenvalue
+        # silently dropped the small-information candidates (constant force,
+        # Coulomb friction, sensor bias) from the test.
+        I_eff = 0.5 * (I_eff + I_eff.T)
+        d = np.sqrt(np.maximum(np.abs(np.diag(I_eff)), 1e-300))
+        g = g / d
+        w, V = np.linalg.eigh(I_eff / np.outer(d, d))
+        # Directions with (numerically) no information, relative to a unit
+        # diagonal; the Hessian is a difference of gradients (~1e-8 accurate).
+        keep = w > 1e-8 * max(w.max(), 1e-300)
         proj = V[:, keep].T @ g
         stat = float(np.sum(proj * proj / w[keep]))
         df = int(np.sum(keep))
@@ -328,7 +339,7 @@ def find(
     per_candidate = []
     for k, c in enumerate(model.candidates):
         info = I_eff[k, k] if I_eff[k, k] > 0 else raw[k]
-        identifiable = bool(ident[k])
+        identifiable = bool(ident[k]) and info > 0
         zk = g[k] / np.sqrt(info) if identifiable else float("nan")
         per_candidate.append(
             {
