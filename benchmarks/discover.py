@@ -1,0 +1,686 @@
+"""Monte Carlo of the discrepancy workflow (find, name, add) on hidden effects.
+
+Data: a 1-D oscillator, state (p, v), p' = p + v, v' = v − k p + effect +
+noise (k = 0.05, process noise std (0.05, 0.5), position measured with std
+1, first state drawn from the model's prior N(0, diag(20², 4²))), B = 24
+sequences × T = 40 steps per data set (one shape for everything, so the
+jitted code compiles once). The nominal model knows the spring and the noise
+levels (the workflow refits three noise scales) but not the effect. The
+candidate library is the full `mechanical_library` of one axis with sensor
+terms: constant force, viscous damping, quadratic drag, Coulomb friction
+(tanh(v/1)), cubic damping, spring error, cubic stiffness, sensor bias,
+sensor scale, sensor delay. Every candidate is a distractor for every other:
+drag vs damping vs v³ vs Coulomb, constant force vs sensor bias.
+
+Hidden effects: viscous damping, quadratic drag, Coulomb friction, constant
+force and sensor bias, each at several strengths given as a per-step
+signal-to-noise ratio: the RMS of the effect's per-step contribution over
+nominal trajectories divided by the noise std of the component it enters
+(the process velocity noise 0.5). A sensor bias b is scaled as the constant
+force it mimics: with the spring, the states can absorb the bias except for
+the force k·b the spring would need, so its ratio is k·b / 0.5 (per
+measurement, b / 1 is 10 times larger; at b / 1 = 0.4 the bias is not
+detectable with this prior). The coefficient of each level is calibrated once from
+simulated nominal trajectories; the realised ratio under the effect (lower
+for dissipative effects, which slow the system down) is reported too.
+
+Null data: the same simulation with no effect; the false-discovery rate is
+the fraction of null data sets in which anything is named.
+
+Per data set the outcome is one of: the truth named alone; the truth inside
+a reported ambiguous or equivalence set ("correct, as a set" — e.g.
+{constant force ≡ sensor bias}, which the data cannot tell apart when the
+spring shifts the equilibrium); the truth named unambiguously plus an extra
+term; a wrong name only; nothing named. Rates carry Wilson 95% intervals.
+
+    python benchmarks/discover.py --quick
+    python benchmarks/discover.py --seeds 50 --null 200 \
+        --json benchmarks/results/discover.json \
+        --markdown benchmarks/results/discover.md
+"""
+
+import argparse
+import math
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import machine, write_json  # noqa: E402
+
+import eqsmooth.discover as dc  # noqa: E402
+from eqsmooth.discover._workflow import score_test  # noqa: E402
+
+
+B, T = 24, 40
+SPRING = 0.05
+Q = np.array([0.05, 0.5])  # process noise std (position, velocity)
+R = 1.0  # measurement noise std
+PRIOR = np.array([20.0, 4.0])
+COULOMB_EPS = 1.0
+
+# Hidden effect -> the candidate that is the truth.
+EFFECTS = {
+    "viscous": "viscous damping",
+    "drag": "quadratic drag",
+    "coulomb": "Coulomb friction",
+    "force": "constant force",
+    "bias": "sensor bias",
+}
+LEVELS = (0.05, 0.15, 0.4)
+
+
+# ---------------------------------------------------------------------------
+# Data
+# ---------------------------------------------------------------------------
+
+
+def _effect_term(effect: str, v: np.ndarray) -> np.ndarray:
+    """Per-step velocity increment of a unit coefficient (dynamics effects)."""
+    if effect == "viscous":
+        return -v
+    if effect == "drag":
+        return -v * np.abs(v)
+    if effect == "coulomb":
+        return -np.tanh(v / COULOMB_EPS)
+    if effect == "force":
+        return np.ones_like(v)
+    raise ValueError(effect)
+
+
+def simulate(rng: np.random.Generator, effect: str, coef: float, num: int = B):
+    """States `(num, T, 2)` and measurements `(num, T, 1)`; effect RMS per step."""
+    x = np.stack([rng.normal(0, PRIOR[0], num), rng.normal(0, PRIOR[1], num)], 1)
+    xs, contrib = [], []
+    for _ in range(T):
+        xs.append(x.copy())
+        p, v = x[:, 0], x[:, 1]
+        a = -SPRING * p
+        if effect in ("viscous", "drag", "coulomb", "force"):
+            d = coef * _effect_term(effect, v)
+            contrib.append(d)
+            a = a + d
+        x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q
+    xs = np.stack(xs, 1)
+    y = xs[..., :1] + R * rng.normal(size=(num, T, 1))
+    if effect == "bias":
+        y = y + coef
+        snr = SPRING * abs(coef) / Q[1]  # as the equivalent constant force
+    elif contrib:
+        snr = float(np.sqrt(np.mean(np.square(contrib[:-1])))) / Q[1]
+    else:
+        snr = 0.0
+    return xs, y, snr
+
+
+def sequences(y: np.ndarray) -> dc.Sequences:
+    init = np.concatenate([y, np.zeros_like(y)], -1)
+    return dc.Sequences(y, np.zeros((y.shape[0], 2)), initial_states=init)
+
+
+def calibrate(levels) -> dict:
+    """Coefficient per (effect, level) from nominal trajectories (fixed seed)."""
+    xs, _, _ = simulate(np.random.default_rng(12345), "none", 0.0, num=4000)
+    v = xs[:, :-1, 1]
+    out = {}
+    for effect in EFFECTS:
+        if effect == "bias":
+            unit = SPRING / Q[1]
+        else:
+            unit = float(np.sqrt(np.mean(np.square(_effect_term(effect, v))))) / Q[1]
+        out[effect] = {lv: lv / unit for lv in levels}
+    return out
+
+
+def rng_for(tag: int, level: float, seed: int) -> np.random.Generator:
+    """Independent streams per (effect, level, seed), stable across runs."""
+    key = [2026, tag, int(round(level * 10_000)), seed]
+    return np.random.default_rng(np.random.SeedSequence(key))
+
+
+# ---------------------------------------------------------------------------
+# Model and one workflow run
+# ---------------------------------------------------------------------------
+
+
+def _dyn(x, u, spring):
+    return jnp.stack([x[0] + x[1], x[1] - spring * x[0]])
+
+
+def _meas(x, spring):
+    return x[:1]
+
+
+_LIBRARY = dc.mechanical_library(
+    [0], [1], 2, measured_positions=[0], coulomb_eps=COULOMB_EPS
+)
+# Built once: the library is static structure of the model, so one model
+# object (and one set of compiled callables) serves every data set.
+MODEL = dc.ChainModel(
+    _dyn, _meas, jnp.asarray(SPRING), Q, np.array([R]), PRIOR, _LIBRARY
+)
+
+
+def run_workflow(data: dc.Sequences) -> dict:
+    t0 = time.perf_counter()
+    found = dc.find(MODEL, data)
+    t1 = time.perf_counter()
+    named = dc.name(found, data)
+    t2 = time.perf_counter()
+    added = dc.add(found, named, data)
+    t3 = time.perf_counter()
+    st = found["_state"]
+    # The same score test with the outer-product covariance (what "auto"
+    # picks with >= 10 sequences per parameter): reported, not used.
+    ident = np.flatnonzero(st["identifiable"])
+    opg = score_test(st["evaluation"], ident, st["nuisance"], "opg")
+    return {
+        "detected": bool(found["detected"]),
+        "p_value": float(found["score_test"]["p_value"]),
+        "df": int(found["score_test"]["df"]),
+        "covariance": found["score_test"]["covariance"],
+        "opg_p_value": float(opg["p_value"]),
+        "named": list(named["named"]),
+        "sets": [list(s) for s in named["equivalence_sets"] + named["ambiguous"]],
+        "equivalence_sets": [list(s) for s in named["equivalence_sets"]],
+        "unnamed": bool(named["unnamed_residual_structure"]),
+        "verdict": named["verdict"],
+        "coefficients": {
+            c["name"]: (c["value"], c["interval"]) for c in added["coefficients"]
+        },
+        "seconds": t3 - t0,
+        "find_s": t1 - t0,
+        "name_s": t2 - t1,
+        "add_s": t3 - t2,
+    }
+
+
+def classify(out: dict, truth: str) -> str:
+    named = out["named"]
+    if not named:
+        return "none"
+    in_set = any(truth in s for s in out["sets"])
+    if in_set:
+        return "set"
+    if named == [truth]:
+        return "exact"
+    if truth in named:
+        return "extra"
+    return "wrong"
+
+
+# ---------------------------------------------------------------------------
+# Statistics
+# ---------------------------------------------------------------------------
+
+
+def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = k / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def rate(k: int, n: int) -> dict:
+    lo, hi = wilson(k, n)
+    return {"k": k, "n": n, "rate": k / n if n else float("nan"), "ci95": [lo, hi]}
+
+
+def fmt_rate(r: dict) -> str:
+    if not r["n"]:
+        return "–"
+    lo, hi = r["ci95"]
+    return f"{r['rate']:.2f} [{lo:.2f}, {hi:.2f}]"
+
+
+def _q(values, q):
+    return float(np.quantile(values, q)) if len(values) else float("nan")
+
+
+# ---------------------------------------------------------------------------
+# Runs
+# ---------------------------------------------------------------------------
+
+
+def effect_cell(effect, level, coef, seeds, log) -> dict:
+    truth = EFFECTS[effect]
+    tag = list(EFFECTS).index(effect) + 1
+    outcomes = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
+    detected = unnamed = failures = 0
+    rel, covered, snrs, times, wrong_names = [], 0, [], [], {}
+    for s in range(seeds):
+        _, y, snr = simulate(rng_for(tag, level, s), effect, coef)
+        snrs.append(snr)
+        try:
+            out = run_workflow(sequences(y))
+        except Exception as e:  # reported, never hidden
+            failures += 1
+            log(f"  {effect} level {level} seed {s}: FAILED {type(e).__name__}: {e}")
+            continue
+        times.append(out["seconds"])
+        detected += out["detected"]
+        unnamed += out["unnamed"]
+        cls = classify(out, truth)
+        outcomes[cls] += 1
+        if cls in ("wrong", "extra"):
+            for nm in out["named"]:
+                if nm != truth:
+                    wrong_names[nm] = wrong_names.get(nm, 0) + 1
+        if truth in out["coefficients"]:
+            value, (lo, hi) = out["coefficients"][truth]
+            rel.append((value - coef) / coef)
+            covered += lo <= coef <= hi
+    n = seeds - failures
+    abs_rel = np.abs(rel)
+    rec = {
+        "benchmark": "discover",
+        "config": {
+            "effect": effect,
+            "truth": truth,
+            "snr_target": level,
+            "coefficient": coef,
+            "B": B,
+            "T": T,
+            "spring": SPRING,
+            "process_sigma": Q.tolist(),
+            "measurement_sigma": R,
+            "prior_sigma": PRIOR.tolist(),
+            "library": list(MODEL.names),
+            "alpha": 0.05,
+        },
+        "n": n,
+        "failures": failures,
+        "snr_realised_median": float(np.median(snrs)),
+        "median_s": statistics.median(times) if times else float("nan"),
+        "p90_s": _q(times, 0.9),
+        "detection": rate(detected, n),
+        "named_truth_alone": rate(outcomes["exact"], n),
+        "truth_in_set": rate(outcomes["set"], n),
+        "correct_naming": rate(outcomes["exact"] + outcomes["set"], n),
+        "truth_plus_extra": rate(outcomes["extra"], n),
+        "wrong_name": rate(outcomes["wrong"], n),
+        "nothing_named": rate(outcomes["none"], n),
+        "unnamed_structure": rate(unnamed, n),
+        "other_names": wrong_names,
+        "coef_n": len(rel),
+        "coef_rel_error_median_abs": float(np.median(abs_rel)) if rel else None,
+        "coef_rel_error_p90_abs": _q(abs_rel, 0.9) if rel else None,
+        "coef_rel_error_median_signed": float(np.median(rel)) if rel else None,
+        "coef_ci95_coverage": rate(covered, len(rel)),
+        "coef_rel_errors": [float(r) for r in rel],
+    }
+    return rec
+
+
+def null_cell(num, log) -> dict:
+    rejected = named_any = unnamed = alarm = opg_rej = failures = 0
+    names, pvals, opg_p, times, dfs = {}, [], [], [], {}
+    for s in range(num):
+        _, y, _ = simulate(rng_for(0, 0, s), "none", 0.0)
+        try:
+            out = run_workflow(sequences(y))
+        except Exception as e:
+            failures += 1
+            log(f"  null seed {s}: FAILED {type(e).__name__}: {e}")
+            continue
+        times.append(out["seconds"])
+        pvals.append(out["p_value"])
+        opg_p.append(out["opg_p_value"])
+        dfs[out["df"]] = dfs.get(out["df"], 0) + 1
+        rejected += out["detected"]
+        opg_rej += out["opg_p_value"] < 0.05
+        unnamed += out["unnamed"]
+        named_any += bool(out["named"])
+        alarm += bool(out["named"]) or out["unnamed"]
+        for nm in out["named"]:
+            names[nm] = names.get(nm, 0) + 1
+        if out["named"] or out["detected"]:
+            log(f"  null seed {s}: p={out['p_value']:.3g} verdict: {out['verdict']}")
+    n = num - failures
+    return {
+        "benchmark": "discover",
+        "config": {
+            "effect": "none",
+            "truth": None,
+            "B": B,
+            "T": T,
+            "spring": SPRING,
+            "process_sigma": Q.tolist(),
+            "measurement_sigma": R,
+            "prior_sigma": PRIOR.tolist(),
+            "library": list(MODEL.names),
+            "alpha": 0.05,
+        },
+        "n": n,
+        "failures": failures,
+        "median_s": statistics.median(times) if times else float("nan"),
+        "p90_s": _q(times, 0.9),
+        "false_discovery": rate(named_any, n),
+        "score_test_rejects": rate(rejected, n),
+        "unnamed_structure": rate(unnamed, n),
+        "any_alarm": rate(alarm, n),
+        "opg_score_test_rejects": rate(opg_rej, n),
+        "score_test_df_counts": {str(k): v for k, v in sorted(dfs.items())},
+        "p_value_quantiles": {
+            str(q): _q(pvals, q) for q in (0.01, 0.05, 0.1, 0.25, 0.5)
+        },
+        "named_counts": names,
+        "p_values": pvals,
+        "opg_p_values": opg_p,
+    }
+
+
+# ---------------------------------------------------------------------------
+# Output
+# ---------------------------------------------------------------------------
+
+
+def effect_table(records) -> str:
+    cols = [
+        "effect",
+        "SNR (target / realised)",
+        "coef",
+        "n",
+        "detected",
+        "correct (alone + set)",
+        "truth alone",
+        "truth in set",
+        "truth + extra",
+        "wrong name",
+        "abs. rel. err. median",
+        "abs. rel. err. p90",
+        "signed rel. err. median",
+        "CI coverage",
+        "median s",
+    ]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in records:
+        c = r["config"]
+        cells = [
+            c["truth"],
+            f"{c['snr_target']:.2f} / {r['snr_realised_median']:.3f}",
+            f"{c['coefficient']:.4g}",
+            str(r["n"]),
+            fmt_rate(r["detection"]),
+            fmt_rate(r["correct_naming"]),
+            fmt_rate(r["named_truth_alone"]),
+            fmt_rate(r["truth_in_set"]),
+            fmt_rate(r["truth_plus_extra"]),
+            fmt_rate(r["wrong_name"]),
+        ]
+        if r["coef_n"]:
+            cells += [
+                f"{r['coef_rel_error_median_abs']:.3f}",
+                f"{r['coef_rel_error_p90_abs']:.3f}",
+                f"{r['coef_rel_error_median_signed']:+.3f}",
+                f"{r['coef_ci95_coverage']['rate']:.2f} ({r['coef_n']})",
+            ]
+        else:
+            cells += ["–", "–", "–", "–"]
+        cells.append(f"{r['median_s']:.2f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def null_table(r) -> str:
+    cols = [
+        "n",
+        "false discovery (anything named)",
+        "score test rejects",
+        "unnamed structure",
+        "any alarm",
+        "OPG score test rejects",
+        "median s",
+    ]
+    cells = [
+        str(r["n"]),
+        fmt_rate(r["false_discovery"]),
+        fmt_rate(r["score_test_rejects"]),
+        fmt_rate(r["unnamed_structure"]),
+        fmt_rate(r["any_alarm"]),
+        fmt_rate(r["opg_score_test_rejects"]),
+        f"{r['median_s']:.2f}",
+    ]
+    return "\n".join(
+        [
+            "| " + " | ".join(cols) + " |",
+            "|" + "---|" * len(cols),
+            "| " + " | ".join(cells) + " |",
+        ]
+    )
+
+
+def other_names_lines(records) -> list[str]:
+    out = []
+    for r in records:
+        if r["other_names"]:
+            items = ", ".join(f"{k} ×{v}" for k, v in sorted(r["other_names"].items()))
+            out.append(
+                f"- {r['config']['truth']} at SNR {r['config']['snr_target']}: {items}"
+            )
+    return out
+
+
+def report(records, null, info, quick) -> str:
+    m = info["machine"]
+    lines = [
+        "# discover benchmark: Monte Carlo of find / name / add",
+        "",
+        (
+            "**QUICK RUN (a small subset; not the committed figures).**\n"
+            if quick
+            else ""
+        ),
+        f"- command: `{info['command']}`",
+        f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}; "
+        f"JAX {m['jax']} ({m['backend']}), Python {m['python']}",
+        f"- git: {info['git']}"
+        + (" (plus uncommitted changes)" if info["dirty"] else ""),
+        f"- data: B = {B} sequences × T = {T} steps per data set; oscillator "
+        f"k = {SPRING}, process noise std {Q.tolist()}, measurement std {R}, "
+        f"first-state prior std {PRIOR.tolist()}",
+        f"- library ({len(MODEL.names)} candidates, all distractors): "
+        + ", ".join(MODEL.names),
+        '- decision: score test at α = 0.05 (`covariance="auto"`, which with '
+        "24 sequences is the conservative observed-information form); naming: "
+        "forward selection with the Bonferroni-gated likelihood-ratio test",
+        f"- wall time: {info['total_s'] / 60:.1f} min in all; compile (first "
+        f"workflow run minus a repeat on the same data): {info['compile_s']:.1f} s; "
+        "`median s` = median wall time of one find + name + add run",
+        "",
+        "## Hidden effects",
+        "",
+        "SNR: per-step RMS of the effect over the velocity process-noise std "
+        "(target: calibrated on nominal trajectories; realised: under the "
+        "effect); a sensor bias b counts as the constant force k·b it mimics "
+        "(its per-measurement ratio b / r is q_v / (k r) = 10 times larger). "
+        "`correct` = the truth named alone, or the truth inside a "
+        "reported ambiguous / equivalence set (e.g. {constant force ≡ sensor "
+        "bias}: an equivalence-set answer containing the truth counts as correct "
+        "naming). `truth + extra` = the truth named unambiguously with a further "
+        "term; `wrong name` = only other names. Rates over all n data sets with "
+        "Wilson 95% intervals. Coefficient errors and the coverage of the 95% "
+        "coefficient interval are over the data sets in which the truth's own "
+        "coefficient was fitted (count in brackets).",
+        "",
+        effect_table(records),
+        "",
+    ]
+    other = other_names_lines(records)
+    if other:
+        lines += [
+            "Other names given (in `wrong name` or `truth + extra` outcomes):",
+            "",
+        ]
+        lines += other + [""]
+    if null is not None:
+        fd = null["false_discovery"]
+        lines += [
+            "## Null data (no missing effect)",
+            "",
+            "False-discovery rate = fraction of null data sets in which any "
+            "candidate is named (target ≤ 5%). `unnamed structure`: the verdict "
+            'says "unnamed residual structure" (no candidate named). `OPG`: the '
+            "same score test with the outer-product-of-gradients covariance, "
+            "computed for comparison only.",
+            "",
+            null_table(null),
+            "",
+            f"False-discovery rate {fd['rate']:.3f} (95% CI {fd['ci95'][0]:.3f} – "
+            f"{fd['ci95'][1]:.3f}, n = {fd['n']}): target ≤ 0.05 "
+            + (
+                "met"
+                if fd["ci95"][1] <= 0.05
+                else ("met by the point estimate" if fd["rate"] <= 0.05 else "MISSED")
+            )
+            + ".",
+            "",
+            "Score-test p-value quantiles on null data (uniform would give q): "
+            + ", ".join(f"q{k}: {v:.3f}" for k, v in null["p_value_quantiles"].items()),
+            "; score-test degrees of freedom (identifiable candidates): "
+            + ", ".join(f"{k}: {v}" for k, v in null["score_test_df_counts"].items()),
+            "",
+        ]
+        if null["named_counts"]:
+            lines += [
+                "Named on null data: "
+                + ", ".join(f"{k} ×{v}" for k, v in null["named_counts"].items()),
+                "",
+            ]
+    return "\n".join(lines)
+
+
+def _git():
+    here = Path(__file__).resolve().parent
+    head = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"],
+        capture_output=True,
+        text=True,
+        cwd=here,
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--", "../eqsmooth", "discover.py"],
+        capture_output=True,
+        text=True,
+        cwd=here,
+    ).stdout.strip()
+    return head or "unknown", dirty
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small subset (CI)")
+    parser.add_argument("--seeds", type=int, default=None, help="data sets per cell")
+    parser.add_argument("--null", type=int, default=None, help="null data sets")
+    parser.add_argument("--effects", nargs="*", default=None, choices=list(EFFECTS))
+    parser.add_argument("--levels", type=float, nargs="*", default=None)
+    parser.add_argument("--json", default=None, help="write the records here")
+    parser.add_argument("--markdown", default=None, help="write the report here")
+    args = parser.parse_args(argv)
+
+    head, dirty = _git()  # captured at start
+    m = machine()
+    m["git"] = head
+    command = " ".join([Path(sys.executable).name] + sys.argv)
+    seeds = args.seeds if args.seeds is not None else (2 if args.quick else 50)
+    num_null = args.null if args.null is not None else (10 if args.quick else 200)
+    effects = args.effects or (["drag", "force"] if args.quick else list(EFFECTS))
+    levels = tuple(args.levels or ((0.4,) if args.quick else LEVELS))
+    coefs = calibrate(levels)
+    start = time.perf_counter()
+
+    def log(msg):
+        print(msg, flush=True)
+
+    log(f"git {head}{' (dirty)' if dirty else ''}; {m['cores']} cores, {m['cpu']}")
+    log(
+        "coefficients per SNR level: "
+        + str({e: {lv: round(c, 6) for lv, c in d.items()} for e, d in coefs.items()})
+    )
+
+    # Compile once (strong drag, a seed outside the Monte Carlo), then repeat
+    # the same data set for the steady-state time.
+    _, y, _ = simulate(rng_for(99, 0, 0), "drag", coefs["drag"][max(levels)])
+    warm = sequences(y)
+    first = run_workflow(warm)
+    again = run_workflow(warm)
+    compile_s = first["seconds"] - again["seconds"]
+    log(
+        f"warm-up: first run {first['seconds']:.1f} s, repeat {again['seconds']:.2f} s "
+        f"(verdict {again['verdict']!r})"
+    )
+
+    records, null = [], None
+
+    def save():
+        info = {
+            "machine": m,
+            "command": command,
+            "git": head,
+            "dirty": bool(dirty),
+            "compile_s": compile_s,
+            "total_s": time.perf_counter() - start,
+        }
+        for r in records + ([null] if null else []):
+            r["compile_s"] = compile_s
+        recs = records + ([null] if null else [])
+        if args.json:
+            write_json(
+                args.json,
+                recs,
+                extra={
+                    "machine": m,
+                    "command": command,
+                    "git_dirty": dirty.splitlines(),
+                    "quick": args.quick,
+                    "total_s": info["total_s"],
+                    "compile_s": compile_s,
+                    "warmup": {k: first[k] for k in ("seconds", "verdict")},
+                },
+            )
+        text = report(records, null, info, args.quick)
+        if args.markdown:
+            Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.markdown).write_text(text + "\n")
+        return text
+
+    if num_null:
+        t0 = time.perf_counter()
+        null = null_cell(num_null, log)
+        fd = null["false_discovery"]
+        log(
+            f"null: n={null['n']} FDR {fmt_rate(fd)}, score test rejects "
+            f"{fmt_rate(null['score_test_rejects'])} ({time.perf_counter() - t0:.0f} s)"
+        )
+        save()
+    for effect in effects:
+        for level in levels:
+            t0 = time.perf_counter()
+            rec = effect_cell(effect, level, coefs[effect][level], seeds, log)
+            records.append(rec)
+            log(
+                f"{EFFECTS[effect]:17s} SNR {level:<5} n={rec['n']} detected "
+                f"{fmt_rate(rec['detection'])} "
+                f"correct {fmt_rate(rec['correct_naming'])}"
+                f" wrong {fmt_rate(rec['wrong_name'])} "
+                f"({time.perf_counter() - t0:.0f} s)"
+            )
+            save()
+    text = save()
+    print()
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
