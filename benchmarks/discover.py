@@ -485,8 +485,12 @@ def report(records, null, info, quick) -> str:
         f"- command: `{info['command']}`",
         f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}; "
         f"JAX {m['jax']} ({m['backend']}), Python {m['python']}",
-        f"- git: {info['git']}"
-        + (" (plus uncommitted changes)" if info["dirty"] else ""),
+        f"- git: {info['git']} (at start)"
+        + (
+            "; uncommitted changes then in: " + ", ".join(info["dirty"])
+            if info["dirty"]
+            else "; no uncommitted changes under eqsmooth/ or in this script"
+        ),
         f"- data: B = {B} sequences × T = {T} steps per data set; oscillator "
         f"k = {SPRING}, process noise std {Q.tolist()}, measurement std {R}, "
         f"first-state prior std {PRIOR.tolist()}",
@@ -574,7 +578,9 @@ def _git():
         capture_output=True,
         text=True,
         cwd=here,
-    ).stdout.strip()
+    ).stdout
+    # Paths (relative to the repository root) with uncommitted changes.
+    dirty = [ln[3:] for ln in dirty.splitlines() if ln.strip()]
     return head or "unknown", dirty
 
 
@@ -628,7 +634,7 @@ def main(argv=None):
             "machine": m,
             "command": command,
             "git": head,
-            "dirty": bool(dirty),
+            "dirty": dirty,
             "compile_s": compile_s,
             "total_s": time.perf_counter() - start,
         }
@@ -642,7 +648,7 @@ def main(argv=None):
                 extra={
                     "machine": m,
                     "command": command,
-                    "git_dirty": dirty.splitlines(),
+                    "git_dirty": dirty,
                     "quick": args.quick,
                     "total_s": info["total_s"],
                     "compile_s": compile_s,
