@@ -157,7 +157,7 @@ def ekf(
     (`r_w ~ N(0, I)`), the predicted mean `b̂` solves `r(x_{t|t}, b) = 0` by
     `prediction_steps` Newton steps in the tangent of `b`, started at
     `b = x_{t|t}`. One step is exact for residuals of the form `b ⊖ f(a)`,
-    `f(a) ⊖ b` and the [`eqsmooth.BetweenFactor`][] residual, on vector spaces
+    `f(a) ⊖ b` and the [`eqsmooth.factors.BetweenFactor`][] residual, on vector spaces
     and Lie groups alike. With `A = ∂r_w/∂δa` and `B = ∂r_w/∂δb` at
     `(x_{t|t}, b̂)` (forward-mode autodiff through
     [`eqsmooth.manifold.retract`][]), `F = −B⁻¹A`, `Q = B⁻¹B⁻ᵀ` and
@@ -184,7 +184,7 @@ def ekf(
         group; they may cover any subset of time steps (missing measurements)
         and several rows may share a time step.
     - `initial_mean`: the prior mean of `x_0`, one state (pytree of arrays and
-        Lie groups such as [`eqsmooth.SE2`][], no leading time axis).
+        Lie groups such as [`eqsmooth.lie.SE2`][], no leading time axis).
     - `initial_covariance`: its covariance `(d, d)` in tangent coordinates.
     - `prediction_steps`: Newton steps solving `r(a, b) = 0` for the predicted
         mean (at least 1).

@@ -42,7 +42,7 @@ def rts_smoother(solution: EKFSolution) -> RTSSolution:
     and its marginal covariances (tested). On a manifold it is the usual
     first-order approximation: the transition Jacobians are those of the
     filter (not re-linearised at the smoothed means, unlike the smoother of
-    [`eqsmooth.least_squares`][]), and covariances are not transported between
+    [`eqsmooth.solve.least_squares`][]), and covariances are not transported between
     the tangent spaces at `x_{t|t}` and `x_{t|T}`.
 
     **Arguments:**
