@@ -2,7 +2,8 @@
 
 For every file: load it with `eqsmooth.io.load_g2o` (gauge prior on the first
 pose, σ = 1e-6), solve with `LevenbergMarquardt(SparseLU())` (host sparse
-direct solves; or `--solver pcg` for `PCG()` with block-Jacobi, plus
+direct solves; or `--solver cholmod` for `SparseCholesky()`, CHOLMOD through
+the optional scikit-sparse; or `--solver pcg` for `PCG()` with block-Jacobi, plus
 `--preconditioner chain` for `ChainPreconditioner()`; or `--solver dense`)
 from the file's initial values, and solve the same problem with GTSAM's
 `LevenbergMarquardtOptimizer` in the same run. GTSAM gets exactly the same
@@ -240,7 +241,11 @@ def main(argv=None):
     parser.add_argument("--md", default=None, help="write the markdown report here")
     parser.add_argument("--files", nargs="*", default=None, help="subset of files")
     parser.add_argument(
-        "--solver", choices=["sparse", "pcg", "dense"], default="sparse"
+        "--solver",
+        choices=["sparse", "cholmod", "pcg", "dense"],
+        default="sparse",
+        help="sparse: SparseLU() (SciPy); cholmod: SparseCholesky() (needs "
+        "scikit-sparse); pcg: PCG(); dense: DenseCholesky()",
     )
     parser.add_argument(
         "--preconditioner",
@@ -275,6 +280,9 @@ def main(argv=None):
     elif args.solver == "sparse":
         linear = eqs.solve.SparseLU()
         solver_name = "LevenbergMarquardt(SparseLU())"
+    elif args.solver == "cholmod":
+        linear = eqs.solve.SparseCholesky()
+        solver_name = "LevenbergMarquardt(SparseCholesky())"
     else:
         linear = eqs.DenseCholesky()
         solver_name = "LevenbergMarquardt(DenseCholesky())"

@@ -1,6 +1,7 @@
 """Linear solvers of the Gauss-Newton model against a dense numpy reference."""
 
 import functools as ft
+import importlib.util
 
 import equinox as eqx
 import jax
@@ -185,6 +186,16 @@ def _linearize(graph, values):
     return linearize(graph, values)
 
 
+_HAVE_CHOLMOD = importlib.util.find_spec("sksparse") is not None
+# SparseCholesky needs the optional scikit-sparse (CHOLMOD); CI does not have it.
+CHOLMOD = pytest.param(
+    "cholmod",
+    marks=pytest.mark.skipif(
+        not _HAVE_CHOLMOD, reason="scikit-sparse (CHOLMOD) is not installed"
+    ),
+)
+
+
 def _solvers():
     import eqsmooth as eqs
 
@@ -196,6 +207,7 @@ def _solvers():
             rtol=1e-13, max_steps=200, preconditioner=eqs.solve.ChainPreconditioner()
         ),
         "sparse": eqs.solve.SparseLU(),
+        **({"cholmod": eqs.solve.SparseCholesky()} if _HAVE_CHOLMOD else {}),
     }
 
 
@@ -220,7 +232,9 @@ def _closure_lin(seed):
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "pcg-chain", "sparse"])
+@pytest.mark.parametrize(
+    "name", ["dense", "tridiag", "pcg", "pcg-chain", "sparse", CHOLMOD]
+)
 def test_chain_matches_reference(name, damped):
     import eqsmooth as eqs
 
@@ -236,7 +250,13 @@ def test_chain_matches_reference(name, damped):
 
 @pytest.mark.parametrize(
     "name, damped",
-    [("dense", False), ("pcg", False), ("pcg", True), ("sparse", False)],
+    [
+        ("dense", False),
+        ("pcg", False),
+        ("pcg", True),
+        ("sparse", False),
+        pytest.param("cholmod", False, marks=CHOLMOD.marks),
+    ],
 )
 def test_graph_matches_reference(name, damped):
     import eqsmooth as eqs
@@ -251,7 +271,7 @@ def test_graph_matches_reference(name, damped):
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("name", ["dense", "pcg", "pcg-chain", "sparse"])
+@pytest.mark.parametrize("name", ["dense", "pcg", "pcg-chain", "sparse", CHOLMOD])
 def test_loop_closures_match_reference(name, damped):
     import eqsmooth as eqs
 
@@ -363,7 +383,7 @@ def _gauge_free_chain(T=7):
     return _linearize(graph, {"x": jnp.asarray(rng.normal(size=(T, 2)))})
 
 
-@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "sparse"])
+@pytest.mark.parametrize("name", ["dense", "tridiag", "pcg", "sparse", CHOLMOD])
 def test_singular_system_reports_and_stays_finite(name):
     import eqsmooth as eqs
 
@@ -458,7 +478,7 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg", "pcg-chain", "sparse"])
+@pytest.mark.parametrize("name", ["tridiag", "pcg", "pcg-chain", "sparse", CHOLMOD])
 def test_vmap_over_graphs(name):
     import eqsmooth as eqs
 
@@ -480,7 +500,7 @@ def test_vmap_over_graphs(name):
         np.testing.assert_allclose(got, ref, atol=1e-9)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg", "sparse"])
+@pytest.mark.parametrize("name", ["tridiag", "pcg", "sparse", CHOLMOD])
 def test_grad_matches_finite_differences(name):
     """Reverse mode through lineax's solve rule: w.r.t. data and values (one
     Gauss-Newton step's solve, differentiated)."""
@@ -521,3 +541,14 @@ def test_grad_matches_finite_differences(name):
             jnp.sum(g_vals[k] * d_vals[k]) for k in values
         )
         np.testing.assert_allclose(float(ad), float(fd), rtol=1e-6, atol=1e-8)
+
+
+def test_sparse_cholesky_without_scikit_sparse_says_so(monkeypatch):
+    import sys
+
+    import eqsmooth as eqs
+
+    monkeypatch.setitem(sys.modules, "sksparse", None)
+    monkeypatch.setitem(sys.modules, "sksparse.cholmod", None)
+    with pytest.raises(ImportError, match="scikit-sparse"):
+        eqs.solve.SparseCholesky()

@@ -41,4 +41,4 @@ from ._pcg import (
     PCG as PCG,
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
-from ._sparse import SparseLU as SparseLU
+from ._sparse import SparseCholesky as SparseCholesky, SparseLU as SparseLU

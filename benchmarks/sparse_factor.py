@@ -1,0 +1,154 @@
+"""One sparse factorisation + solve of a pose graph's normal matrix: SuperLU vs CHOLMOD.
+
+For each g2o file: linearise at the file's initial values, assemble
+`JᵀJ + 1e-3·I` exactly as [`eqsmooth.solve.SparseLU`] does, and time the
+host work of one linear solve with each backend, in the same process:
+SuperLU as `SparseLU` calls it (minimum-degree ordering of `Aᵀ + A`,
+symmetric mode), CHOLMOD from scratch (ordering + symbolic + numeric), and
+CHOLMOD numeric only (what `SparseCholesky` does after its first solve,
+reusing the symbolic analysis). `median_s` is the median over `--repeats`
+runs; `residual` is `‖Ax − b‖ / ‖b‖`. CHOLMOD needs `scikit-sparse`
+(see `eqsmooth.solve.SparseCholesky`); without it only SuperLU is timed.
+
+    python benchmarks/sparse_factor.py                       # every file
+    python benchmarks/sparse_factor.py --files torus3D intel
+    python benchmarks/sparse_factor.py --json benchmarks/results/sparse_factor.json \\
+        --markdown benchmarks/results/sparse_factor.md
+"""
+
+import argparse
+import statistics
+import time
+import warnings
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import machine, markdown_table, write_json  # noqa: E402
+
+from eqsmooth.io import load_g2o  # noqa: E402
+from eqsmooth.solve._linearization import linearize  # noqa: E402
+from eqsmooth.solve._sparse import _host_csc, _pattern  # noqa: E402
+
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "g2o"
+FILES = ["intel", "manhattan", "kitti_00", "sphere2500", "torus3D", "cubicle"]
+
+
+def normal_matrix(path: Path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # cubicle's repairs
+        pg = load_g2o(path, invalid_information="block_diagonal")
+    lin = jax.jit(linearize)(pg.graph, pg.values)
+    pattern = _pattern(lin.layout, tuple(fl.variables for fl in lin.factors))
+    vals = []
+    for fl in lin.factors:
+        jac = jnp.concatenate(fl.jacobians, axis=2)
+        vals.append(jnp.einsum("nmi,nmj->nij", jac, jac).reshape(-1))
+    vals.append(jnp.full((pattern.size,), 1e-3))
+    data = jax.ops.segment_sum(
+        jnp.concatenate(vals), pattern.slot, num_segments=pattern.nnz
+    )
+    return _host_csc(pattern, data)
+
+
+def _time(fn, repeats):
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--files", nargs="*", default=None)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown", default=None)
+    args = parser.parse_args(argv)
+    import scipy.sparse.linalg as spla
+
+    try:
+        from sksparse.cholmod import analyze, cholesky
+    except ImportError:
+        analyze = cholesky = None
+        print("note: scikit-sparse not installed: CHOLMOD not timed")
+    if not DATA.exists():
+        raise SystemExit(f"{DATA} not found: the g2o files are needed")
+    records = []
+    for name in args.files or FILES:
+        A = normal_matrix(DATA / f"{name}.g2o")
+        b = np.random.default_rng(0).normal(size=A.shape[0])
+
+        def superlu():
+            lu = spla.splu(
+                A,
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True, "Equil": False},
+            )
+            return lu.solve(b)
+
+        methods = {"SuperLU (SparseLU)": superlu}
+        if cholesky is not None:
+            symbolic = analyze(A)
+            methods["CHOLMOD, from scratch"] = lambda: cholesky(A)(b)
+            methods["CHOLMOD, numeric only (SparseCholesky)"] = lambda: (
+                symbolic.cholesky(A)(b)
+            )
+        base = None
+        for method, fn in methods.items():
+            median, x = _time(fn, args.repeats)
+            base = base or median
+            rec = {
+                "benchmark": "sparse_factor",
+                "config": {"file": name, "method": method},
+                "file": name,
+                "n": A.shape[0],
+                "nnz": A.nnz,
+                "method": method,
+                "median_s": median,
+                "compile_s": 0.0,
+                "speedup_vs_superlu": base / median,
+                "residual": float(np.linalg.norm(A @ x - b) / np.linalg.norm(b)),
+            }
+            records.append(rec)
+            print(
+                f"{name:10s} n={A.shape[0]:6d} {method:40s} {median:8.3f} s  "
+                f"x{rec['speedup_vs_superlu']:.2f}  res {rec['residual']:.1e}",
+                flush=True,
+            )
+    cols = ["file", "n", "nnz", "method", "median_s", "speedup_vs_superlu", "residual"]
+    table = markdown_table(records, cols)
+    print()
+    print(table)
+    if args.json:
+        write_json(args.json, records)
+    if args.markdown:
+        m = machine()
+        Path(args.markdown).write_text(
+            "\n".join(
+                [
+                    "# One sparse factorisation + solve: SuperLU vs CHOLMOD",
+                    "",
+                    f"- command: `{m['command']}` (in `benchmarks/`)",
+                    f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']} "
+                    "(shared with other jobs: noisy; compare within a file)",
+                    f"- jax {m['jax']}, python {m['python']}, git {m['git']}",
+                    "",
+                    table,
+                    "",
+                ]
+            )
+        )
+
+
+if __name__ == "__main__":
+    main()
