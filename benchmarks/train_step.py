@@ -1,0 +1,513 @@
+"""Time of one training step (forward + backward) of the surrogate loss.
+
+The paper's learning task (Yi et al., 2021): a batch of 32 disk-tracking
+graphs, state [px, py, vx, vy], dynamics `p' = p + v`,
+`v' = v − 0.05 p − 0.0075 sign(v) v²` with fixed noise, position measurements
+whose noise square-root precision (2 numbers, shared by the batch) is learned.
+The surrogate loss starts the solver at the ground truth, runs K Gauss-Newton
+steps (`FixedStepGaussNewton`) and takes the mean squared error to the ground
+truth. One unit of work = `jax.value_and_grad` of the batch-mean loss with
+respect to the square-root precision, jitted.
+
+Measured for K = 3, 5 and T = 20, 200, 2000, for every adjoint (unrolled,
+truncated k = 1, implicit with the exact Hessian) and linear solver
+(BlockTridiagonal; DenseCholesky only for T <= 200; PCG), next to a plain
+dense JAX reference in this script: the same loss with the whole Jacobian
+materialised by `jax.jacfwd`, the normal equations solved by a dense Cholesky
+(`jax.scipy.linalg.cho_factor/cho_solve`), K steps unrolled in Python, and
+differentiated by `jax.value_and_grad`. The reference is infeasible at
+T = 2000 (a 12000 × 8000 Jacobian per graph, 32 graphs: tens of GB) and is
+recorded as not measured there.
+
+Theseus (Pineda et al. 2022), when importable, solves the same problem in the
+same process: one `th.Vector(4)` per time step, `th.AutoDiffCostFunction`s
+for the dynamics and measurement residuals (module-level error functions, so
+the objective vectorizes them), `th.DiagonalCostWeight`s (the measurement
+weight is the learned square-root precision, shared by all factors),
+`th.GaussNewton` with `max_iterations=K`, `step_size=1` and zero
+tolerances (so it runs exactly K steps like `FixedStepGaussNewton`), in a
+`th.TheseusLayer`; one unit of work = `layer.forward` from the ground truth,
+the same loss, and `loss.backward()`. Linear solvers: CHOLMOD
+(`th.CholmodSparseSolver`) and dense Cholesky (`th.CholeskyDenseSolver`, T <=
+200); backward modes unroll and implicit. Its `grad_rel_err` against the JAX
+reference checks that it computes the same quantity. Installing it (CPU, in a
+separate virtual environment, Debian; `apt-get install libsuitesparse-dev`
+first):
+
+    pip install torch==2.13.0 cython setuptools wheel
+    pip install --no-build-isolation scikit-sparse==0.4.16 theseus-ai
+    pip install -e ".[test]"
+
+The unrolled and truncated(k = K) gradients equal the reference's
+(`grad_rel_err` checks it); truncated k = 1 and implicit are different
+gradients by design (the implicit one is the derivative of the converged
+minimiser, evaluated at the K-step iterate), so their `grad_rel_err` says how
+far they are from the surrogate gradient, not an error.
+
+`median_s`: median over repeats after warm-up; `compile_s`: first call minus
+median; `ratio`: median_s / reference_median_s of the same (K, T), measured
+in the same run (the machine is shared, absolute timings are noisy).
+
+    python benchmarks/train_step.py             # all configurations
+    python benchmarks/train_step.py --quick     # T = 20, K = 3 (< 1 min)
+    python benchmarks/train_step.py --json benchmarks/results/train_step.json \\
+        --markdown benchmarks/results/train_step.md
+"""
+
+import argparse
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from _common import machine, markdown_table, time_fn, write_json
+
+import eqsmooth as eqs
+
+
+BATCH = 32
+DYN_SIGMAS = (0.1, 0.1, 0.5, 0.5)
+MEAS_SIGMA = 5.0
+
+
+def _step(x):
+    p, v = x[..., :2], x[..., 2:]
+    return jnp.concatenate(
+        [p + v, v - 0.05 * p - 0.0075 * jnp.sign(v) * v * v], axis=-1
+    )
+
+
+def _disk_dyn(a, b, data, params):
+    return b - _step(a)
+
+
+def _disk_meas(x, data, params):
+    return x[:2] - data
+
+
+def simulate(T: int, batch: int, dtype, seed: int = 0):
+    """Ground-truth trajectories `(B, T, 4)` and measurements `(B, T, 2)`."""
+    rng = np.random.default_rng(seed)
+    x = np.zeros((batch, T, 4))
+    x[:, 0, :2] = rng.normal(scale=30.0, size=(batch, 2))
+    x[:, 0, 2:] = rng.normal(scale=3.0, size=(batch, 2))
+    for t in range(1, T):
+        x[:, t] = np.asarray(_step(jnp.asarray(x[:, t - 1]))) + rng.normal(
+            size=(batch, 4)
+        ) * np.asarray(DYN_SIGMAS)
+    meas = x[:, :, :2] + rng.normal(scale=MEAS_SIGMA, size=(batch, T, 2))
+    return jnp.asarray(x, dtype), jnp.asarray(meas, dtype)
+
+
+def build_graph(meas, dtype):
+    """One disk graph (used under vmap over the batch of measurements)."""
+    T = meas.shape[0]
+    t = np.arange(T)
+    return eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _disk_dyn,
+                (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+                eqs.DiagonalNoise(1.0 / jnp.asarray(DYN_SIGMAS, dtype)),
+            ),
+            eqs.FunctionFactor(
+                _disk_meas,
+                (eqs.Var("x", t),),
+                eqs.DiagonalNoise(jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)),
+                data=meas,
+            ),
+        ]
+    )
+
+
+def eqsmooth_step(linear_solver, K: int, adjoint):
+    solver = eqs.FixedStepGaussNewton(linear_solver, num_steps=K)
+
+    def one(theta, graph, truth):
+        graph = eqx.tree_at(lambda g: g.factors[1].noise.sqrt_precision, graph, theta)
+        x = eqs.least_squares(
+            graph, {"x": truth}, solver, adjoint=adjoint, throw=False
+        ).value["x"]
+        return jnp.mean((x - truth) ** 2)
+
+    def loss(theta, graphs, truths):
+        per = eqx.filter_vmap(one, in_axes=(None, 0, 0))(theta, graphs, truths)
+        return jnp.mean(per)
+
+    return eqx.filter_jit(jax.value_and_grad(loss))
+
+
+def dense_reference_step(K: int):
+    """The same loss, written with a dense Jacobian and dense normal equations."""
+
+    def residual(theta, meas, x_flat):
+        T = meas.shape[0]
+        x = x_flat.reshape(T, 4)
+        w = (1.0 / jnp.asarray(DYN_SIGMAS)).astype(x.dtype)
+        dyn = (x[1:] - _step(x[:-1])) * w[None, :]
+        obs = (x[:, :2] - meas) * theta[None, :]
+        return jnp.concatenate([dyn.reshape(-1), obs.reshape(-1)])
+
+    def one(theta, meas, truth):
+        x = truth.reshape(-1)
+        for _ in range(K):
+            r = residual(theta, meas, x)
+            J = jax.jacfwd(residual, argnums=2)(theta, meas, x)
+            H = J.T @ J
+            g = J.T @ r
+            x = x + jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(H), -g)
+        return jnp.mean((x.reshape(truth.shape) - truth) ** 2)
+
+    def loss(theta, meas, truths):
+        per = jax.vmap(one, in_axes=(None, 0, 0))(theta, meas, truths)
+        return jnp.mean(per)
+
+    return jax.jit(jax.value_and_grad(loss))
+
+
+def _theseus_dyn_err(optim_vars, aux_vars):
+    import torch
+
+    a, b = optim_vars[0].tensor, optim_vars[1].tensor
+    p, v = a[:, :2], a[:, 2:]
+    step = torch.cat([p + v, v - 0.05 * p - 0.0075 * torch.sign(v) * v * v], dim=1)
+    return b - step
+
+
+def _theseus_meas_err(optim_vars, aux_vars):
+    return optim_vars[0].tensor[:, :2] - aux_vars[0].tensor
+
+
+def theseus_step(meas, truths, K: int, solver: str, backward: str):
+    """A Theseus layer for the same batch; returns `(fn, theta)`.
+
+    `fn()` runs one forward + backward and returns `(loss, grad)` as numpy.
+    """
+    import theseus as th
+    import torch
+
+    dtype = torch.float64 if meas.dtype == jnp.float64 else torch.float32
+    meas_t = torch.from_numpy(np.array(meas)).to(dtype)
+    truth_t = torch.from_numpy(np.array(truths)).to(dtype)
+    B, T, _ = truth_t.shape
+    xs = [th.Vector(4, name=f"x{t}", dtype=dtype) for t in range(T)]
+    ys = [th.Variable(meas_t[:, t], name=f"y{t}") for t in range(T)]
+    dyn_w = th.DiagonalCostWeight(
+        th.Variable(1.0 / torch.tensor([DYN_SIGMAS], dtype=dtype), name="dyn_w")
+    )
+    theta0 = torch.full((1, 2), 1.0 / MEAS_SIGMA, dtype=dtype)
+    meas_w = th.DiagonalCostWeight(th.Variable(theta0.clone(), name="theta"))
+    objective = th.Objective(dtype=dtype)
+    for t in range(T - 1):
+        objective.add(
+            th.AutoDiffCostFunction(
+                [xs[t], xs[t + 1]], _theseus_dyn_err, 4, dyn_w, name=f"dyn{t}"
+            )
+        )
+    for t in range(T):
+        objective.add(
+            th.AutoDiffCostFunction(
+                [xs[t]],
+                _theseus_meas_err,
+                2,
+                meas_w,
+                aux_vars=[ys[t]],
+                name=f"meas{t}",
+            )
+        )
+    linear_solver_cls = {
+        "CHOLMOD": th.CholmodSparseSolver,
+        "dense Cholesky": th.CholeskyDenseSolver,
+    }[solver]
+    optimizer = th.GaussNewton(
+        objective,
+        linear_solver_cls=linear_solver_cls,
+        max_iterations=K,
+        step_size=1.0,
+        abs_err_tolerance=0.0,
+        rel_err_tolerance=0.0,
+    )
+    layer = th.TheseusLayer(optimizer)
+    inputs = {f"x{t}": truth_t[:, t] for t in range(T)}
+    inputs.update({f"y{t}": meas_t[:, t] for t in range(T)})
+
+    def fn():
+        theta = theta0.clone().requires_grad_(True)
+        sol, _ = layer.forward(
+            {**inputs, "theta": theta},
+            optimizer_kwargs={
+                "backward_mode": backward,
+                "verbose": False,
+                "track_best_solution": False,
+            },
+        )
+        x = torch.stack([sol[f"x{t}"] for t in range(T)], dim=1)
+        loss = torch.mean((x - truth_t) ** 2)
+        loss.backward()
+        return float(loss.detach()), theta.grad.detach().numpy()[0]
+
+    return fn
+
+
+def _time_host(fn, repeats: int):
+    """`(first_s, median_s)` of a host function (no JAX arrays to block on)."""
+    t0 = time.perf_counter()
+    fn()
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return first, float(np.median(times))
+
+
+def _have_theseus() -> bool:
+    try:
+        import theseus  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _rel_err(g, ref):
+    g, ref = np.asarray(g), np.asarray(ref)
+    return float(np.linalg.norm(g - ref) / max(np.linalg.norm(ref), 1e-300))
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown", default=None)
+    parser.add_argument("--sizes", type=int, nargs="*", default=None)
+    parser.add_argument("--steps", type=int, nargs="*", default=None)
+    parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--theseus-max-T",
+        type=int,
+        default=2000,
+        help="largest T at which Theseus is measured (when it is installed)",
+    )
+    args = parser.parse_args(argv)
+    have_theseus = _have_theseus()
+    theseus_configs = (
+        [
+            ("CHOLMOD", "unroll"),
+            ("CHOLMOD", "implicit"),
+            ("dense Cholesky", "unroll"),
+        ]
+        if have_theseus
+        else []
+    )
+    if args.quick:
+        theseus_configs = theseus_configs[:1]
+    theseus_times = {}
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    dtype = jnp.dtype(args.dtype)
+    sizes = args.sizes or ([20] if args.quick else [20, 200, 2000])
+    steps = args.steps or ([3] if args.quick else [3, 5])
+    adjoints = {
+        "unrolled": eqs.UnrolledAdjoint(),
+        "truncated(k=1)": eqs.TruncatedAdjoint(1),
+        "implicit": eqs.ImplicitAdjoint(),
+    }
+    solvers = {
+        "BlockTridiagonal": eqs.BlockTridiagonal(),
+        "DenseCholesky": eqs.DenseCholesky(),
+        "PCG": eqs.PCG(),
+    }
+    if args.quick:
+        adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
+        solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
+    records = []
+    for T in sizes:
+        truths, meas = simulate(T, BATCH, dtype)
+        graphs = eqx.filter_vmap(lambda m: build_graph(m, dtype))(meas)
+        theta = jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)
+        for K in steps:
+            config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
+            ref = None
+            if T <= 200:
+                fn = dense_reference_step(K)
+                first, median, _ = time_fn(
+                    fn, theta, meas, truths, repeats=args.repeats
+                )
+                ref_val, ref_grad = fn(theta, meas, truths)
+                ref = {"median_s": median, "grad": ref_grad}
+                records.append(
+                    {
+                        "benchmark": "train_step",
+                        "config": {**config, "method": "dense JAX reference"},
+                        "T": T,
+                        "K": K,
+                        "method": "dense JAX reference",
+                        "median_s": median,
+                        "compile_s": first - median,
+                        "loss": float(ref_val),
+                        "reference_median_s": median,
+                        "ratio": 1.0,
+                    }
+                )
+                print(
+                    f"T={T:<5d} K={K} {'dense JAX reference':34s} "
+                    f"{median * 1e3:10.2f} ms  compile {first - median:6.2f} s",
+                    flush=True,
+                )
+            else:
+                records.append(
+                    {
+                        "benchmark": "train_step",
+                        "config": {**config, "method": "dense JAX reference"},
+                        "T": T,
+                        "K": K,
+                        "method": "dense JAX reference",
+                        "median_s": None,
+                        "note": "not measured: dense J is (6T x 4T) per graph, "
+                        f"{BATCH * 6 * T * 4 * T * dtype.itemsize / 2**30:.0f} GiB "
+                        "for the batch",
+                    }
+                )
+            if not have_theseus:
+                records.append(
+                    {
+                        "benchmark": "train_step",
+                        "config": {**config, "method": "Theseus"},
+                        "T": T,
+                        "K": K,
+                        "method": "Theseus",
+                        "median_s": None,
+                        "note": "not measured: Theseus is not installed",
+                    }
+                )
+            for tsolver, tback in theseus_configs:
+                if tsolver == "dense Cholesky" and T > 200:
+                    continue
+                if T > args.theseus_max_T:
+                    continue
+                method = f"Theseus {tsolver} {tback}"
+                fn = theseus_step(meas, truths, K, tsolver, tback)
+                first, median = _time_host(fn, args.repeats)
+                val, grad = fn()
+                rec = {
+                    "benchmark": "train_step",
+                    "config": {**config, "method": method},
+                    "T": T,
+                    "K": K,
+                    "method": method,
+                    "median_s": median,
+                    "compile_s": first - median,
+                    "loss": val,
+                }
+                if ref is not None:
+                    rec["reference_median_s"] = ref["median_s"]
+                    rec["ratio"] = median / ref["median_s"]
+                    rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
+                records.append(rec)
+                theseus_times[(T, K, method)] = median
+                extra = (
+                    f"  ratio {rec['ratio']:6.3f}  grad rel err "
+                    f"{rec['grad_rel_err']:.1e}"
+                    if ref is not None
+                    else ""
+                )
+                print(
+                    f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  "
+                    f"first call {first:6.2f} s{extra}",
+                    flush=True,
+                )
+            for sname, ls in solvers.items():
+                if sname == "DenseCholesky" and T > 200:
+                    continue
+                for aname, adjoint in adjoints.items():
+                    fn = eqsmooth_step(ls, K, adjoint)
+                    first, median, _ = time_fn(
+                        fn, theta, graphs, truths, repeats=args.repeats
+                    )
+                    val, grad = fn(theta, graphs, truths)
+                    method = f"eqsmooth {sname} {aname}"
+                    rec = {
+                        "benchmark": "train_step",
+                        "config": {
+                            **config,
+                            "solver": sname,
+                            "adjoint": aname,
+                            "method": method,
+                        },
+                        "T": T,
+                        "K": K,
+                        "method": method,
+                        "median_s": median,
+                        "compile_s": first - median,
+                        "loss": float(val),
+                    }
+                    if ref is not None:
+                        rec["reference_median_s"] = ref["median_s"]
+                        rec["ratio"] = median / ref["median_s"]
+                        rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
+                    th_key = (T, K, "Theseus CHOLMOD unroll")
+                    if th_key in theseus_times:
+                        rec["theseus_cholmod_s"] = theseus_times[th_key]
+                        rec["speedup_vs_theseus"] = theseus_times[th_key] / median
+                    records.append(rec)
+                    extra = (
+                        f"  ratio {rec['ratio']:6.3f}  grad rel err "
+                        f"{rec['grad_rel_err']:.1e}"
+                        if ref is not None
+                        else ""
+                    )
+                    print(
+                        f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  "
+                        f"compile {first - median:6.2f} s{extra}",
+                        flush=True,
+                    )
+    columns = [
+        "T",
+        "K",
+        "method",
+        "median_s",
+        "compile_s",
+        "ratio",
+        "grad_rel_err",
+        "speedup_vs_theseus",
+        "note",
+    ]
+    table = markdown_table(records, columns)
+    print()
+    print(table)
+    if args.json:
+        write_json(args.json, records)
+    if args.markdown:
+        m = machine()
+        text = "\n".join(
+            [
+                "# Training step: forward + backward of the surrogate loss",
+                "",
+                f"Batch of {BATCH} disk-tracking graphs; `jax.value_and_grad` of the "
+                "batch-mean surrogate loss (K Gauss-Newton steps from the ground "
+                "truth) with respect to the measurement noise square-root "
+                f"precision; dtype {args.dtype}. `ratio` = median_s / median_s of "
+                "the dense JAX reference of the same (T, K), measured in the same "
+                "run. `grad_rel_err` = relative difference to the reference "
+                "gradient (unrolled must be ~0; truncated(k=1) and implicit are "
+                "different gradients by design). See the script's docstring.",
+                "",
+                f"- command: `{m['command']}`",
+                f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}, "
+                f"backend {m['backend']} (shared with other jobs: noisy)",
+                f"- jax {m['jax']}, python {m['python']}, git {m['git']}",
+                "",
+                table,
+                "",
+            ]
+        )
+        Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.markdown).write_text(text)
+
+
+if __name__ == "__main__":
+    main()
