@@ -37,9 +37,12 @@ term; a wrong name only; nothing named. Rates carry Wilson 95% intervals.
     python benchmarks/discover.py --seeds 50 --null 200 \
         --json benchmarks/results/discover.json \
         --markdown benchmarks/results/discover.md
+    python benchmarks/discover.py --render benchmarks/results/discover.json \
+        --markdown benchmarks/results/discover.md  # report text only
 """
 
 import argparse
+import json
 import math
 import statistics
 import subprocess
@@ -474,14 +477,10 @@ def other_names_lines(records) -> list[str]:
 
 def report(records, null, info, quick) -> str:
     m = info["machine"]
-    lines = [
-        "# discover benchmark: Monte Carlo of find / name / add",
-        "",
-        (
-            "**QUICK RUN (a small subset; not the committed figures).**\n"
-            if quick
-            else ""
-        ),
+    lines = ["# discover benchmark: Monte Carlo of find / name / add", ""]
+    if quick:
+        lines += ["**QUICK RUN (a small subset; not the committed figures).**", ""]
+    lines += [
         f"- command: `{info['command']}`",
         f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}; "
         f"JAX {m['jax']} ({m['backend']}), Python {m['python']}",
@@ -516,7 +515,9 @@ def report(records, null, info, quick) -> str:
         "term; `wrong name` = only other names. Rates over all n data sets with "
         "Wilson 95% intervals. Coefficient errors and the coverage of the 95% "
         "coefficient interval are over the data sets in which the truth's own "
-        "coefficient was fitted (count in brackets).",
+        "coefficient was fitted (count in brackets); at low SNR these few are "
+        "selected for large estimates (only those pass the gates), so their "
+        "errors are biased upwards.",
         "",
         effect_table(records),
         "",
@@ -535,7 +536,8 @@ def report(records, null, info, quick) -> str:
             "",
             "False-discovery rate = fraction of null data sets in which any "
             "candidate is named (target ≤ 5%). `unnamed structure`: the verdict "
-            'says "unnamed residual structure" (no candidate named). `OPG`: the '
+            'includes "unnamed residual structure"; `any alarm`: a name or that '
+            "verdict. `OPG`: the "
             "same score test with the outer-product-of-gradients covariance, "
             "computed for comparison only.",
             "",
@@ -551,8 +553,8 @@ def report(records, null, info, quick) -> str:
             + ".",
             "",
             "Score-test p-value quantiles on null data (uniform would give q): "
-            + ", ".join(f"q{k}: {v:.3f}" for k, v in null["p_value_quantiles"].items()),
-            "; score-test degrees of freedom (identifiable candidates): "
+            + ", ".join(f"q{k}: {v:.3f}" for k, v in null["p_value_quantiles"].items())
+            + ". Score-test degrees of freedom (identifiable candidates): "
             + ", ".join(f"{k}: {v}" for k, v in null["score_test_df_counts"].items()),
             "",
         ]
@@ -584,6 +586,27 @@ def _git():
     return head or "unknown", dirty
 
 
+def render(path, markdown=None) -> None:
+    """Re-render the markdown report of a saved run from its JSON."""
+    payload = json.loads(Path(path).read_text())
+    recs = payload["records"]
+    info = {
+        "machine": payload["machine"],
+        "command": payload["command"],
+        "git": payload["machine"]["git"],
+        "dirty": payload.get("git_dirty", []),
+        "compile_s": payload["compile_s"],
+        "total_s": payload["total_s"],
+    }
+    null = next((r for r in recs if r["config"]["effect"] == "none"), None)
+    effects = [r for r in recs if r["config"]["effect"] != "none"]
+    text = report(effects, null, info, payload.get("quick", False))
+    if markdown:
+        Path(markdown).write_text(text + "\n")
+    else:
+        print(text)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small subset (CI)")
@@ -593,7 +616,16 @@ def main(argv=None):
     parser.add_argument("--levels", type=float, nargs="*", default=None)
     parser.add_argument("--json", default=None, help="write the records here")
     parser.add_argument("--markdown", default=None, help="write the report here")
+    parser.add_argument(
+        "--render",
+        default=None,
+        metavar="JSON",
+        help="only re-render the report of a saved run (to --markdown or stdout)",
+    )
     args = parser.parse_args(argv)
+    if args.render:
+        render(args.render, args.markdown)
+        return
 
     head, dirty = _git()  # captured at start
     m = machine()
