@@ -312,3 +312,19 @@ def test_constant_force_with_spring_is_detected():
     assert named["named"][:1] == ["constant force"] or any(
         "constant force" in s for s in sets
     ), named["verdict"]
+
+
+def test_bootstrap_stability_of_a_strong_effect():
+    import eqsmooth.discover as dc
+
+    data = _simulate(1, "viscous", 0.1)
+    found, named, _ = _run(data)
+    stab = dc.bootstrap(found, data, named=named, num_resamples=2, seed=0)
+    assert stab["num_resamples"] == 2
+    assert stab["detected_rate"] == 1.0
+    assert stab["inclusion"]["viscous damping"] == 1.0
+    assert stab["reference_named_set"] == ["viscous damping"]
+    assert 0.0 <= stab["same_named_set_rate"] <= 1.0
+    assert len(stab["named_sets"]) == 2
+    with pytest.raises(ValueError, match="num_resamples"):
+        dc.bootstrap(found, data, named=named, num_resamples=0)

@@ -14,6 +14,7 @@ from ._laplace import (
 from ._model import ChainModel as ChainModel, Sequences as Sequences
 from ._workflow import (
     add as add,
+    bootstrap as bootstrap,
     discover as discover,
     find as find,
     name as name,

@@ -385,6 +385,11 @@ def find(
             "nuisance": nuis,
             "I_eff": I_eff,
             "alpha": alpha,
+            "settings": {
+                "alpha": alpha,
+                "fit_noise": fit_noise,
+                "covariance": covariance,
+            },
             "identifiable": ident,
             "diagnostics_significant": _diagnostics_significant(innov, alpha),
         },
@@ -533,6 +538,86 @@ def name(
     return out
 
 
+def bootstrap(
+    found: dict,
+    data: Sequences,
+    *,
+    named: dict | None = None,
+    num_resamples: int = 20,
+    seed: int = 0,
+    max_terms: int = 3,
+) -> dict:
+    """Stability of the naming under resampling of the sequences.
+
+    Draws `num_resamples` bootstrap samples of the sequences (with
+    replacement, same count, so compiled code is reused), reruns
+    [`eqsmooth.discover.find`][] and [`eqsmooth.discover.name`][] on each
+    with the settings of `found`, and counts how often each candidate is
+    named, how often something is detected, and how often the verdict's
+    named set equals the one on the full data. A name that appears in most
+    resamples is stable; one that comes and goes rests on a few sequences.
+    A candidate inside a reported equivalence or ambiguous set counts as
+    included with the named one (the data could not separate them).
+
+    **Arguments:**
+
+    - `found`: the output of [`eqsmooth.discover.find`][] on `data`.
+    - `data`: the same sequences.
+    - `named`: the output of [`eqsmooth.discover.name`][] on `data`, if
+        already computed (otherwise it is recomputed).
+    - `num_resamples`: number of bootstrap samples.
+    - `seed`: seed of the resampling.
+    - `max_terms`: see [`eqsmooth.discover.name`][].
+
+    **Returns:** a dict with `num_resamples`, `detected_rate`,
+    `inclusion` (`{candidate name: fraction of resamples naming it, alone or
+    inside a set}`), `named_alone` (`{name: fraction named as the single
+    unambiguous choice}`), `same_named_set_rate` (fraction whose named set
+    equals the full-data one) and `named_sets` (each resample's named set).
+    """
+    if num_resamples < 1:
+        raise ValueError(f"bootstrap: num_resamples must be >= 1, got {num_resamples}")
+    st = found["_state"]
+    model = st["model"]
+    settings = st["settings"]
+    if named is None:
+        named = name(found, data, max_terms=max_terms)
+    reference = set(named["named"])
+    rng = np.random.default_rng(seed)
+    names = [c.name for c in model.candidates]
+    inclusion = dict.fromkeys(names, 0)
+    alone = dict.fromkeys(names, 0)
+    detected = same = 0
+    sets = []
+    B = data.num_sequences
+    for _ in range(num_resamples):
+        sample = data.take(rng.integers(0, B, size=B))
+        f = find(model, sample, **settings)
+        n = name(f, sample, max_terms=max_terms)
+        detected += int(f["detected"])
+        chosen = set(n["named"])
+        same += int(chosen == reference)
+        sets.append(sorted(chosen))
+        grouped = {nm: {nm} for nm in chosen}
+        for group in n["equivalence_sets"] + n["ambiguous"]:
+            grouped.setdefault(group[0], set()).update(group)
+        for nm, members in grouped.items():
+            for member in members:
+                inclusion[member] += 1
+            if members == {nm}:
+                alone[nm] += 1
+    return {
+        "num_resamples": num_resamples,
+        "seed": seed,
+        "detected_rate": detected / num_resamples,
+        "inclusion": {k: v / num_resamples for k, v in inclusion.items()},
+        "named_alone": {k: v / num_resamples for k, v in alone.items()},
+        "same_named_set_rate": same / num_resamples,
+        "reference_named_set": sorted(reference),
+        "named_sets": sets,
+    }
+
+
 def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> dict:
     """Fit the named coefficients (and noise scales) and give confidence intervals.
 
@@ -637,6 +722,7 @@ def discover(
     covariance: str = "auto",
     max_terms: int = 3,
     horizon: int = 10,
+    bootstrap_resamples: int = 0,
 ) -> dict:
     """Run find, name, add and (with held-out data) show; return one report.
 
@@ -649,10 +735,14 @@ def discover(
     - `alpha`, `fit_noise`, `covariance`: see [`eqsmooth.discover.find`][].
     - `max_terms`: see [`eqsmooth.discover.name`][].
     - `horizon`: see [`eqsmooth.discover.show`][].
+    - `bootstrap_resamples`: if positive, also run
+        [`eqsmooth.discover.bootstrap`][] with this many resamples (each
+        costs one find + name).
 
     **Returns:** a JSON-serialisable dict with `verdict`, `find`, `name`,
-    `add` and `show`, plus the fitted model under the key `"model"` (remove
-    it before serialising, or use [`eqsmooth.discover.to_json`][]).
+    `add`, `show` (with held-out data) and `bootstrap` (when asked), plus
+    the fitted model under the key `"model"` (remove it before serialising,
+    or use [`eqsmooth.discover.to_json`][]).
     """
     found = find(model, data, alpha=alpha, fit_noise=fit_noise, covariance=covariance)
     named = name(found, data, max_terms=max_terms)
@@ -664,6 +754,14 @@ def discover(
         "add": {k: v for k, v in added.items() if k != "model"},
         "model": added["model"],
     }
+    if bootstrap_resamples > 0:
+        report["bootstrap"] = bootstrap(
+            found,
+            data,
+            named=named,
+            num_resamples=bootstrap_resamples,
+            max_terms=max_terms,
+        )
     if heldout is not None:
         before = fitted_model(found["_state"]["model"], found["_state"]["evaluation"].z)
         report["show"] = show(before, added["model"], heldout, horizon=horizon)
