@@ -140,6 +140,19 @@ def test_model_shapes_and_noise_heads():
     het = M.HeteroscedasticNoise(4.0, key)
     # Starts constant at 1/sigma (zero last layer), positive everywhere.
     np.testing.assert_allclose(het(counts), 0.25, rtol=1e-5)
+    # Quick-mode aid: the first conv fires on the target's colour only.
+    colours = np.concatenate([[D.TARGET_COLOUR], D.DISTRACTOR_COLOURS, [[0, 0, 0]]])
+    patches = (np.broadcast_to(colours[:, None, None], (8, 3, 3, 3)) - D.IMAGE_MEAN) / (
+        D.IMAGE_STD
+    )
+    x = np.transpose(patches, (0, 3, 1, 2))
+    for scale in (0.0, 0.1):
+        first = M.target_colour_init(sensor, noise_scale=scale).convs[0]
+        x = jnp.asarray(x, first.weight.dtype)
+        fired = np.asarray(jax.nn.relu(jax.vmap(first)(x))[:, :, 1, 1])
+        # Every filter fires on red; other colours (and black) hardly ever.
+        assert np.all(fired[0] > 0.1) and np.mean(fired[0]) > 0.5, fired[0]
+        assert np.mean(fired[1:] > 0) < (0.02 if scale else 1e-9), fired[1:]
     lstm = M.LstmTracker(key, bidirectional=True, hidden=8)
     out = lstm(jnp.zeros((3, 120, 120, 3), jnp.uint8), jnp.zeros(4, jnp.float32))
     assert out.shape == (3, 2)

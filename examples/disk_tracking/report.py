@@ -95,12 +95,19 @@ def summarise(fold_results: list[dict]) -> dict[str, dict]:
     return out
 
 
-def markdown_table(summary: dict[str, dict], folds: list[int], quick: bool) -> str:
+def markdown_table(
+    summary: dict[str, dict], folds: list[int], quick: bool, colour_init: bool = False
+) -> str:
     title = (
         "QUICK RUN (small data, few steps: not comparable with the paper)"
         if quick
         else "full protocol"
     )
+    if colour_init:
+        title += (
+            "; sensor's first conv initialised as a target-colour detector "
+            "(quick-mode aid, not the paper's protocol)"
+        )
     head = (
         f"Disk tracking, {title}; test folds {folds}; per-coordinate position "
         "RMSE in pixels (mean ± std/√n over folds)\n\n"
@@ -125,7 +132,9 @@ def write_results(
 ) -> tuple[dict, str]:
     summary = summarise(fold_results)
     folds = [fr["fold"] for fr in fold_results]
-    table = markdown_table(summary, folds, cfg_dict["quick"])
+    table = markdown_table(
+        summary, folds, cfg_dict["quick"], cfg_dict.get("sensor_colour_init", False)
+    )
     record = dict(
         benchmark="disk_tracking",
         quick=cfg_dict["quick"],
