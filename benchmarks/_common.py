@@ -46,6 +46,15 @@ def machine() -> dict:
         "backend": jax.default_backend(),
         "git": git,
         "command": " ".join([Path(sys.executable).name] + sys.argv),
+        # Thread settings and load change timings by large factors on a
+        # shared 2-core machine (an oversubscribed OpenBLAS made a 400 x 400
+        # Cholesky 10-100x slower), so they are part of the record.
+        "env": {
+            k: os.environ[k]
+            for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "XLA_FLAGS")
+            if k in os.environ
+        },
+        "load_average": os.getloadavg(),
     }
 
 

@@ -28,8 +28,8 @@ weight is the learned square-root precision, shared by all factors),
 tolerances (so it runs exactly K steps like `FixedStepGaussNewton`), in a
 `th.TheseusLayer`; one unit of work = `layer.forward` from the ground truth,
 the same loss, and `loss.backward()`. Linear solvers: CHOLMOD
-(`th.CholmodSparseSolver`) and dense Cholesky (`th.CholeskyDenseSolver`, T <=
-200); backward modes unroll and implicit. Its `grad_rel_err` against the JAX
+(`th.CholmodSparseSolver`) and dense Cholesky (`th.CholeskyDenseSolver`, T =
+20 only); backward modes unroll and implicit. Its `grad_rel_err` against the JAX
 reference checks that it computes the same quantity. Installing it (CPU, in a
 separate virtual environment, Debian; `apt-get install libsuitesparse-dev`
 first):
@@ -47,6 +47,10 @@ far they are from the surrogate gradient, not an error.
 `median_s`: median over repeats after warm-up; `compile_s`: first call minus
 median; `ratio`: median_s / reference_median_s of the same (K, T), measured
 in the same run (the machine is shared, absolute timings are noisy).
+
+On a shared machine run it with `OPENBLAS_NUM_THREADS=1`: an oversubscribed
+OpenBLAS (which XLA's CPU Cholesky calls) made the dense reference 10-100x
+slower and erratic here.
 
     python benchmarks/train_step.py             # all configurations
     python benchmarks/train_step.py --quick     # T = 20, K = 3 (< 1 min)
@@ -293,6 +297,7 @@ def main(argv=None):
         help="largest T at which Theseus is measured (when it is installed)",
     )
     args = parser.parse_args(argv)
+    m = machine()  # git hash, load and thread settings when the run started
     have_theseus = _have_theseus()
     theseus_configs = (
         [
@@ -325,6 +330,13 @@ def main(argv=None):
         adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
         solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
     records = []
+
+    def flush():
+        # Written after every record, so a run stopped part-way keeps what it
+        # measured.
+        if args.json:
+            write_json(args.json, records, {"machine_at_start": m})
+
     for T in sizes:
         truths, meas = simulate(T, BATCH, dtype)
         graphs = eqx.filter_vmap(lambda m: build_graph(m, dtype))(meas)
@@ -385,7 +397,7 @@ def main(argv=None):
                     }
                 )
             for tsolver, tback in theseus_configs:
-                if tsolver == "dense Cholesky" and T > 200:
+                if tsolver == "dense Cholesky" and T > 20:
                     continue
                 if T > args.theseus_max_T:
                     continue
@@ -408,6 +420,7 @@ def main(argv=None):
                     rec["ratio"] = median / ref["median_s"]
                     rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
                 records.append(rec)
+                flush()
                 theseus_times[(T, K, method)] = median
                 extra = (
                     f"  ratio {rec['ratio']:6.3f}  grad rel err "
@@ -454,6 +467,7 @@ def main(argv=None):
                         rec["theseus_cholmod_s"] = theseus_times[th_key]
                         rec["speedup_vs_theseus"] = theseus_times[th_key] / median
                     records.append(rec)
+                    flush()
                     extra = (
                         f"  ratio {rec['ratio']:6.3f}  grad rel err "
                         f"{rec['grad_rel_err']:.1e}"
@@ -480,9 +494,8 @@ def main(argv=None):
     print()
     print(table)
     if args.json:
-        write_json(args.json, records)
+        write_json(args.json, records, {"machine_at_start": m})
     if args.markdown:
-        m = machine()
         text = "\n".join(
             [
                 "# Training step: forward + backward of the surrogate loss",
@@ -498,7 +511,8 @@ def main(argv=None):
                 "",
                 f"- command: `{m['command']}`",
                 f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}, "
-                f"backend {m['backend']} (shared with other jobs: noisy)",
+                f"backend {m['backend']} (shared with other jobs: noisy); load "
+                f"average at start {m['load_average'][0]:.1f}; env {m['env']}",
                 f"- jax {m['jax']}, python {m['python']}, git {m['git']}",
                 "",
                 table,
