@@ -271,8 +271,9 @@ class SparseCholesky(AbstractLinearSolver):
     `scikit-sparse` package): the fill-reducing ordering and symbolic
     analysis are computed once per graph structure and reused by every
     later solve, and the numeric factorisation is supernodal (dense BLAS
-    blocks). On large 3-D pose graphs it is several times faster than
-    SuperLU. A matrix that is not positive definite (or singular to working
+    blocks). It was about 3 times faster than SuperLU on torus3D and 5 to 7
+    times on the 2-D benchmark graphs, but slower on sphere2500
+    (`benchmarks/results/sparse_factor.md`). A matrix that is not positive definite (or singular to working
     precision) gives `RESULTS.singular` and a zero step.
 
     Needs `scikit-sparse`, which builds against the system SuiteSparse
