@@ -273,8 +273,9 @@ class SparseCholesky(AbstractLinearSolver):
     later solve, and the numeric factorisation is supernodal (dense BLAS
     blocks). It was about 3 times faster than SuperLU on torus3D and 5 to 7
     times on the 2-D benchmark graphs, but slower on sphere2500
-    (`benchmarks/results/sparse_factor.md`). A matrix that is not positive definite (or singular to working
-    precision) gives `RESULTS.singular` and a zero step.
+    (`benchmarks/results/sparse_factor.md`). A matrix that is not positive
+    definite (or singular to working precision) gives `RESULTS.singular` and
+    a zero step.
 
     Needs `scikit-sparse`, which builds against the system SuiteSparse
     (Debian/Ubuntu: `apt-get install libsuitesparse-dev`, then
