@@ -337,6 +337,45 @@ def main(argv=None):
         if args.json:
             write_json(args.json, records, {"machine_at_start": m})
 
+    def measured(T, K, ref, method, extra, first, median, val, grad, host=False):
+        """Record, save and print one measured configuration."""
+        rec = {
+            "benchmark": "train_step",
+            "config": {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
+            | extra
+            | {"method": method},
+            "T": T,
+            "K": K,
+            "method": method,
+            "median_s": median,
+            "compile_s": first - median,
+            "loss": float(val),
+        }
+        text = ""
+        if ref is not None:
+            rec["reference_median_s"] = ref["median_s"]
+            rec["ratio"] = median / ref["median_s"]
+            rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
+            text = (
+                f"  ratio {rec['ratio']:6.3f}  grad rel err {rec['grad_rel_err']:.1e}"
+            )
+        if host:  # a Theseus row: the reference for the speed-up column
+            theseus_times[(T, K, method)] = median
+        th_key = (T, K, "Theseus CHOLMOD unroll")
+        if not host and th_key in theseus_times:
+            rec["theseus_cholmod_s"] = theseus_times[th_key]
+            rec["speedup_vs_theseus"] = theseus_times[th_key] / median
+        records.append(rec)
+        flush()
+        first_text = (
+            f"first call {first:6.2f}" if host else f"compile {first - median:6.2f}"
+        )
+        print(
+            f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  "
+            f"{first_text} s{text}",
+            flush=True,
+        )
+
     for T in sizes:
         truths, meas = simulate(T, BATCH, dtype)
         graphs = eqx.filter_vmap(lambda m: build_graph(m, dtype))(meas)
@@ -405,34 +444,7 @@ def main(argv=None):
                 fn = theseus_step(meas, truths, K, tsolver, tback)
                 first, median = _time_host(fn, args.repeats)
                 val, grad = fn()
-                rec = {
-                    "benchmark": "train_step",
-                    "config": {**config, "method": method},
-                    "T": T,
-                    "K": K,
-                    "method": method,
-                    "median_s": median,
-                    "compile_s": first - median,
-                    "loss": val,
-                }
-                if ref is not None:
-                    rec["reference_median_s"] = ref["median_s"]
-                    rec["ratio"] = median / ref["median_s"]
-                    rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
-                records.append(rec)
-                flush()
-                theseus_times[(T, K, method)] = median
-                extra = (
-                    f"  ratio {rec['ratio']:6.3f}  grad rel err "
-                    f"{rec['grad_rel_err']:.1e}"
-                    if ref is not None
-                    else ""
-                )
-                print(
-                    f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  "
-                    f"first call {first:6.2f} s{extra}",
-                    flush=True,
-                )
+                measured(T, K, ref, method, {}, first, median, val, grad, host=True)
             for sname, ls in solvers.items():
                 if sname == "DenseCholesky" and T > 200:
                     continue
@@ -443,42 +455,8 @@ def main(argv=None):
                     )
                     val, grad = fn(theta, graphs, truths)
                     method = f"eqsmooth {sname} {aname}"
-                    rec = {
-                        "benchmark": "train_step",
-                        "config": {
-                            **config,
-                            "solver": sname,
-                            "adjoint": aname,
-                            "method": method,
-                        },
-                        "T": T,
-                        "K": K,
-                        "method": method,
-                        "median_s": median,
-                        "compile_s": first - median,
-                        "loss": float(val),
-                    }
-                    if ref is not None:
-                        rec["reference_median_s"] = ref["median_s"]
-                        rec["ratio"] = median / ref["median_s"]
-                        rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
-                    th_key = (T, K, "Theseus CHOLMOD unroll")
-                    if th_key in theseus_times:
-                        rec["theseus_cholmod_s"] = theseus_times[th_key]
-                        rec["speedup_vs_theseus"] = theseus_times[th_key] / median
-                    records.append(rec)
-                    flush()
-                    extra = (
-                        f"  ratio {rec['ratio']:6.3f}  grad rel err "
-                        f"{rec['grad_rel_err']:.1e}"
-                        if ref is not None
-                        else ""
-                    )
-                    print(
-                        f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  "
-                        f"compile {first - median:6.2f} s{extra}",
-                        flush=True,
-                    )
+                    extra = {"solver": sname, "adjoint": aname}
+                    measured(T, K, ref, method, extra, first, median, val, grad)
     columns = [
         "T",
         "K",
