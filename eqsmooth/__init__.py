@@ -5,6 +5,11 @@ The most used names are re-exported here; the subpackages are
 [`eqsmooth.solve`][].
 """
 
+from ._xla_flags import apply_default_xla_flags
+
+
+apply_default_xla_flags()  # before anything starts JAX's backend; see _xla_flags
+
 from . import (
     discover as discover,
     factors as factors,
