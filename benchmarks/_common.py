@@ -51,7 +51,12 @@ def machine() -> dict:
         # Cholesky 10-100x slower), so they are part of the record.
         "env": {
             k: os.environ[k]
-            for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "XLA_FLAGS")
+            for k in (
+                "OPENBLAS_NUM_THREADS",
+                "OMP_NUM_THREADS",
+                "XLA_FLAGS",
+                "GLIBC_TUNABLES",
+            )
             if k in os.environ
         },
         "load_average": os.getloadavg(),

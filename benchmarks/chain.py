@@ -16,9 +16,15 @@ buffer estimate for the compiled iteration.
     python benchmarks/chain.py                 # T = 1e2 .. 1e5
     python benchmarks/chain.py --quick         # T = 1e2, 1e3 (CI)
     python benchmarks/chain.py --json benchmarks/results/chain.json
+    python benchmarks/chain.py --stages --sizes 10000 100000 --json ...
+
+`--stages` times the parts of one BlockTridiagonal iteration separately
+(linearise, assemble the blocks, factorise, solve, retract), each jitted on
+its own, to show which part grows faster than T.
 """
 
 import argparse
+import resource
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +32,13 @@ import numpy as np
 from _common import markdown_table, time_fn, write_json
 
 import eqsmooth as eqs
-from eqsmooth.solve._linearization import linearize, retract_values
+from eqsmooth.solve._block_tridiagonal import (
+    assemble_chain,
+    chain_plan,
+    cyclic_reduction_factor,
+    cyclic_reduction_solve,
+)
+from eqsmooth.solve._linearization import linearize, retract_values, zeros_tangent
 
 
 jax.config.update("jax_enable_x64", True)
@@ -134,21 +146,94 @@ def make_iteration(linear_solver):
     return iteration
 
 
+def _faults_per_call(fn, *args, calls: int = 5) -> tuple[float, float]:
+    """Minor page faults and system CPU seconds per call, after warm-up.
+
+    XLA:CPU allocates a program's scratch buffer on every call; when malloc
+    hands out fresh pages the kernel zero-fills each one (see
+    docs/getting-started.md), which shows up here.
+    """
+    jax.block_until_ready(fn(*args))
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    for _ in range(calls):
+        jax.block_until_ready(fn(*args))
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return (r1.ru_minflt - r0.ru_minflt) / calls, (r1.ru_stime - r0.ru_stime) / calls
+
+
+def stage_records(problem: str, build, T: int) -> list[dict]:
+    """Median time of each part of one BlockTridiagonal iteration, jitted apart."""
+    graph, values = build(T)
+    lin_fn = jax.jit(linearize)
+    lin = lin_fn(graph, values)
+    plan = chain_plan(lin)
+    assemble = jax.jit(lambda lin: assemble_chain(lin, plan, None))
+    diag, upper, grad = assemble(lin)
+    factor = jax.jit(cyclic_reduction_factor)
+    state = factor(diag, upper)
+    stages = {
+        "linearize": (lin_fn, (graph, values)),
+        "assemble": (assemble, (lin,)),
+        "factor": (factor, (diag, upper)),
+        "solve": (jax.jit(cyclic_reduction_solve), (state, grad)),
+        "retract": (jax.jit(retract_values), (values, zeros_tangent(lin))),
+    }
+    records = []
+    for stage, (fn, args) in stages.items():
+        first, median, _ = time_fn(fn, *args, repeats=7)
+        records.append(
+            {
+                "benchmark": "chain_stages",
+                "config": {"problem": problem, "T": T, "stage": stage},
+                "problem": problem,
+                "T": T,
+                "stage": stage,
+                "median_s": median,
+                "median_ms": median * 1e3,
+                "compile_s": first - median,
+            }
+        )
+        print(f"{problem:7s} T={T:<7d} {stage:10s} {median * 1e3:9.2f} ms", flush=True)
+    return records
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
     parser.add_argument("--sizes", type=int, nargs="*", default=None)
+    parser.add_argument("--problems", nargs="*", default=["disk", "se2vel"])
+    parser.add_argument(
+        "--solvers",
+        nargs="*",
+        default=["BlockTridiagonal", "PCG", "DenseCholesky", "SparseLU"],
+    )
+    parser.add_argument(
+        "--stages", action="store_true", help="time the parts of an iteration"
+    )
     args = parser.parse_args(argv)
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
+    builders = {"disk": disk_problem, "se2vel": se2vel_problem}
+    if args.stages:
+        records = []
+        for problem in args.problems:
+            for T in sizes:
+                records += stage_records(problem, builders[problem], T)
+        print()
+        print(markdown_table(records, ["problem", "T", "stage", "median_ms"]))
+        if args.json:
+            write_json(args.json, records)
+        return
     solvers = {
         "BlockTridiagonal": eqs.BlockTridiagonal(),
         "PCG": eqs.PCG(),
         "DenseCholesky": eqs.DenseCholesky(),
         "SparseLU": eqs.solve.SparseLU(),
     }
+    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
     records = []
-    for problem, build in [("disk", disk_problem), ("se2vel", se2vel_problem)]:
+    for problem in args.problems:
+        build = builders[problem]
         for T in sizes:
             graph, values = build(T)
             for name, ls in solvers.items():
@@ -160,6 +245,7 @@ def main(argv=None):
                 first, median, _ = time_fn(
                     it, graph, values, repeats=7 if T < 1e5 else 5
                 )
+                faults, sys_s = _faults_per_call(it, graph, values)
                 mem = it.lower(graph, values).compile().memory_analysis()
                 rec = {
                     "benchmark": "chain",
@@ -176,11 +262,14 @@ def main(argv=None):
                     "median_ms": median * 1e3,
                     "compile_s": first - median,
                     "temp_MiB": getattr(mem, "temp_size_in_bytes", 0) / 2**20,
+                    "page_faults": faults,
+                    "sys_ms": sys_s * 1e3,
                 }
                 records.append(rec)
                 print(
                     f"{problem:7s} T={T:<7d} {name:17s} {median * 1e3:9.2f} ms/iter "
-                    f"compile {first - median:6.2f} s",
+                    f"compile {first - median:6.2f} s  {faults:8.0f} page faults "
+                    f"{sys_s * 1e3:6.1f} ms sys",
                     flush=True,
                 )
     # linear-scaling ratio of the structured solver
@@ -203,7 +292,17 @@ def main(argv=None):
     print()
     print(
         markdown_table(
-            records, ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]
+            records,
+            [
+                "problem",
+                "T",
+                "solver",
+                "median_ms",
+                "compile_s",
+                "temp_MiB",
+                "page_faults",
+                "sys_ms",
+            ],
         )
     )
     if args.json:

@@ -15,6 +15,14 @@ similar hangs, did not help here, and neither did turning XNNPACK off. The
 hang is not specific to that program: `benchmarks/train_step.py` hung the
 same way at `T = 2000` in two separate runs.
 
+A native stack of a hung `train_step.py` (with the flag) names the cause:
+jaxlib's batched LAPACK kernels (`lapack_dtrsm_ffi` -> `ParallelBatchMap`)
+split their batch over XLA's intra-op thread pool and block on a counter;
+when as many run concurrently as the pool has threads, all of them wait and
+no thread is left for the pieces. The flag lowers the concurrency and with
+it the odds (0 of 17 reproducer processes hung), but it does not remove
+them: that training step hung once at `T = 2000` with the flag on.
+
 The scheduler only reorders independent operations, so turning it off
 changes no result. XLA reads `XLA_FLAGS` when JAX first starts its backend,
 so this takes effect only if `eqsmooth` is imported before the first JAX
