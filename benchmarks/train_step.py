@@ -296,6 +296,20 @@ def main(argv=None):
         default=2000,
         help="largest T at which Theseus is measured (when it is installed)",
     )
+    parser.add_argument(
+        "--solvers",
+        nargs="*",
+        default=["BlockTridiagonal", "DenseCholesky", "PCG"],
+        help="eqsmooth linear solvers to measure",
+    )
+    parser.add_argument(
+        "--theseus-backward",
+        nargs="*",
+        default=["unroll", "implicit"],
+        choices=["unroll", "implicit"],
+        help="Theseus backward modes to measure (unroll at T = 2000 needed more "
+        "than 24 GiB here and was killed)",
+    )
     args = parser.parse_args(argv)
     m = machine()  # git hash, load and thread settings when the run started
     have_theseus = _have_theseus()
@@ -310,6 +324,7 @@ def main(argv=None):
     )
     if args.quick:
         theseus_configs = theseus_configs[:1]
+    theseus_configs = [c for c in theseus_configs if c[1] in args.theseus_backward]
     theseus_times = {}
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -326,6 +341,7 @@ def main(argv=None):
         "DenseCholesky": eqs.DenseCholesky(),
         "PCG": eqs.PCG(),
     }
+    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
     if args.quick:
         adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
         solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
