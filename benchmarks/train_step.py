@@ -303,6 +303,12 @@ def main(argv=None):
         help="eqsmooth linear solvers to measure",
     )
     parser.add_argument(
+        "--adjoints",
+        nargs="*",
+        default=["unrolled", "truncated(k=1)", "implicit"],
+        help="eqsmooth adjoints to measure",
+    )
+    parser.add_argument(
         "--theseus-backward",
         nargs="*",
         default=["unroll", "implicit"],
@@ -342,6 +348,7 @@ def main(argv=None):
         "PCG": eqs.PCG(),
     }
     solvers = {k: v for k, v in solvers.items() if k in args.solvers}
+    adjoints = {k: v for k, v in adjoints.items() if k in args.adjoints}
     if args.quick:
         adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
         solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
