@@ -347,11 +347,11 @@ def main(argv=None):
         "DenseCholesky": eqs.DenseCholesky(),
         "PCG": eqs.PCG(),
     }
-    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
-    adjoints = {k: v for k, v in adjoints.items() if k in args.adjoints}
     if args.quick:
         adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
         solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
+    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
+    adjoints = {k: v for k, v in adjoints.items() if k in args.adjoints}
     records = []
 
     def flush():
