@@ -35,6 +35,7 @@ from jaxtyping import Array, Bool, Float
 from ..factors import GroupLayout, Var
 from ._linear_solver import AbstractLinearSolver, pivot_tolerance
 from ._linearization import Linearization, Tangent
+from ._small_blocks import block_cho_solve
 from ._solution import RESULTS
 
 
@@ -381,8 +382,8 @@ def _mT(x):
     return jnp.swapaxes(x, -1, -2)
 
 
-def _cho_solve(chol, b):
-    """`A⁻¹ b` for batched lower Cholesky factors `chol` of `A`, `b` (..., D, K)."""
+def _lapack_cho_solve(chol, b):
+    """`A⁻¹ b` by jaxlib's batched LAPACK triangular solves (see `_small_blocks`)."""
     y = jax.lax.linalg.triangular_solve(chol, b, left_side=True, lower=True)
     return jax.lax.linalg.triangular_solve(
         chol, y, left_side=True, lower=True, transpose_a=True
@@ -429,6 +430,11 @@ def cyclic_reduction_factor(
 
     `ok` is false when a pivot is non-finite or below rounding level relative to
     the original diagonal entry of its coordinate (singular or indefinite).
+
+    The factorisation calls jaxlib's batched LAPACK kernels: each level's
+    Cholesky and triangular solve depend on the previous level's, so these
+    calls run one after another (see `_small_blocks` for why that matters).
+    The solves that use the factorisation call no LAPACK at all.
     """
     dtype = diagonal.dtype
     T, D, _ = diagonal.shape
@@ -454,7 +460,7 @@ def cyclic_reduction_factor(
         chol = jnp.linalg.cholesky(odd)
         # One solve and one product with both couplings side by side: batched
         # tiny-matrix calls are dominated by per-call overhead on CPU.
-        both = _cho_solve(chol, jnp.concatenate([_mT(b_left), b_right], axis=2))
+        both = _lapack_cho_solve(chol, jnp.concatenate([_mT(b_left), b_right], axis=2))
         left, right = both[..., :D], both[..., D:]
         ok = ok & check(chol, scale[1::2])
         scale = scale[0::2]
@@ -485,13 +491,13 @@ def cyclic_reduction_solve(
     for n, level in zip(sizes, state.levels):
         m, k = n // 2, n - n // 2
         odd, even = b[1::2], b[0::2]
-        partial.append(_cho_solve(level.chol, odd[..., None])[..., 0])
+        partial.append(block_cho_solve(level.chol, odd[..., None])[..., 0])
         b = (
             even
             - _pad_end(jnp.einsum("jde,jd->je", level.left, odd), k)
             - _shift_down(jnp.einsum("jde,jd->je", level.right, odd), k)
         )
-    x = _cho_solve(state.root, b[..., None])[..., 0]
+    x = block_cho_solve(state.root, b[..., None])[..., 0]
     for n, level, u in zip(reversed(sizes), reversed(state.levels), reversed(partial)):
         m, k = n // 2, n - n // 2
         xe = _pad_end(x, m + 1)
@@ -518,7 +524,7 @@ def cyclic_reduction_inverse_blocks(
     sizes = _level_sizes(T)
     D = state.root.shape[-1]
     eye = jnp.eye(D, dtype=state.root.dtype)
-    diag = _cho_solve(state.root, eye[None])
+    diag = block_cho_solve(state.root, eye[None])
     upper = jnp.zeros((0, D, D), diag.dtype)
     for n, level in zip(reversed(sizes), reversed(state.levels)):
         m = n // 2
@@ -526,7 +532,7 @@ def cyclic_reduction_inverse_blocks(
         se = _pad_end(diag, m + 1)
         s0, s1 = se[:m], se[1 : m + 1]
         c = _pad_end(upper, m)  # Σ_{2j, 2j+2} of the reduced system
-        a_inv = _cho_solve(level.chol, jnp.broadcast_to(eye, (m, D, D)))
+        a_inv = block_cho_solve(level.chol, jnp.broadcast_to(eye, (m, D, D)))
         odd = (
             a_inv
             + Wl @ s0 @ _mT(Wl)

@@ -36,6 +36,7 @@ from ._linearization import (
     normal_matvec as _normal_matvec,
     Tangent,
 )
+from ._small_blocks import block_cho_solve, block_cholesky
 from ._solution import RESULTS
 
 
@@ -105,8 +106,8 @@ def block_jacobi_inverse(
         diag = jnp.diagonal(b, axis1=1, axis2=2)
         scale = jnp.max(diag, axis=1, keepdims=True)[:, :, None]
         jitter = jnp.asarray(jnp.finfo(lin.dtype).eps, lin.dtype) * scale
-        chol = jnp.linalg.cholesky(b + jitter * eye[None])
-        inv = jax.scipy.linalg.cho_solve((chol, True), jnp.broadcast_to(eye, b.shape))
+        chol = block_cholesky(b + jitter * eye[None])
+        inv = block_cho_solve(chol, jnp.broadcast_to(eye, b.shape))
         good = jnp.all(jnp.isfinite(inv), axis=(1, 2)) & (scale[:, 0, 0] > 0)
         out[g.name] = jnp.where(good[:, None, None], inv, eye[None])
     return out
