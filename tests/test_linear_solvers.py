@@ -469,6 +469,48 @@ def test_cyclic_reduction_operator(T):
     )
 
 
+@pytest.mark.parametrize("D", [1, 4, 9])  # 9: above SMALL_BLOCK_LIMIT, LAPACK
+def test_small_blocks_match_numpy(D):
+    from eqsmooth.solve._small_blocks import block_cho_solve, block_cholesky
+
+    diag, _ = _random_blocks(5, D, 3)
+    a = np.array(diag)
+    b = np.random.default_rng(4).normal(size=(5, D, 2))
+    chol = np.asarray(block_cholesky(jnp.asarray(a)))
+    np.testing.assert_allclose(chol, np.linalg.cholesky(a), rtol=1e-12, atol=1e-12)
+    x = np.asarray(block_cho_solve(jnp.asarray(chol), jnp.asarray(b)))
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10, atol=1e-12)
+    # An indefinite block gives non-finite factors (callers test the pivots).
+    a[2] = -a[2]
+    assert not np.all(np.isfinite(np.asarray(block_cholesky(jnp.asarray(a)))[2]))
+    assert np.all(np.isfinite(np.asarray(block_cholesky(jnp.asarray(a)))[1]))
+
+
+def test_chain_solve_calls_no_lapack():
+    # jaxlib's batched LAPACK kernels can deadlock XLA:CPU's thread pool when two
+    # run at once, and a cyclic reduction solve has one independent triangular
+    # solve per level: the solve and the selected inversion must not call them.
+    from eqsmooth.solve._block_tridiagonal import (
+        cyclic_reduction_factor,
+        cyclic_reduction_inverse_blocks,
+        cyclic_reduction_solve,
+    )
+
+    diag, upper = _random_blocks(9, 5, 0)
+    state = cyclic_reduction_factor(diag, upper)
+    b = jnp.ones((9, 5))
+    hlo = [
+        jax.jit(cyclic_reduction_solve).lower(state, b).as_text(),
+        jax.jit(cyclic_reduction_inverse_blocks, static_argnums=1)
+        .lower(state, 9)
+        .as_text(),
+    ]
+    factor_hlo = jax.jit(cyclic_reduction_factor).lower(diag, upper).as_text()
+    assert "lapack" in factor_hlo  # the check below can see LAPACK calls
+    for text in hlo:
+        assert "lapack" not in text
+
+
 # ---------------------------------------------------------------------------
 # vmap and autodiff
 # ---------------------------------------------------------------------------
