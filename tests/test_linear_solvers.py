@@ -469,6 +469,36 @@ def test_cyclic_reduction_operator(T):
     )
 
 
+@pytest.mark.parametrize("tail", [1, 2, 3, 32])
+def test_cyclic_reduction_levels_and_tail(monkeypatch, tail):
+    # Reduction levels of odd and even sizes down to `tail` blocks, then the
+    # sequential tail: solve and selected inversion against a dense inverse.
+    from eqsmooth.solve import _block_tridiagonal as bt
+
+    monkeypatch.setattr(bt, "TAIL_SIZE", tail)
+    T, D = 11, 2
+    diag, upper = _random_blocks(T, D, 5)
+    dense = np.asarray(bt.BlockTridiagonalOperator(diag, upper).as_matrix())
+    b = np.random.default_rng(2).normal(size=(T, D))
+    state = bt.cyclic_reduction_factor(diag, upper)
+    assert len(state.levels) == len(bt._level_sizes(T))
+    assert 1 <= state.tail.chol_inv.shape[0] <= tail
+    assert bool(state.ok)
+    x = np.asarray(bt.cyclic_reduction_solve(state, jnp.asarray(b)))
+    np.testing.assert_allclose(x.ravel(), np.linalg.solve(dense, b.ravel()), atol=1e-12)
+    inv = np.linalg.inv(dense).reshape(T, D, T, D)
+    cov, cross = bt.cyclic_reduction_inverse_blocks(state, T)
+    t = np.arange(T)
+    np.testing.assert_allclose(np.asarray(cov), inv[t, :, t, :], atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(cross), inv[t[:-1], :, t[:-1] + 1, :], atol=1e-12
+    )
+    # An indefinite matrix is reported, wherever its bad pivot falls.
+    bad = np.array(diag)
+    bad[T - 1] = -bad[T - 1]
+    assert not bool(bt.cyclic_reduction_factor(jnp.asarray(bad), upper).ok)
+
+
 @pytest.mark.parametrize("D", [1, 4, 9])  # 9: above SMALL_BLOCK_LIMIT, LAPACK
 def test_small_blocks_match_numpy(D):
     from eqsmooth.solve._small_blocks import block_cho_solve, block_cholesky
@@ -496,13 +526,15 @@ def test_chain_solve_calls_no_lapack():
         cyclic_reduction_solve,
     )
 
-    diag, upper = _random_blocks(9, 5, 0)
+    T = 40  # two reduction levels, then the sequential tail
+    diag, upper = _random_blocks(T, 5, 0)
     state = cyclic_reduction_factor(diag, upper)
-    b = jnp.ones((9, 5))
+    assert state.levels
+    b = jnp.ones((T, 5))
     hlo = [
         jax.jit(cyclic_reduction_solve).lower(state, b).as_text(),
         jax.jit(cyclic_reduction_inverse_blocks, static_argnums=1)
-        .lower(state, 9)
+        .lower(state, T)
         .as_text(),
     ]
     factor_hlo = jax.jit(cyclic_reduction_factor).lower(diag, upper).as_text()

@@ -35,7 +35,10 @@ from jaxtyping import Array, Bool, Float
 from ..factors import GroupLayout, Var
 from ._linear_solver import AbstractLinearSolver, pivot_tolerance
 from ._linearization import Linearization, Tangent
-from ._small_blocks import block_cho_solve
+from ._small_blocks import (
+    block_cholesky,
+    block_solve_lower,
+)
 from ._solution import RESULTS
 
 
@@ -404,23 +407,115 @@ def _shift_down(x, length):
 
 
 class _Level(eqx.Module):
-    """One reduction level: the odd blocks' Cholesky factors and couplings.
+    """One reduction level: the odd blocks' inverse Cholesky factors and couplings.
 
-    For odd block `o = 2j + 1`: `chol[j]` factors `A_o`, `left[j] = A_o⁻¹ B_{2j}ᵀ`
-    and `right[j] = A_o⁻¹ B_{2j+1}` (zero when block `o` is the last one).
+    For odd block `o = 2j + 1` with `A_o = L Lᵀ`: `chol_inv[j] = L⁻¹`,
+    `left[j] = A_o⁻¹ B_{2j}ᵀ` and `right[j] = A_o⁻¹ B_{2j+1}` (zero when block
+    `o` is the last one). Keeping `L⁻¹` turns every later solve into
+    products: no triangular solves, no LAPACK calls, a small program to
+    compile.
     """
 
-    chol: Float[Array, "m D D"]
+    chol_inv: Float[Array, "m D D"]
     left: Float[Array, "m D D"]
     right: Float[Array, "m D D"]
+
+
+class _Tail(eqx.Module):
+    """The last `S` blocks, factorised sequentially (block Cholesky).
+
+    With `L_t` the Cholesky factor of the Schur complement
+    `A_t − W_{t−1}ᵀ W_{t−1}` and `W_t = L_t⁻¹ B_t`, the matrix is `M Mᵀ` for
+    the block lower bidiagonal `M` with `L_t` on its diagonal and `W_tᵀ`
+    below it. Stored: `chol_inv[t] = L_t⁻¹` and `coupling[t] = W_t`.
+    """
+
+    chol_inv: Float[Array, "S D D"]
+    coupling: Float[Array, "S-1 D D"]
 
 
 class CyclicReductionState(eqx.Module):
     """The factorisation computed by [`eqsmooth.solve.BlockCyclicReduction`][]."""
 
     levels: tuple[_Level, ...]
-    root: Float[Array, "1 D D"]
+    tail: _Tail
     ok: Bool[Array, ""]
+
+
+TAIL_SIZE = 32
+"""Cyclic reduction stops once at most this many blocks are left; a sequential
+block Cholesky (one `lax.scan`) factors the rest. The tail runs about as fast
+as the levels it replaces, but every reduction level compiles to a dozen XLA
+kernels of its own while the scan body compiles once, which cuts the compile
+time of long chains (`benchmarks/chain.py`)."""
+
+
+def _tail_factor(A, B) -> tuple[_Tail, Array]:
+    """The sequential factorisation and the pivots (diagonals of the `L_t`)."""
+    eye = jnp.eye(A.shape[-1], dtype=A.dtype)
+
+    def factor(s):
+        chol = block_cholesky(0.5 * (s + _mT(s)))
+        return block_solve_lower(chol, eye), jnp.diagonal(chol)
+
+    inv0, piv0 = factor(A[0])
+    if A.shape[0] == 1:
+        return _Tail(inv0[None], B), piv0[None]
+
+    def step(inv_prev, blocks):
+        a, b = blocks
+        w = inv_prev @ b
+        inv, piv = factor(a - _mT(w) @ w)
+        return inv, (inv, w, piv)
+
+    _, (inv, coupling, piv) = jax.lax.scan(step, inv0, (A[1:], B))
+    tail = _Tail(jnp.concatenate([inv0[None], inv]), coupling)
+    return tail, jnp.concatenate([piv0[None], piv])
+
+
+def _tail_solve(tail: _Tail, b):
+    Li, W = tail.chol_inv, tail.coupling
+    y0 = Li[0] @ b[0]
+    if b.shape[0] == 1:
+        return (_mT(Li[0]) @ y0)[None]
+
+    def forward(y_prev, blocks):
+        li, w, rhs = blocks
+        y = li @ (rhs - _mT(w) @ y_prev)
+        return y, y
+
+    _, y = jax.lax.scan(forward, y0, (Li[1:], W, b[1:]))
+    x_last = _mT(Li[-1]) @ y[-1]
+
+    def backward(x_next, blocks):
+        li, w, yt = blocks
+        x = _mT(li) @ (yt - w @ x_next)
+        return x, x
+
+    ys = jnp.concatenate([y0[None], y[:-1]])
+    _, x = jax.lax.scan(backward, x_last, (Li[:-1], W, ys), reverse=True)
+    return jnp.concatenate([x, x_last[None]])
+
+
+def _tail_inverse_blocks(tail: _Tail):
+    """Diagonal and super-diagonal blocks of `(M Mᵀ)⁻¹`, from the last block up:
+    `Σ_{t,t+1} = −G_t Σ_{t+1,t+1}` and `Σ_tt = L_t⁻ᵀ L_t⁻¹ + G_t Σ_{t+1,t+1} G_tᵀ`
+    with `G_t = L_t⁻ᵀ W_t`."""
+    Li, W = tail.chol_inv, tail.coupling
+    last = _mT(Li[-1]) @ Li[-1]
+    if Li.shape[0] == 1:
+        return last[None], W
+
+    def step(s_next, blocks):
+        li, w = blocks
+        G = _mT(li) @ w
+        cross = -G @ s_next
+        s = _mT(li) @ li - cross @ _mT(G)
+        s = 0.5 * (s + _mT(s))
+        return s, (s, cross)
+
+    _, (diag, upper) = jax.lax.scan(step, last, (Li[:-1], W), reverse=True)
+    return jnp.concatenate([diag, last[None]]), upper
 
 
 def cyclic_reduction_factor(
@@ -431,10 +526,11 @@ def cyclic_reduction_factor(
     `ok` is false when a pivot is non-finite or below rounding level relative to
     the original diagonal entry of its coordinate (singular or indefinite).
 
-    The factorisation calls jaxlib's batched LAPACK kernels: each level's
+    The reduction levels call jaxlib's batched LAPACK kernels: each level's
     Cholesky and triangular solve depend on the previous level's, so these
     calls run one after another (see `_small_blocks` for why that matters).
-    The solves that use the factorisation call no LAPACK at all.
+    The last `TAIL_SIZE` blocks (or fewer) are factorised by a sequential
+    block Cholesky, and the solves that use the factorisation call no LAPACK.
     """
     dtype = diagonal.dtype
     T, D, _ = diagonal.shape
@@ -447,35 +543,36 @@ def cyclic_reduction_factor(
     levels = []
     ok = jnp.asarray(True)
 
-    def check(chol, ref):
-        piv = jnp.diagonal(chol, axis1=1, axis2=2)
+    def check(piv, ref):
         return jnp.all(piv * piv > rel_tol * ref)
 
-    while A.shape[0] > 1:
+    while A.shape[0] > TAIL_SIZE:
         n = A.shape[0]
         m, k = n // 2, n - n // 2
         Bp = _pad_end(B, n)
         odd, even = A[1::2], A[0::2]
         b_left, b_right = Bp[0 : 2 * m : 2], Bp[1 : 2 * m : 2]
         chol = jnp.linalg.cholesky(odd)
-        # One solve and one product with both couplings side by side: batched
+        # One solve for both couplings and the inverse side by side: batched
         # tiny-matrix calls are dominated by per-call overhead on CPU.
         both = _lapack_cho_solve(chol, jnp.concatenate([_mT(b_left), b_right], axis=2))
         left, right = both[..., :D], both[..., D:]
-        ok = ok & check(chol, scale[1::2])
+        eye = jnp.broadcast_to(jnp.eye(D, dtype=dtype), (m, D, D))
+        chol_inv = block_solve_lower(chol, eye)
+        ok = ok & check(jnp.diagonal(chol, axis1=1, axis2=2), scale[1::2])
         scale = scale[0::2]
         prod = b_left @ both  # [B_{2j} A_o⁻¹ B_{2j}ᵀ, B_{2j} A_o⁻¹ B_{2j+1}]
         A = even - _pad_end(prod[..., :D], k) - _shift_down(_mT(b_right) @ right, k)
         B = -prod[: k - 1, :, D:]
-        levels.append(_Level(chol, left, right))
-    root = jnp.linalg.cholesky(A)
-    ok = ok & check(root, scale)
-    return CyclicReductionState(tuple(levels), root, ok)
+        levels.append(_Level(chol_inv, left, right))
+    tail, pivots = _tail_factor(A, B)
+    ok = ok & check(pivots, scale)
+    return CyclicReductionState(tuple(levels), tail, ok)
 
 
 def _level_sizes(T: int) -> list[int]:
     sizes = []
-    while T > 1:
+    while T > TAIL_SIZE:
         sizes.append(T)
         T = T - T // 2
     return sizes
@@ -491,13 +588,14 @@ def cyclic_reduction_solve(
     for n, level in zip(sizes, state.levels):
         m, k = n // 2, n - n // 2
         odd, even = b[1::2], b[0::2]
-        partial.append(block_cho_solve(level.chol, odd[..., None])[..., 0])
+        y = jnp.einsum("jde,je->jd", level.chol_inv, odd)
+        partial.append(jnp.einsum("jed,je->jd", level.chol_inv, y))
         b = (
             even
             - _pad_end(jnp.einsum("jde,jd->je", level.left, odd), k)
             - _shift_down(jnp.einsum("jde,jd->je", level.right, odd), k)
         )
-    x = block_cho_solve(state.root, b[..., None])[..., 0]
+    x = _tail_solve(state.tail, b)
     for n, level, u in zip(reversed(sizes), reversed(state.levels), reversed(partial)):
         m, k = n // 2, n - n // 2
         xe = _pad_end(x, m + 1)
@@ -522,17 +620,15 @@ def cyclic_reduction_inverse_blocks(
     so only the tridiagonal part of `Σ_ee` is ever needed.
     """
     sizes = _level_sizes(T)
-    D = state.root.shape[-1]
-    eye = jnp.eye(D, dtype=state.root.dtype)
-    diag = block_cho_solve(state.root, eye[None])
-    upper = jnp.zeros((0, D, D), diag.dtype)
+    D = state.tail.chol_inv.shape[-1]
+    diag, upper = _tail_inverse_blocks(state.tail)
     for n, level in zip(reversed(sizes), reversed(state.levels)):
         m = n // 2
         Wl, Wr = level.left, level.right
         se = _pad_end(diag, m + 1)
         s0, s1 = se[:m], se[1 : m + 1]
         c = _pad_end(upper, m)  # Σ_{2j, 2j+2} of the reduced system
-        a_inv = block_cho_solve(level.chol, jnp.broadcast_to(eye, (m, D, D)))
+        a_inv = _mT(level.chol_inv) @ level.chol_inv
         odd = (
             a_inv
             + Wl @ s0 @ _mT(Wl)

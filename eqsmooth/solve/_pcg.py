@@ -212,7 +212,7 @@ class ChainPreconditioner(AbstractPreconditioner):
 
         # `plan` is static (numpy); a closure keeps it out of the pytree.
         def apply(factor, jacobi, v: Tangent) -> Tangent:
-            b = plan.from_tangent(v, layout, factor.root.dtype)
+            b = plan.from_tangent(v, layout, factor.tail.chol_inv.dtype)
             x = plan.to_tangent(cyclic_reduction_solve(factor, b), layout)
             fallback = _apply_block_jacobi(jacobi, v)
             return {k: jnp.where(factor.ok, x[k], fallback[k]) for k in x}
