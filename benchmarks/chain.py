@@ -211,7 +211,18 @@ def main(argv=None):
     parser.add_argument(
         "--stages", action="store_true", help="time the parts of an iteration"
     )
+    parser.add_argument(
+        "--tail-size",
+        type=int,
+        default=None,
+        help="override eqsmooth.solve._block_tridiagonal.TAIL_SIZE (1 = cyclic "
+        "reduction all the way down, the behaviour before the sequential tail)",
+    )
     args = parser.parse_args(argv)
+    if args.tail_size is not None:
+        from eqsmooth.solve import _block_tridiagonal
+
+        _block_tridiagonal.TAIL_SIZE = args.tail_size
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
     builders = {"disk": disk_problem, "se2vel": se2vel_problem}
     if args.stages:

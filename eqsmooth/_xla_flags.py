@@ -24,6 +24,13 @@ it the odds (0 of 17 reproducer processes hung), but it does not remove
 them: with the flag on, that training step at `T = 2000` hung in 5 of 5
 tries of the truncated and implicit adjoints.
 
+Since then the chain solver avoids the cause itself: its solves and
+selected inversion use no LAPACK kernel, and the LAPACK calls of its
+factorisation depend on each other, so never two run at once
+(`eqsmooth/solve/_small_blocks.py`). With that change the truncated and
+implicit training steps at `T = 2000` finish. The flag stays for other
+programs with independent batched LAPACK calls.
+
 The scheduler only reorders independent operations, so turning it off
 changes no result. XLA reads `XLA_FLAGS` when JAX first starts its backend,
 so this takes effect only if `eqsmooth` is imported before the first JAX

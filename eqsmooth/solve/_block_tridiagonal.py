@@ -10,10 +10,12 @@ The system is solved by block cyclic reduction (odd-even reduction; Heller
 1976, "Some aspects of the cyclic reduction algorithm for block tridiagonal
 linear systems", SIAM J. Numer. Anal. 13(4)). Eliminating the odd-indexed
 blocks leaves a block-tridiagonal Schur complement on the even blocks, half the
-size; after `⌈log₂ T⌉` levels one block remains. Every level is a handful of
-batched `D × D` Cholesky factorisations, triangular solves and products, so the
-cost is `O(T D³)` like a sequential block Cholesky, but the depth is `O(log T)`
-instead of `O(T)`: no per-time-step loop overhead on CPU, and parallel on GPU.
+size; once at most `TAIL_SIZE` blocks remain, a sequential block Cholesky
+(one `lax.scan`) factors them. Every level is a handful of batched `D × D`
+Cholesky factorisations, triangular solves and products, so the cost is
+`O(T D³)` like a sequential block Cholesky, but the depth is
+`O(log T + TAIL_SIZE)` instead of `O(T)`: no per-time-step loop over a long
+chain on CPU, and parallel on GPU.
 It is the Cholesky factorisation of the odd-even permuted matrix, hence
 backward stable for symmetric positive definite systems.
 
