@@ -37,10 +37,7 @@ from jaxtyping import Array, Bool, Float
 from ..factors import GroupLayout, Var
 from ._linear_solver import AbstractLinearSolver, pivot_tolerance
 from ._linearization import Linearization, Tangent
-from ._small_blocks import (
-    block_cholesky,
-    block_solve_lower,
-)
+from ._small_blocks import block_cholesky, block_solve_lower
 from ._solution import RESULTS
 
 
@@ -555,8 +552,8 @@ def cyclic_reduction_factor(
         odd, even = A[1::2], A[0::2]
         b_left, b_right = Bp[0 : 2 * m : 2], Bp[1 : 2 * m : 2]
         chol = jnp.linalg.cholesky(odd)
-        # One solve for both couplings and the inverse side by side: batched
-        # tiny-matrix calls are dominated by per-call overhead on CPU.
+        # One solve with both couplings side by side: batched tiny-matrix
+        # calls are dominated by per-call overhead on CPU.
         both = _lapack_cho_solve(chol, jnp.concatenate([_mT(b_left), b_right], axis=2))
         left, right = both[..., :D], both[..., D:]
         eye = jnp.broadcast_to(jnp.eye(D, dtype=dtype), (m, D, D))

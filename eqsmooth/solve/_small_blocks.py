@@ -52,42 +52,33 @@ def block_cholesky(a: Float[Array, "*batch D D"]) -> Float[Array, "*batch D D"]:
     return jnp.stack(columns, axis=-1)
 
 
+def _substitute(chol, b, transpose: bool):
+    """`L⁻¹ b` (forward substitution) or `L⁻ᵀ b` (back substitution)."""
+    D = chol.shape[-1]
+    if D > SMALL_BLOCK_LIMIT:
+        return jax.lax.linalg.triangular_solve(
+            chol, b, left_side=True, lower=True, transpose_a=transpose
+        )
+    x: list = [None] * D
+    for i in reversed(range(D)) if transpose else range(D):
+        r = b[..., i, :]
+        for k in range(i + 1, D) if transpose else range(i):
+            # Row i of Lᵀ is column i of L.
+            coef = chol[..., k, i : i + 1] if transpose else chol[..., i, k : k + 1]
+            r = r - coef * x[k]
+        x[i] = r / chol[..., i, i : i + 1]
+    return jnp.stack(x, axis=-2)
+
+
 def block_solve_lower(
     chol: Float[Array, "*batch D D"], b: Float[Array, "*batch D K"]
 ) -> Float[Array, "*batch D K"]:
     """`L⁻¹ b` for each block, `L = chol` lower triangular."""
-    D = chol.shape[-1]
-    if D > SMALL_BLOCK_LIMIT:
-        return jax.lax.linalg.triangular_solve(chol, b, left_side=True, lower=True)
-    y = []
-    for i in range(D):
-        r = b[..., i, :]
-        for k in range(i):
-            r = r - chol[..., i, k : k + 1] * y[k]
-        y.append(r / chol[..., i, i : i + 1])
-    return jnp.stack(y, axis=-2)
-
-
-def block_solve_upper(
-    chol: Float[Array, "*batch D D"], y: Float[Array, "*batch D K"]
-) -> Float[Array, "*batch D K"]:
-    """`L⁻ᵀ y` for each block, `L = chol` lower triangular."""
-    D = chol.shape[-1]
-    if D > SMALL_BLOCK_LIMIT:
-        return jax.lax.linalg.triangular_solve(
-            chol, y, left_side=True, lower=True, transpose_a=True
-        )
-    x: list = [None] * D
-    for i in reversed(range(D)):
-        r = y[..., i, :]
-        for k in range(i + 1, D):
-            r = r - chol[..., k, i : i + 1] * x[k]
-        x[i] = r / chol[..., i, i : i + 1]
-    return jnp.stack(x, axis=-2)
+    return _substitute(chol, b, transpose=False)
 
 
 def block_cho_solve(
     chol: Float[Array, "*batch D D"], b: Float[Array, "*batch D K"]
 ) -> Float[Array, "*batch D K"]:
     """`A⁻¹ b` for each block, given lower Cholesky factors `chol` of `A`."""
-    return block_solve_upper(chol, block_solve_lower(chol, b))
+    return _substitute(chol, _substitute(chol, b, transpose=False), transpose=True)
