@@ -190,6 +190,29 @@ def table_of(records: list[dict]) -> str:
     return markdown_table(rows, list(rows[0]) if rows else ["file"])
 
 
+def _loaded_blas() -> list[str]:
+    """The BLAS libraries mapped into this process, other than NumPy's own.
+
+    CHOLMOD's supernodal factorisation spends its time in the system BLAS that
+    SuiteSparse was linked against: the reference (netlib) BLAS made torus3D's
+    factorisation 4x slower than OpenBLAS on this machine, so the report says
+    which one was used.
+    """
+    found = set()
+    try:
+        lines = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return []
+    for line in lines:
+        path = line.split()[-1]
+        name = Path(path).name
+        if "scipy_openblas" in name or ".libs/" in path:
+            continue  # the wheels' private copies, not what CHOLMOD calls
+        if name.startswith(("libblas.so", "libopenblas", "libmkl_rt", "libblis")):
+            found.add(str(Path(path).resolve()))
+    return sorted(found)
+
+
 def _dirty() -> bool:
     try:
         out = subprocess.run(
@@ -219,6 +242,10 @@ def write_markdown(path, records, m: dict, solver_name: str, max_steps: int):
         f"JAX {m['jax']} ({m['backend']}), Python {m['python']}",
         f"- git: {git}",
         "- times: median of `repeats` full solves after a warm-up call, seconds",
+    ]
+    if m.get("blas"):
+        lines.append(f"- BLAS used by CHOLMOD: {', '.join(m['blas'])}")
+    lines += [
         "",
         table_of(records),
         "",
@@ -306,6 +333,10 @@ def main(argv=None):
 
     m = machine()  # git hash and tree state when the run started
     m["dirty"] = _dirty()
+    if args.solver == "cholmod":
+        import sksparse.cholmod  # noqa: F401  (maps CHOLMOD's BLAS)
+
+        m["blas"] = _loaded_blas()
     records = []
     for name, pg in problems:
         rec = bench_one(name, pg, args, solver, solver_name, have_gtsam)
