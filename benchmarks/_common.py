@@ -63,6 +63,29 @@ def machine() -> dict:
     }
 
 
+def loaded_blas() -> list[str]:
+    """The BLAS libraries mapped into this process, other than NumPy's own.
+
+    CHOLMOD's supernodal factorisation spends its time in the system BLAS that
+    SuiteSparse was linked against: the reference (netlib) BLAS made torus3D's
+    factorisation 4x slower than OpenBLAS on this machine, so the report says
+    which one was used.
+    """
+    found = set()
+    try:
+        lines = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return []
+    for line in lines:
+        path = line.split()[-1]
+        name = Path(path).name
+        if "scipy_openblas" in name or ".libs/" in path:
+            continue  # the wheels' private copies, not what CHOLMOD calls
+        if name.startswith(("libblas.so", "libopenblas", "libmkl_rt", "libblis")):
+            found.add(str(Path(path).resolve()))
+    return sorted(found)
+
+
 def time_fn(fn, *args, repeats: int = 7, min_time: float = 0.0):
     """Return (first_call_s, median_s, all_s) of a function returning JAX arrays."""
     t0 = time.perf_counter()

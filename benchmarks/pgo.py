@@ -40,7 +40,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from _common import machine, markdown_table, write_json
+from _common import loaded_blas, machine, markdown_table, write_json
 
 
 jax.config.update("jax_enable_x64", True)
@@ -190,29 +190,6 @@ def table_of(records: list[dict]) -> str:
     return markdown_table(rows, list(rows[0]) if rows else ["file"])
 
 
-def _loaded_blas() -> list[str]:
-    """The BLAS libraries mapped into this process, other than NumPy's own.
-
-    CHOLMOD's supernodal factorisation spends its time in the system BLAS that
-    SuiteSparse was linked against: the reference (netlib) BLAS made torus3D's
-    factorisation 4x slower than OpenBLAS on this machine, so the report says
-    which one was used.
-    """
-    found = set()
-    try:
-        lines = Path("/proc/self/maps").read_text().splitlines()
-    except OSError:
-        return []
-    for line in lines:
-        path = line.split()[-1]
-        name = Path(path).name
-        if "scipy_openblas" in name or ".libs/" in path:
-            continue  # the wheels' private copies, not what CHOLMOD calls
-        if name.startswith(("libblas.so", "libopenblas", "libmkl_rt", "libblis")):
-            found.add(str(Path(path).resolve()))
-    return sorted(found)
-
-
 def _dirty() -> bool:
     try:
         out = subprocess.run(
@@ -336,7 +313,7 @@ def main(argv=None):
     if args.solver == "cholmod":
         import sksparse.cholmod  # noqa: F401  (maps CHOLMOD's BLAS)
 
-        m["blas"] = _loaded_blas()
+        m["blas"] = loaded_blas()
     records = []
     for name, pg in problems:
         rec = bench_one(name, pg, args, solver, solver_name, have_gtsam)

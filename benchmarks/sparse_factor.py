@@ -29,7 +29,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine, markdown_table, write_json  # noqa: E402
+from _common import loaded_blas, machine, markdown_table, write_json  # noqa: E402
 
 from eqsmooth.io import load_g2o  # noqa: E402
 from eqsmooth.solve._linearization import linearize  # noqa: E402
@@ -75,8 +75,12 @@ def main(argv=None):
     args = parser.parse_args(argv)
     import scipy.sparse.linalg as spla
 
+    blas = []
     try:
         from sksparse.cholmod import analyze, cholesky
+
+        blas = loaded_blas()
+        print("BLAS used by CHOLMOD:", ", ".join(blas) or "unknown")
     except ImportError:
         analyze = cholesky = None
         print("note: scikit-sparse not installed: CHOLMOD not timed")
@@ -130,7 +134,7 @@ def main(argv=None):
     print()
     print(table)
     if args.json:
-        write_json(args.json, records)
+        write_json(args.json, records, extra={"cholmod_blas": blas})
     if args.markdown:
         m = machine()
         Path(args.markdown).write_text(
@@ -139,9 +143,12 @@ def main(argv=None):
                     "# One sparse factorisation + solve: SuperLU vs CHOLMOD",
                     "",
                     f"- command: `{m['command']}` (in `benchmarks/`)",
-                    f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']} "
-                    "(shared with other jobs: noisy; compare within a file)",
+                    f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}; "
+                    "load average at the end "
+                    + ", ".join(f"{x:.1f}" for x in m["load_average"])
+                    + " (compare within a file)",
                     f"- jax {m['jax']}, python {m['python']}, git {m['git']}",
+                    f"- BLAS used by CHOLMOD: {', '.join(blas) or 'unknown'}",
                     "",
                     table,
                     "",

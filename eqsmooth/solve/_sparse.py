@@ -271,11 +271,12 @@ class SparseCholesky(AbstractLinearSolver):
     `scikit-sparse` package): the fill-reducing ordering and symbolic
     analysis are computed once per graph structure and reused by every
     later solve, and the numeric factorisation is supernodal (dense BLAS
-    blocks). It was about 3 times faster than SuperLU on torus3D and 5 to 7
-    times on the 2-D benchmark graphs, but slower on sphere2500
-    (`benchmarks/results/sparse_factor.md`). A matrix that is not positive
-    definite (or singular to working precision) gives `RESULTS.singular` and
-    a zero step.
+    blocks), so its speed is that of the BLAS SuiteSparse is linked against:
+    on the g2o benchmarks it is within 1.4x of GTSAM with OpenBLAS and up to
+    3.2x slower with the reference BLAS
+    (`benchmarks/results/pgo_cholmod_openblas.md`). A matrix that is not
+    positive definite (or singular to working precision) gives
+    `RESULTS.singular` and a zero step.
 
     Needs `scikit-sparse`, which builds against the system SuiteSparse
     (Debian/Ubuntu: `apt-get install libsuitesparse-dev`, then
