@@ -7,16 +7,22 @@ SuperLU as `SparseLU` calls it (minimum-degree ordering of `Aᵀ + A`,
 symmetric mode), CHOLMOD from scratch (ordering + symbolic + numeric), and
 CHOLMOD numeric only (what `SparseCholesky` does after its first solve,
 reusing the symbolic analysis). `median_s` is the median over `--repeats`
-runs; `residual` is `‖Ax − b‖ / ‖b‖`. CHOLMOD needs `scikit-sparse`
+runs; `residual` is `‖Ax − b‖ / ‖b‖`; `factor_nnz` is the fill of the
+factorisation (`nnz(L) + nnz(U)` for SuperLU, `nnz(L)` for CHOLMOD).
+`--superlu-orderings` also times SuperLU with other column orderings (SciPy's
+`permc_spec`). CHOLMOD needs `scikit-sparse`
 (see `eqsmooth.solve.SparseCholesky`); without it only SuperLU is timed.
 
     python benchmarks/sparse_factor.py                       # every file
     python benchmarks/sparse_factor.py --files torus3D intel
+    python benchmarks/sparse_factor.py --files torus3D \
+        --superlu-orderings MMD_AT_PLUS_A COLAMD MMD_ATA
     python benchmarks/sparse_factor.py --json benchmarks/results/sparse_factor.json \\
         --markdown benchmarks/results/sparse_factor.md
 """
 
 import argparse
+import functools as ft
 import statistics
 import time
 import warnings
@@ -72,6 +78,13 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
+    parser.add_argument(
+        "--superlu-orderings",
+        nargs="+",
+        default=["MMD_AT_PLUS_A"],
+        choices=["MMD_AT_PLUS_A", "COLAMD", "MMD_ATA", "NATURAL"],
+        help="SuperLU column orderings to time; the first is SparseLU's",
+    )
     args = parser.parse_args(argv)
     import scipy.sparse.linalg as spla
 
@@ -91,25 +104,31 @@ def main(argv=None):
         A = normal_matrix(DATA / f"{name}.g2o")
         b = np.random.default_rng(0).normal(size=A.shape[0])
 
-        def superlu():
+        def superlu(permc_spec):
             lu = spla.splu(
                 A,
-                permc_spec="MMD_AT_PLUS_A",
+                permc_spec=permc_spec,
                 diag_pivot_thresh=0.0,
                 options={"SymmetricMode": True, "Equil": False},
             )
-            return lu.solve(b)
+            return lu.solve(b), lu.L.nnz + lu.U.nnz
 
-        methods = {"SuperLU (SparseLU)": superlu}
+        def cholmod(factor):
+            return factor(b), factor.L().nnz
+
+        methods = {}
+        for i, order in enumerate(args.superlu_orderings):
+            label = "SuperLU (SparseLU)" if order == "MMD_AT_PLUS_A" else "SuperLU"
+            methods[f"{label}, {order}" if i else label] = ft.partial(superlu, order)
         if cholesky is not None:
             symbolic = analyze(A)
-            methods["CHOLMOD, from scratch"] = lambda: cholesky(A)(b)
-            methods["CHOLMOD, numeric only (SparseCholesky)"] = lambda: (
-                symbolic.cholesky(A)(b)
+            methods["CHOLMOD, from scratch"] = lambda: cholmod(cholesky(A))
+            methods["CHOLMOD, numeric only (SparseCholesky)"] = lambda: cholmod(
+                symbolic.cholesky(A)
             )
         base = None
         for method, fn in methods.items():
-            median, x = _time(fn, args.repeats)
+            median, (x, fill) = _time(fn, args.repeats)
             base = base or median
             rec = {
                 "benchmark": "sparse_factor",
@@ -118,6 +137,7 @@ def main(argv=None):
                 "n": A.shape[0],
                 "nnz": A.nnz,
                 "method": method,
+                "factor_nnz": int(fill),
                 "median_s": median,
                 "compile_s": 0.0,
                 "speedup_vs_superlu": base / median,
@@ -129,7 +149,16 @@ def main(argv=None):
                 f"x{rec['speedup_vs_superlu']:.2f}  res {rec['residual']:.1e}",
                 flush=True,
             )
-    cols = ["file", "n", "nnz", "method", "median_s", "speedup_vs_superlu", "residual"]
+    cols = [
+        "file",
+        "n",
+        "nnz",
+        "method",
+        "factor_nnz",
+        "median_s",
+        "speedup_vs_superlu",
+        "residual",
+    ]
     table = markdown_table(records, cols)
     print()
     print(table)
