@@ -1,32 +1,26 @@
 """Visual disk tracking: the first experiment of Yi et al. (IROS 2021), reproduced.
 
 A red disk moves among 25 occluding coloured distractors in 120 x 120 images.
-A CNN virtual sensor reads its position; smoothers (factor graphs solved by
+A virtual sensor reads its position; smoothers (factor graphs solved by
 Gauss-Newton) with constant or heteroscedastic learned noise, EKFs with the
 same models, and LSTM baselines are trained and compared by per-coordinate
 position RMSE (pixels) on held-out folds. See docs/tutorial/disk-tracking.md.
 
-What it writes under --out: results.json (config, seeds, git hash, machine,
-timings, per-fold and summary numbers), results.md (the table), the figures
-fig_trajectories.png (paper Fig. 4) and fig_uncertainty.png (paper Fig. 5),
-and per fold the pretrained virtual sensor (sensor_fold{k}.eqx, reusable
-with --sensor-weights-dir) and the trained noise models.
+The full protocol (10 folds x 505 sequences) runs on 2 CPU cores, under 75
+minutes per fold, one fold per call or several. Every stage trains with
+`eqsmooth.learn.train` and checkpoints under --work: kill the run and start
+the same command again, and it resumes. A finished fold writes
+`fold_K.json`, `fold_K.log` and `sensor_foldK.eqx` under --out, and is
+skipped by later calls; `summary.json` / `summary.md` (mean ± std/√n over the
+finished folds) and the figures are rewritten after each fold.
 
-Runtime: --quick (one test fold, 48 training sequences from two folds, a few
-hundred steps) takes under ten minutes on 2 CPU cores (6 min on loaded ones)
-and prints a table labelled QUICK; its sensor starts from a target-colour
-first layer (a quick-mode aid, not the paper's protocol). The full protocol
-(10 folds x 505 sequences, paper-length training) is meant for a GPU: run one
-or a few folds per call with --folds.
-
-    python examples/04_disk_tracking.py --quick --out results/disk_quick
-    python examples/04_disk_tracking.py --folds 0 --images-on-device --out results/disk
+    python examples/04_disk_tracking.py --quick --out results/disk_quick   # ~5 min
+    python examples/04_disk_tracking.py --folds 0 --out results/disk        # one fold
 """
 
 import argparse
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 
@@ -36,122 +30,86 @@ try:
 except ImportError:  # not installed (e.g. a bare GPU image): use the checkout
     sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
 
-from disk_tracking import report, train  # noqa: E402
+from disk_tracking import protocol, report, train  # noqa: E402
 
 
-def parse_args(argv=None) -> tuple[train.Config, Path]:
+_INT = ("sequences_per_fold", "sensor_steps", "sensor_batch", "fg_steps", "fg_batch")
+_INT += ("lstm_steps", "lstm_batch", "finetune_steps", "eval_every", "data_seed")
+_INT += ("model_seed", "max_train_sequences", "max_test_sequences")
+_FLOAT = ("sensor_lr", "fg_lr", "lstm_lr", "finetune_lr")
+
+
+def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n")[0],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--quick", action="store_true", help="small CPU run (~10 minutes)")
+    p.add_argument("--quick", action="store_true", help="small run (~5 minutes)")
+    p.add_argument("--out", type=Path, default=Path("results/disk"))
     p.add_argument(
-        "--pretrain-sensor",
-        action="store_true",
-        help="quick mode: pretrain the sensor even if committed weights exist",
+        "--work",
+        type=Path,
+        help="checkpoints and caches (default: runs/disk, or OUT/work with --quick)",
     )
-    p.add_argument(
-        "--sensor-colour-init",
-        action=argparse.BooleanOptionalAction,
-        help="start the sensor's first conv as a target-colour detector (a "
-        "quick-mode aid, on by default with --quick; not the paper's protocol)",
-    )
-    p.add_argument("--out", type=Path, default=Path("results/disk_tracking"))
     p.add_argument("--folds", type=int, nargs="+", help="test folds to run")
-    p.add_argument(
-        "--methods",
-        nargs="+",
-        choices=list(train.Config().methods),
-        help="subset of methods (default: all)",
-    )
-    p.add_argument("--data-seed", type=int)
-    p.add_argument("--model-seed", type=int)
-    p.add_argument("--cache-dir", help="cache generated folds (.npz) here")
-    p.add_argument(
-        "--sensor-weights-dir",
-        help="load sensor_fold{k}.eqx from here instead of pretraining",
-    )
+    p.add_argument("--methods", nargs="+", choices=list(train.Config().methods))
+    p.add_argument("--sensor", choices=["heatmap", "paper"])
     p.add_argument(
         "--images-on-device",
         action="store_true",
-        help="render training/validation images once and keep them on the device",
+        help="evaluate the sensor from device-resident images (GPU)",
     )
     p.add_argument(
         "--matmul-precision",
         default="highest",
         choices=["default", "high", "highest"],
-        help="jax_default_matmul_precision (GPUs may use TF32 by default, too "
-        "coarse for the Gauss-Newton normal equations)",
+        help="jax_default_matmul_precision (GPUs may use TF32)",
     )
-    for name in (
-        "sequences_per_fold",
-        "sensor_steps",
-        "sensor_batch",
-        "fg_steps",
-        "fg_batch",
-        "lstm_steps",
-        "lstm_batch",
-        "eval_every",
-        "max_train_sequences",
-        "max_test_sequences",
-    ):
-        p.add_argument("--" + name.replace("_", "-"), type=int)
-    for name in ("sensor_lr", "fg_lr", "lstm_lr"):
-        p.add_argument("--" + name.replace("_", "-"), type=float)
-    a = p.parse_args(argv)
-    overrides = {
-        k: v
-        for k, v in vars(a).items()
-        if v is not None
-        and k
-        not in (
-            "quick",
-            "out",
-            "folds",
-            "methods",
-            "images_on_device",
-            "pretrain_sensor",
-            "matmul_precision",
+    for name in _INT + _FLOAT:
+        p.add_argument(
+            "--" + name.replace("_", "-"), type=int if name in _INT else float
         )
-    }
+    a = p.parse_args(argv)
+    overrides = {k: getattr(a, k) for k in _INT + _FLOAT + ("sensor",)}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
     if a.folds is not None:
         overrides["test_folds"] = tuple(a.folds)
     if a.methods is not None:
         overrides["methods"] = tuple(a.methods)
-    if a.images_on_device:
-        overrides["images_on_device"] = True
-    cfg = (
-        train.quick_config(a.pretrain_sensor, **overrides)
-        if a.quick
-        else dataclasses.replace(train.Config(), **overrides)
-    )
+    overrides["images_on_device"] = a.images_on_device
+    base = train.quick_config() if a.quick else train.Config()
+    if a.work is None:
+        a.work = a.out / "work" if a.quick else Path("runs/disk")
     if a.matmul_precision != "default":
         import jax
 
         jax.config.update("jax_default_matmul_precision", a.matmul_precision)
-    return cfg, a.out
+    return dataclasses.replace(base, **overrides), a
 
 
 def main(argv=None):
-    cfg, out = parse_args(argv)
-    t0 = time.perf_counter()
+    cfg, a = parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
     label = "QUICK RUN" if cfg.quick else "full protocol"
     print(f"Disk tracking ({label}): test folds {list(cfg.test_folds)}")
-    fold_results = []
     for k in cfg.test_folds:
-        fold_results.append(train.run_fold(cfg, k, out))
-    timings = dict(
-        total_s=time.perf_counter() - t0,
-        per_fold=[fr["timings"] for fr in fold_results],
-    )
-    _, table = report.write_results(out, dataclasses.asdict(cfg), fold_results, timings)
-    figs = report.figures(out, fold_results[0], cfg.quick)
-    print()
-    print(table)
-    print(
-        f"total {timings['total_s']:.0f} s; results in {out}/results.json, "
-        f"{out}/results.md; figures: {', '.join(str(f) for f in figs)}"
-    )
+        if (a.out / f"fold_{k}.json").exists():
+            print(f"fold {k}: already finished ({a.out / f'fold_{k}.json'}), skipped")
+            continue
+        log_file = a.out / f"fold_{k}.log"
+
+        def log(msg, log_file=log_file):
+            print(msg, flush=True)
+            with open(log_file, "a") as f:
+                f.write(msg + "\n")
+
+        result = protocol.run_fold(cfg, k, a.work, a.work / "cache", log)
+        path = protocol.write_fold(a.out, dataclasses.asdict(cfg), result)
+        log(f"fold {k} finished in {result['timings']['total_s'] / 60:.1f} min: {path}")
+        if not (a.out / "fig_uncertainty.png").exists():
+            report.figures(a.out, result, cfg.quick)
+    _, table = report.write_summary(a.out, cfg.num_folds)
+    print("\n" + table + f"\nresults in {a.out}")
 
 
 if __name__ == "__main__":

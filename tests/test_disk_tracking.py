@@ -125,6 +125,7 @@ def test_dynamics_statistics(stats_fold):
 
 
 def test_model_shapes_and_noise_heads():
+    import equinox as eqx
     import jax
     import jax.numpy as jnp
     from disk_tracking import models as M
@@ -140,21 +141,18 @@ def test_model_shapes_and_noise_heads():
     het = M.HeteroscedasticNoise(4.0, key)
     # Starts constant at 1/sigma (zero last layer), positive everywhere.
     np.testing.assert_allclose(het(counts), 0.25, rtol=1e-5)
-    # Quick-mode aid: the first conv fires on the target's colour only.
-    colours = np.concatenate([[D.TARGET_COLOUR], D.DISTRACTOR_COLOURS, [[0, 0, 0]]])
-    patches = (np.broadcast_to(colours[:, None, None], (8, 3, 3, 3)) - D.IMAGE_MEAN) / (
-        D.IMAGE_STD
-    )
-    x = np.transpose(patches, (0, 3, 1, 2))
-    for scale in (0.0, 0.1):
-        first = M.target_colour_init(sensor, noise_scale=scale).convs[0]
-        x = jnp.asarray(x, first.weight.dtype)
-        fired = np.asarray(jax.nn.relu(jax.vmap(first)(x))[:, :, 1, 1])
-        # Every filter fires on red; other colours (and black) hardly ever.
-        assert np.all(fired[0] > 0.1) and np.mean(fired[0]) > 0.5, fired[0]
-        assert np.mean(fired[1:] > 0) < (0.02 if scale else 1e-9), fired[1:]
-    lstm = M.LstmTracker(key, bidirectional=True, hidden=8)
-    out = lstm(jnp.zeros((3, 120, 120, 3), jnp.uint8), jnp.zeros(4, jnp.float32))
+    fast = M.HeatmapSensor(key, channels=4)
+    pos, vis = fast.outputs(img)
+    assert pos.shape == (2,) and vis.shape == () and fast.features(img).shape == (3,)
+    # Nothing to see in a black image: the heat map is flat, and the
+    # "not visible" outcome starts as heavy as the whole map.
+    assert abs(float(vis)) < 1.0
+    # Without the "not visible" outcome the read-out is a mean of cell centres,
+    # which lie inside the image.
+    big = eqx.tree_at(lambda s: s.background, fast, jnp.array([-50.0, 0.0, 0.0]))
+    assert np.all(np.abs(np.asarray(big(img))) <= 60)
+    lstm = M.LstmTracker(key, bidirectional=True, num_features=4, hidden=8)
+    out = lstm(jnp.zeros((3, 4)), jnp.zeros(4))
     assert out.shape == (3, 2)
 
 
@@ -187,7 +185,9 @@ def test_splits_keep_the_test_fold_out():
     from disk_tracking import train
 
     cfg = train.Config(sequences_per_fold=10, num_frames=3, num_folds=4)
-    tr, va, te = train.make_splits(cfg, test_fold=2)
+    tr, va, te = train.make_splits(cfg, test_fold=2, cache_dir=None)
+    assert tr.images.shape == (tr.n, 3, 120, 120, 3)
+    np.testing.assert_array_equal(tr.images[1], tr.fold.images(np.array([1]))[0])
     assert tr.n + va.n == 30 and va.n == 3 and te.n == 10
     assert te.fold.fold == 2
     np.testing.assert_array_equal(
@@ -199,13 +199,33 @@ def test_splits_keep_the_test_fold_out():
     assert not (keys[0] & keys[1]) and not (keys[0] & keys[2])
     assert not (keys[1] & keys[2])
     with pytest.raises(ValueError, match="also a training fold"):
-        train.make_splits(train.Config(train_folds=(1, 2)), test_fold=2)
+        train.make_splits(train.Config(train_folds=(1, 2)), 2, cache_dir=None)
 
 
-def test_tiny_training_run(tmp_path):
+def test_image_cache_is_written_once_and_memory_mapped(tmp_path):
+    f = D.generate_fold(seed=0, fold=1, num_sequences=3, num_frames=4)
+    mapped = D.fold_images(f, tmp_path)
+    assert isinstance(mapped, np.memmap)
+    first = np.array(mapped)
+    del mapped
+    np.testing.assert_array_equal(first, D.fold_images(f, None))
+    (path,) = tmp_path.glob("*.u8")
+    mtime = path.stat().st_mtime_ns
+    np.testing.assert_array_equal(D.fold_images(f, tmp_path), first)
+    assert path.stat().st_mtime_ns == mtime  # read back, not rendered again
+    # A cache file of the wrong size (a run killed while copying it by hand,
+    # say) is rendered again, not trusted.
+    path.unlink()  # (truncating in place would break live memory maps)
+    path.write_bytes(b"x" * 10)
+    np.testing.assert_array_equal(D.fold_images(f, tmp_path), first)
+
+
+def test_tiny_fold_runs_and_resumes(tmp_path):
+    import json
+
     import equinox as eqx
     import jax
-    from disk_tracking import report, train
+    from disk_tracking import protocol, report, train
 
     cfg = train.Config(
         test_folds=(0,),
@@ -214,12 +234,14 @@ def test_tiny_training_run(tmp_path):
         num_frames=6,
         max_val_sequences=2,
         max_test_sequences=3,
+        sensor_channels=4,
         sensor_steps=2,
         sensor_batch=2,
+        sensor_eval_every=1,
         fg_steps=2,
         fg_batch=2,
-        lstm_steps=1,
-        lstm_batch=1,
+        lstm_steps=2,
+        lstm_batch=2,
         lstm_subsequence=4,
         lstm_hidden=8,
         eval_every=1,
@@ -234,11 +256,13 @@ def test_tiny_training_run(tmp_path):
         ),
         finetune_steps=1,
         finetune_batch=1,
+        finetune_eval_every=1,
         quick=True,
     )
+    work, cache = tmp_path / "work", tmp_path / "cache"
     # optax's Adam mixes int and float scalars, which strict promotion rejects.
     with jax.numpy_dtype_promotion("standard"):
-        res = train.run_fold(cfg, 0, tmp_path, log=lambda *a: None)
+        res = protocol.run_fold(cfg, 0, work, cache, log=lambda *a: None)
     recs = res["records"]
     assert set(recs) == {"virtual_sensor", *cfg.methods}
     for name, r in recs.items():
@@ -265,9 +289,25 @@ def test_tiny_training_run(tmp_path):
         assert np.all(np.isfinite(w)) and np.any(w != 0)
         # The dynamics noise is fixed (the paper's setting): no gradient.
         assert np.all(np.asarray(g.log_dynamics_sqrt_precision) == 0)
-    assert (tmp_path / "fold_0" / "sensor_fold0.eqx").exists()
-    record, table = report.write_results(
-        tmp_path, dataclasses.asdict(cfg), [res], {"total_s": 0.0}
-    )
+
+    # Resume: the same call again finds every stage finished (checkpoints and
+    # the cached sensor outputs) and gives the same numbers.
+    cached = work / "fold_0" / "sensor_test.npz"
+    mtime = cached.stat().st_mtime_ns
+    before = json.loads((work / "fold_0" / "timings.json").read_text())
+    with jax.numpy_dtype_promotion("standard"):
+        again = protocol.run_fold(cfg, 0, work, cache, log=lambda *a: None)
+    assert cached.stat().st_mtime_ns == mtime
+    for name, r in recs.items():
+        assert again["records"][name]["test_rmse"] == r["test_rmse"], name
+        assert again["records"][name]["best_step"] == r["best_step"], name
+    after = json.loads((work / "fold_0" / "timings.json").read_text())
+    assert all(after[k] >= before[k] for k in before)  # time accumulates
+
+    # The committed files and the summary built from them.
+    out = tmp_path / "out"
+    path = protocol.write_fold(out, dataclasses.asdict(cfg), res)
+    assert path.exists() and (out / "sensor_fold0.eqx").exists()
+    record, table = report.write_summary(out, num_folds=1)
     assert "QUICK" in table and "smoother, heteroscedastic" in table
-    assert (tmp_path / "results.json").exists()
+    assert record["folds"] == [0] and (out / "summary.json").exists()

@@ -112,6 +112,29 @@ def test_train_reduces_loss_and_logs(tmp_path):
     assert res.step == 150 and res.best_step == 150
 
 
+def test_nonfinite_batches_raise_or_are_skipped():
+    data = _line_data(2.0, n=16)
+    data["y"][5] = np.nan  # one bad example
+    kw = dict(
+        optimizer=make_optimizer(0.1, warmup_steps=2),
+        num_steps=20,
+        batch_size=4,
+        progress=False,
+    )
+    order = epoch_order(0, 0, 16)
+    bad_step = int(np.nonzero(order == 5)[0][0]) // 4 + 1
+    with pytest.raises(FloatingPointError, match=f"step {bad_step} .*examples .*5"):
+        train(_LINE0, _line_loss, data, **kw)
+    res = train(_LINE0, _line_loss, data, on_nonfinite="skip", log_every=1, **kw)
+    assert np.isfinite(float(res.model.w)) and np.isfinite(float(res.model.b))
+    # One of the 4 batches of every epoch holds the bad example: 5 epochs.
+    assert res.history[-1]["skipped"] == 5
+    clean = {k: np.delete(v, 5) for k, v in data.items()}
+    assert float(_line_loss(res.model, clean)) < 0.2 * float(_line_loss(_LINE0, clean))
+    with pytest.raises(ValueError, match="on_nonfinite"):
+        train(_LINE0, _line_loss, data, on_nonfinite="ignore", **kw)
+
+
 def test_model_selection_keeps_best_validation_model(tmp_path):
     # Training pulls the slope to 2; validation prefers slope 1, which the
     # trajectory passes on its way: the best model is an intermediate one.

@@ -255,6 +255,7 @@ def train(
     mesh: Mesh | None = None,
     filter_spec: Any = eqx.is_inexact_array,
     callback: Callable[[int, dict], None] | None = None,
+    on_nonfinite: str = "raise",
 ) -> TrainResult:
     """Train `model` by minimising `loss_fn` over mini-batches of `train_data`.
 
@@ -307,9 +308,20 @@ def train(
         log.
     - `filter_spec`: which leaves of `model` are trained.
     - `callback`: called as `callback(step, record)` after every step.
+    - `on_nonfinite`: what to do when a step's loss or gradient norm is NaN or
+        infinite (a bad example, or a failed solve inside the loss): `"raise"`
+        stops with a `FloatingPointError` naming the step, epoch and example
+        indices of the batch, before the update is applied; `"skip"` drops that
+        update (model and optimiser state stay as they were), counts it in the
+        log record's `skipped` field and goes on. Either way the non-finite
+        update never reaches the model.
 
     **Returns:** a [`eqsmooth.learn.TrainResult`][].
     """
+    if on_nonfinite not in ("raise", "skip"):
+        raise ValueError(
+            f"train: on_nonfinite must be 'raise' or 'skip', got {on_nonfinite!r}"
+        )
     if num_steps < 0 or batch_size < 1 or eval_every < 1 or checkpoint_every < 1:
         raise ValueError(
             "train: need num_steps >= 0, batch_size >= 1, eval_every >= 1 and "
@@ -426,6 +438,7 @@ def train(
             best_metric, best_model, best_step = v, model, 0
             write({"step": 0, "valid_loss": v, "time": time.perf_counter() - t0})
         epoch, order = -1, None
+        skipped = 0  # non-finite steps dropped by this call (on_nonfinite="skip")
         for s in range(state.step, num_steps):
             e, pos = divmod(s, steps_per_epoch)
             if e != epoch:
@@ -437,14 +450,35 @@ def train(
                 if mesh is None
                 else (shard_batch(batch, mesh))
             )
-            model, opt_state, metrics = step_fn(model, opt_state, batch)
+            new_model, new_opt_state, metrics = step_fn(model, opt_state, batch)
+            if not (
+                math.isfinite(float(metrics["loss"]))
+                and math.isfinite(float(metrics["grad_norm"]))
+            ):
+                examples = order[pos * batch_size : (pos + 1) * batch_size]
+                if on_nonfinite == "raise":
+                    raise FloatingPointError(
+                        f"train: step {s + 1} (epoch {e}) gave loss "
+                        f"{float(metrics['loss'])} and gradient norm "
+                        f"{float(metrics['grad_norm'])}; the batch held examples "
+                        f"{examples.tolist()} of train_data. The model is left at "
+                        f"step {s} (pass on_nonfinite='skip' to drop such batches)"
+                    )
+                skipped += 1
+            else:
+                model, opt_state = new_model, new_opt_state
             done = s + 1
             evaluate_now = evaluator is not None and (
                 done % eval_every == 0 or done == num_steps
             )
             record = None
             if done % log_every == 0 or evaluate_now or done == num_steps:
-                record = {"step": done, "epoch": e, **_floats(metrics)}
+                record = {
+                    "step": done,
+                    "epoch": e,
+                    **_floats(metrics),
+                    "skipped": skipped,
+                }
                 if evaluate_now:
                     assert evaluator is not None
                     v = float(evaluator(model, valid, batch_size))

@@ -1,0 +1,220 @@
+"""One fold of the disk tracking protocol, resumable, and its results file.
+
+`run_fold` runs every stage of `train` for one test fold. Its working files
+(checkpoints, training logs, the cached sensor outputs, the accumulated
+timings) live in `work/fold_K/`; killing the run and starting the same
+command again resumes every stage where its last checkpoint left it, and a
+finished stage costs only its (fast) test evaluation. `write_fold` then
+writes the fold's committed results: `fold_K.json` (every row, the timings,
+the machine) and the virtual sensor's weights.
+"""
+
+import contextlib
+import json
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+import eqsmooth as eqs
+
+from . import report, train as T
+
+
+class StageTimer:
+    """Wall-clock seconds per stage, accumulated over runs in a JSON file.
+
+    A stage resumed after a kill adds the time of every run that worked on it,
+    so the fold's total is the compute time it really took.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.seconds: dict[str, float] = (
+            json.loads(path.read_text()) if path.exists() else {}
+        )
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + (
+                time.perf_counter() - t0
+            )
+            text = json.dumps(self.seconds, indent=1)
+            eqs.learn.atomic_write(self.path, lambda f: f.write(text.encode()))
+
+
+def _cached_outputs(sensor, split: T.Split, cfg: T.Config, path: Path) -> None:
+    """Fill `split.sensor` and `split.features`, from `path` when it exists."""
+    if path.exists():
+        with np.load(path) as z:
+            split.sensor, split.features = z["positions"], z["features"]
+        return
+    split.sensor, split.features = T.sensor_outputs(sensor, split, cfg)
+
+    def write(f):
+        np.savez(f, positions=split.sensor, features=split.features)
+
+    eqs.learn.atomic_write(path, write)
+
+
+def _record(result: eqs.learn.TrainResult, pred, truth, seconds: float) -> dict:
+    history = [
+        dict(step=r["step"], valid_rmse=math.sqrt(r["valid_loss"]))
+        for r in result.history
+        if "valid_loss" in r and math.isfinite(r["valid_loss"])
+    ]
+    skipped = max((r.get("skipped", 0) for r in result.history), default=0)
+    return dict(
+        test_rmse=T.rmse(pred, truth),
+        val_rmse=math.sqrt(result.best_valid_loss),
+        best_step=int(result.best_step),
+        steps=int(result.step),
+        skipped_batches=int(skipped),
+        seconds=seconds,
+        history=history,
+    )
+
+
+def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) -> dict:
+    """Run (or resume) every stage for one test fold; return its results."""
+    fold_dir = Path(work) / f"fold_{test_fold}"
+    fold_dir.mkdir(parents=True, exist_ok=True)
+    timer = StageTimer(fold_dir / "timings.json")
+    with timer("data"):
+        train, val, test = T.make_splits(cfg, test_fold, cache_dir)
+    log(
+        f"fold {test_fold}: {train.n} training, {val.n} validation, {test.n} test "
+        f"sequences of {cfg.num_frames} frames"
+    )
+    k_sensor, k_noise, k_lstm = jax.random.split(jax.random.key(cfg.model_seed), 3)
+    records: dict[str, dict] = {}
+    models: dict[str, Any] = {}
+    truth = test.fold.positions
+
+    with timer("sensor"):
+        fit = T.pretrain_sensor(cfg, train, val, k_sensor, fold_dir)
+    sensor = fit.best_model
+    with timer("sensor_outputs"):
+        for name, split in (("train", train), ("val", val), ("test", test)):
+            _cached_outputs(sensor, split, cfg, fold_dir / f"sensor_{name}.npz")
+    assert test.sensor is not None and val.sensor is not None
+    records["virtual_sensor"] = _record(
+        fit, test.sensor, truth, timer.seconds["sensor"]
+    )
+    sigma = T.rmse(val.sensor, val.fold.positions)
+    log(
+        f"virtual sensor: val RMSE {sigma:.3f} px, test RMSE "
+        f"{records['virtual_sensor']['test_rmse']:.3f} px"
+    )
+    predictions: dict[str, np.ndarray] = {"virtual_sensor": test.sensor}
+    steps = cfg.eval_solver_steps
+    for method in cfg.methods:
+        parts = method.split("_")
+        with timer(method):
+            if method == "smoother_hetero_finetune":
+                start = models.get("smoother_hetero_surrogate")
+                if start is None:
+                    start = T.make_smoother_model("hetero", sigma, k_noise, cfg.dtype)
+                res = T.train_finetune(cfg, train, val, sensor, start, fold_dir, method)
+                pred = T.predict_split(
+                    lambda m, b: T.finetune_positions(m, b, steps),
+                    res.best_model,
+                    T._finetune_data(test, cfg.dtype),
+                    batch=8,
+                )
+            elif parts[0] == "smoother":
+                res = T.train_smoother(
+                    cfg,
+                    parts[1],
+                    parts[2],
+                    train,
+                    val,
+                    sigma,
+                    k_noise,
+                    fold_dir,
+                    method,
+                    learn_dynamics=parts[-1] == "learndyn",
+                )
+                pred = T.predict_split(
+                    lambda m, b: T.smoothed_positions(m, b, steps),
+                    res.best_model,
+                    test.sequences(cfg.dtype),
+                )
+            elif parts[0] == "ekf":
+                res = T.train_ekf(
+                    cfg,
+                    parts[1],
+                    parts[2],
+                    train,
+                    val,
+                    sigma,
+                    k_noise,
+                    fold_dir,
+                    method,
+                )
+                pred = T.predict_split(
+                    T.ekf_positions, res.best_model, test.sequences(cfg.dtype)
+                )
+            elif parts[0] == "lstm":
+                res = T.train_lstm(
+                    cfg, parts[1] == "bi", train, val, k_lstm, fold_dir, method
+                )
+                pred = T.predict_split(
+                    T.lstm_positions, res.best_model, T._lstm_data(test, cfg.dtype)
+                )
+            else:
+                raise ValueError(f"unknown method {method!r}")
+        models[method] = res.best_model
+        predictions[method] = pred
+        records[method] = _record(res, pred, truth, timer.seconds[method])
+        rec = records[method]
+        log(
+            f"{method}: val RMSE {rec['val_rmse']:.3f} (step {rec['best_step']}), "
+            f"test RMSE {rec['test_rmse']:.3f} px ({rec['seconds']:.0f} s)"
+        )
+    timings = dict(timer.seconds)
+    timings["total_s"] = sum(timer.seconds.values())
+    return dict(
+        fold=test_fold,
+        records=records,
+        timings=timings,
+        sensor=sensor,
+        models=models,
+        test=test,
+        val=val,
+        test_predictions=predictions,
+    )
+
+
+def write_fold(out: Path, cfg_dict: dict, result: dict) -> Path:
+    """Write `fold_K.json` and `sensor_foldK.eqx` under `out` (atomically)."""
+    out.mkdir(parents=True, exist_ok=True)
+    k = result["fold"]
+    record = dict(
+        benchmark="disk_tracking",
+        fold=k,
+        quick=cfg_dict["quick"],
+        config=cfg_dict,
+        git_hash=report.git_hash(),
+        machine=report.machine(),
+        load_average=os.getloadavg(),
+        timings=result["timings"],
+        records=result["records"],
+    )
+    text = json.dumps(record, indent=1, default=report.jsonable)
+    path = out / f"fold_{k}.json"
+    eqs.learn.atomic_write(path, lambda f: f.write(text.encode()))
+    eqs.learn.atomic_write(
+        out / f"sensor_fold{k}.eqx",
+        lambda f: eqx.tree_serialise_leaves(f, result["sensor"]),
+    )
+    return path
