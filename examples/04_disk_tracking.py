@@ -55,6 +55,9 @@ def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
     p.add_argument("--methods", nargs="+", choices=list(train.Config().methods))
     p.add_argument("--sensor", choices=["heatmap", "paper"])
     p.add_argument(
+        "--docs", type=Path, help="also write the summary table into this page"
+    )
+    p.add_argument(
         "--images-on-device",
         action="store_true",
         help="evaluate the sensor from device-resident images (GPU)",
@@ -109,6 +112,8 @@ def main(argv=None):
         if not (a.out / "fig_uncertainty.png").exists():
             report.figures(a.out, result, cfg.quick)
     _, table = report.write_summary(a.out, cfg.num_folds)
+    if a.docs is not None:
+        report.update_docs(a.docs, table)
     print("\n" + table + f"\nresults in {a.out}")
 
 

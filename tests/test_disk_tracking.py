@@ -311,3 +311,19 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     record, table = report.write_summary(out, num_folds=1)
     assert "QUICK" in table and "smoother, heteroscedastic" in table
     assert record["folds"] == [0] and (out / "summary.json").exists()
+
+
+def test_docs_table_is_the_committed_results(tmp_path):
+    import shutil
+
+    from disk_tracking import report
+
+    root = Path(__file__).resolve().parents[1]
+    results = root / "results" / "disk"
+    page = root / "docs" / "tutorial" / "disk-tracking.md"
+    if not list(results.glob("fold_*.json")):
+        pytest.skip(f"no committed fold results under {results}")
+    for f in results.glob("fold_*.json"):
+        shutil.copy(f, tmp_path)
+    _, table = report.write_summary(tmp_path)
+    assert report.docs_table(page) == table

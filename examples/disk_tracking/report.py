@@ -151,12 +151,54 @@ def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
     return record, table
 
 
+DOCS_START = "<!-- disk-results:start -->"
+DOCS_END = "<!-- disk-results:end -->"
+
+
+def update_docs(path: Path, table: str) -> None:
+    """Put `table` between the result markers of the tutorial page `path`."""
+    text = path.read_text()
+    if DOCS_START not in text or DOCS_END not in text:
+        raise ValueError(f"{path} has no {DOCS_START} ... {DOCS_END} block")
+    head, rest = text.split(DOCS_START, 1)
+    _, tail = rest.split(DOCS_END, 1)
+    path.write_text(head + DOCS_START + "\n" + table + DOCS_END + tail)
+
+
+def docs_table(path: Path) -> str:
+    """The table currently between the result markers of `path`."""
+    text = path.read_text()
+    return text.split(DOCS_START, 1)[1].split(DOCS_END, 1)[0].lstrip("\n")
+
+
 def jsonable(x):
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, np.ndarray):
         return x.tolist()
     return str(x)
+
+
+def _smoother_band(model, test, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    """MAP positions and their marginal standard deviations for one sequence."""
+    import eqsmooth as eqs
+
+    from . import models as M
+
+    meas = jnp.asarray(test.sensor[seq])
+    counts = jnp.asarray(test.fold.visible_pixels[seq], meas.dtype)
+    x0 = jnp.asarray(test.fold.states[seq, 0], meas.dtype)
+    graph = model.graph(meas, counts, x0)
+    sol = eqs.least_squares(
+        graph,
+        {"x": M.initial_guess(meas, x0)},
+        eqs.GaussNewton(eqs.BlockTridiagonal()),
+        max_steps=10,
+        throw=False,
+    )
+    cov = eqs.marginal_covariances(eqs.solve.linearize(graph, sol.value))["x"]
+    std = np.sqrt(np.diagonal(np.asarray(cov), axis1=1, axis2=2))[:, :2]
+    return np.asarray(sol.value["x"])[:, :2], std
 
 
 def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
@@ -181,7 +223,7 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
     seq = int(occluded[0]) if occluded.size else 0
     image = test.fold.images(np.array([seq]), np.array([0]))[0]
     h = D.IMAGE_SIZE // 2
-    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    fig, (ax, axt) = plt.subplots(1, 2, figsize=(11, 5))
     ax.imshow(image, extent=(-h - 0.5, h - 0.5, h - 0.5, -h - 0.5))
     truth = test.fold.positions[seq]
     ax.plot(*truth.T, "w-o", ms=3, lw=2, label="ground truth")
@@ -197,6 +239,33 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
     ax.set_ylim(h, -h)
     ax.legend(fontsize=7, loc="lower left")
     ax.set_title(f"Test sequence {seq}, first frame{tag}", fontsize=9)
+    # The heteroscedastic smoother's marginal ±2σ band along x and y.
+    model = models.get("smoother_hetero_surrogate")
+    if model is not None:
+        mean, std = _smoother_band(model, test, seq)
+        frames = np.arange(truth.shape[0])
+        for axis, colour in ((0, "C0"), (1, "C3")):
+            name = "xy"[axis]
+            axt.plot(frames, truth[:, axis], "k-", lw=1)
+            axt.plot(frames, preds["virtual_sensor"][seq][:, axis], "x", color=colour)
+            axt.plot(frames, mean[:, axis], "-", color=colour, label=f"{name} smoothed")
+            axt.fill_between(
+                frames,
+                mean[:, axis] - 2 * std[:, axis],
+                mean[:, axis] + 2 * std[:, axis],
+                color=colour,
+                alpha=0.25,
+                label=f"{name} ±2σ",
+            )
+        ax2 = axt.twinx()
+        ax2.bar(frames, test.fold.visible_pixels[seq], color="0.85", zorder=0)
+        ax2.set_ylabel("visible red pixels")
+        axt.set_zorder(ax2.get_zorder() + 1)
+        axt.patch.set_visible(False)
+        axt.set_xlabel("frame")
+        axt.set_ylabel("position (px); black: truth, x: sensor")
+        axt.legend(fontsize=7)
+        axt.set_title("heteroscedastic smoother (surrogate loss)", fontsize=9)
     path = out / "fig_trajectories.png"
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
