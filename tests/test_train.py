@@ -17,10 +17,12 @@ import pytest
 
 from eqsmooth.learn import (
     atomic_write,
+    CheckpointError,
     epoch_order,
     evaluate,
     load_checkpoint,
     make_optimizer,
+    previous_checkpoint,
     read_checkpoint_header,
     train,
     TrainState,
@@ -174,7 +176,8 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
     assert header["best_step"] == best_step
     assert header["best_metric"] == res.best_valid_loss
     assert header["metadata"] == {"num_examples": 32, "batch_size": 8}
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.eqx"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.eqx", "ckpt.eqx.prev"]
+    assert read_checkpoint_header(tmp_path / "ckpt.eqx.prev")["step"] == 56
     like = TrainState(
         model=_LINE0,
         opt_state=optax.sgd(0.05).init(_LINE0),
@@ -216,6 +219,56 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
             progress=False,
             checkpoint_path=ckpt,
         )
+
+
+def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
+    kw = dict(optimizer=optax.sgd(0.05), num_steps=12, batch_size=8, progress=False)
+    ckpt = tmp_path / "ckpt.eqx"
+    full = train(_LINE0, _line_loss, _line_data(2.0), **kw)
+    # Stop at step 10 (checkpoints at 5 and 10), then damage the newest file.
+    train(
+        _LINE0,
+        _line_loss,
+        _line_data(2.0),
+        checkpoint_path=ckpt,
+        checkpoint_every=5,
+        **{**kw, "num_steps": 10},
+    )
+    like = TrainState(
+        model=_LINE0,
+        opt_state=optax.sgd(0.05).init(_LINE0),
+        step=0,
+        seed=0,
+        best_model=_LINE0,
+        best_metric=0.0,
+        best_step=0,
+    )
+    good = ckpt.read_bytes()
+    ckpt.write_bytes(good[:-3])
+    with pytest.raises(CheckpointError, match="truncated"):
+        load_checkpoint(ckpt, like)
+    flipped = bytearray(good)
+    flipped[-5] ^= 0x01
+    ckpt.write_bytes(bytes(flipped))
+    with pytest.raises(CheckpointError, match="corrupted"):
+        load_checkpoint(ckpt, like)
+    # Resuming falls back to the checkpoint of step 5, says so, and still
+    # ends bitwise where an uninterrupted run ends (the data order is fixed).
+    with pytest.warns(UserWarning, match="corrupted.*step 5"):
+        res = train(
+            _LINE0,
+            _line_loss,
+            _line_data(2.0),
+            checkpoint_path=ckpt,
+            checkpoint_every=5,
+            **kw,
+        )
+    assert res.step == 12 and _same(res.model, full.model)
+    # With both files damaged there is nothing to resume from: say why.
+    ckpt.write_bytes(good[:-3])
+    previous_checkpoint(ckpt).write_bytes(b"garbage\n")
+    with pytest.raises(CheckpointError, match="no usable checkpoint.*truncated"):
+        train(_LINE0, _line_loss, _line_data(2.0), checkpoint_path=ckpt, **kw)
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):

@@ -3,7 +3,9 @@
 from ._batch import stack_trees as stack_trees
 from ._checkpoint import (
     atomic_write as atomic_write,
+    CheckpointError as CheckpointError,
     load_checkpoint as load_checkpoint,
+    previous_checkpoint as previous_checkpoint,
     read_checkpoint_header as read_checkpoint_header,
     save_checkpoint as save_checkpoint,
     TrainState as TrainState,

@@ -1,5 +1,7 @@
 """Atomic, resumable training checkpoints."""
 
+import hashlib
+import io
 import json
 import os
 import tempfile
@@ -11,7 +13,13 @@ from jaxtyping import PyTree
 
 
 _MAGIC = "eqsmooth-checkpoint"
-_VERSION = 1
+_VERSION = 2  # 2: the header holds the payload's length and SHA-256
+_READABLE = (1, 2)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that cannot be trusted: truncated, corrupted, or not
+    written by [`eqsmooth.learn.save_checkpoint`][]."""
 
 
 class TrainState(eqx.Module):
@@ -77,15 +85,23 @@ def atomic_write(path: str | os.PathLike, write: Any) -> None:
     _fsync_dir(path.parent)
 
 
+def previous_checkpoint(path: str | os.PathLike) -> Path:
+    """Where [`eqsmooth.learn.save_checkpoint`][] keeps the checkpoint it replaced."""
+    path = Path(path)
+    return path.with_name(path.name + ".prev")
+
+
 def save_checkpoint(
     path: str | os.PathLike, state: TrainState, metadata: dict | None = None
 ) -> None:
-    """Write `state` to `path` atomically.
+    """Write `state` to `path` atomically, keeping the previous file.
 
-    The file starts with one line of JSON (format, step, seed, best metric and
-    `metadata`), readable with [`eqsmooth.learn.read_checkpoint_header`][],
-    followed by the array leaves of `state` in `eqx.tree_serialise_leaves`
-    format.
+    The file starts with one line of JSON (format, step, seed, best metric,
+    `metadata`, and the length and SHA-256 of the rest), readable with
+    [`eqsmooth.learn.read_checkpoint_header`][], followed by the array leaves
+    of `state` in `eqx.tree_serialise_leaves` format. The checkpoint it
+    replaces is kept at `previous_checkpoint(path)`, so a damaged file never
+    costs more than one checkpoint interval.
 
     **Arguments:**
 
@@ -93,6 +109,9 @@ def save_checkpoint(
     - `state`: a [`eqsmooth.learn.TrainState`][].
     - `metadata`: extra JSON-serialisable information for the header.
     """
+    buffer = io.BytesIO()
+    eqx.tree_serialise_leaves(buffer, state)
+    payload = buffer.getvalue()
     header = {
         "format": _MAGIC,
         "version": _VERSION,
@@ -101,12 +120,24 @@ def save_checkpoint(
         "best_step": int(state.best_step),
         "best_metric": float(state.best_metric),
         "metadata": metadata or {},
+        "payload_bytes": len(payload),
+        "sha256": hashlib.sha256(payload).hexdigest(),
     }
     line = (json.dumps(header, sort_keys=True) + "\n").encode()
+    path = Path(path)
+    if path.exists():
+        # A hard link keeps the old file's contents under the second name
+        # while the new file is renamed over the first.
+        prev = previous_checkpoint(path)
+        prev.unlink(missing_ok=True)
+        try:
+            os.link(path, prev)
+        except OSError:  # file systems without hard links
+            os.replace(path, prev)
 
     def write(f):
         f.write(line)
-        eqx.tree_serialise_leaves(f, state)
+        f.write(payload)
 
     atomic_write(path, write)
 
@@ -124,9 +155,9 @@ def _read_header(f, path) -> dict:
     except (UnicodeDecodeError, json.JSONDecodeError):
         header = None
     if not isinstance(header, dict) or header.get("format") != _MAGIC:
-        raise ValueError(f"{path} is not an eqsmooth checkpoint")
-    if header.get("version") != _VERSION:
-        raise ValueError(
+        raise CheckpointError(f"{path} is not an eqsmooth checkpoint")
+    if header.get("version") not in _READABLE:
+        raise CheckpointError(
             f"{path}: checkpoint format version {header.get('version')} is not "
             f"supported (expected {_VERSION})"
         )
@@ -144,13 +175,31 @@ def load_checkpoint(path: str | os.PathLike, like: TrainState) -> TrainState:
         it supplies every non-array part of the model.
 
     **Returns:** the stored `TrainState`.
+
+    **Raises:** [`eqsmooth.learn.CheckpointError`][] (a `ValueError`) when the
+    file is truncated, fails its checksum, or does not fit `like`.
     """
     with open(path, "rb") as f:
-        _read_header(f, path)
-        try:
-            return eqx.tree_deserialise_leaves(f, like)
-        except (RuntimeError, ValueError, EOFError) as err:
-            raise ValueError(
-                f"{path}: checkpoint does not match the model/optimiser being "
-                f"trained: {err}"
-            ) from err
+        header = _read_header(f, path)
+        payload = f.read()
+    if "payload_bytes" in header:  # version 2: verify before trusting it
+        expected = int(header["payload_bytes"])
+        if len(payload) < expected:
+            raise CheckpointError(
+                f"{path}: checkpoint is truncated: {len(payload)} of {expected} "
+                "bytes after the header (a copy cut short, or a full disk)"
+            )
+        if len(payload) > expected or (
+            hashlib.sha256(payload).hexdigest() != header["sha256"]
+        ):
+            raise CheckpointError(
+                f"{path}: checkpoint is corrupted: its contents do not match the "
+                "SHA-256 recorded when it was written"
+            )
+    try:
+        return eqx.tree_deserialise_leaves(io.BytesIO(payload), like)
+    except (RuntimeError, ValueError, EOFError) as err:
+        raise CheckpointError(
+            f"{path}: checkpoint does not match the model/optimiser being "
+            f"trained: {err}"
+        ) from err

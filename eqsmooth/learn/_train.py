@@ -4,6 +4,7 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,9 @@ from tqdm.auto import tqdm
 
 from ._checkpoint import (
     atomic_write,
+    CheckpointError,
     load_checkpoint,
+    previous_checkpoint,
     read_checkpoint_header,
     save_checkpoint,
     TrainState,
@@ -233,6 +236,40 @@ def _rewrite_log(log_path: Path, upto_step: int) -> list[dict]:
     return kept
 
 
+def _resume(ckpt: Path, like: TrainState, seed: int, metadata: dict) -> TrainState:
+    """The state in `ckpt`, or in the checkpoint before it if `ckpt` is damaged."""
+    errors = []
+    for path in (ckpt, previous_checkpoint(ckpt)):
+        if not path.exists():
+            continue
+        try:
+            header = read_checkpoint_header(path)
+        except CheckpointError as err:
+            errors.append(str(err))
+            continue
+        if header["seed"] != seed or header["metadata"] != metadata:
+            raise ValueError(
+                f"train: checkpoint {path} was written by a run with seed "
+                f"{header['seed']} and {header['metadata']}; this run has seed "
+                f"{seed} and {metadata} (delete it or pass resume=False)"
+            )
+        try:
+            state = load_checkpoint(path, like)
+        except CheckpointError as err:
+            errors.append(str(err))
+            continue
+        if errors:
+            warnings.warn(
+                f"train: {errors[0]}; resuming from the previous checkpoint "
+                f"{path} (step {int(state.step)}) instead",
+                stacklevel=3,
+            )
+        return state
+    raise CheckpointError(
+        "train: no usable checkpoint to resume from: " + "; ".join(errors)
+    )
+
+
 def train(
     model: PyTree,
     loss_fn: Callable[..., Any],
@@ -364,15 +401,12 @@ def train(
     if not writer:
         log = None
     history: list[dict] = []
-    if ckpt is not None and resume and ckpt.exists():
-        header = read_checkpoint_header(ckpt)
-        if header["seed"] != seed or header["metadata"] != metadata:
-            raise ValueError(
-                f"train: checkpoint {ckpt} was written by a run with seed "
-                f"{header['seed']} and {header['metadata']}; this run has seed "
-                f"{seed} and {metadata} (delete it or pass resume=False)"
-            )
-        state = load_checkpoint(ckpt, state)
+    if (
+        ckpt is not None
+        and resume
+        and (ckpt.exists() or previous_checkpoint(ckpt).exists())
+    ):
+        state = _resume(ckpt, state, seed, metadata)
         # Temporary files of a run killed while writing its checkpoint.
         for stale in ckpt.parent.glob(f".{ckpt.name}.*.tmp") if writer else ():
             stale.unlink(missing_ok=True)
