@@ -328,3 +328,32 @@ def test_bootstrap_stability_of_a_strong_effect():
     assert len(stab["named_sets"]) == 2
     with pytest.raises(ValueError, match="num_resamples"):
         dc.bootstrap(found, data, named=named, num_resamples=0)
+
+
+def test_fit_is_bounded_and_never_raises(monkeypatch):
+    import equinox as eqx
+    import eqsmooth.discover._fit as F
+
+    data = _simulate(2)
+    model = _model()
+    K = len(model.candidates)
+    scales = np.ones(K)
+    z0 = F.null_z(model)
+    z0[K:] = [3.0, -3.0, 0.0]  # noise scales far off: x20 and x1/20
+    free = np.arange(K, K + 3)
+    start = F.evaluate(model, data, z0, np.asarray(data.initial_states), scales, free)
+    ev = F.fit(model, data, free, z0, start.xhat, scales, max_iter=4)
+    assert np.isfinite(ev.log_marginal) and ev.log_marginal >= start.log_marginal
+    # Every log noise scale moves by at most 1 per step.
+    assert np.all(np.abs(ev.z[K:] - z0[K:]) <= 4.0 + 1e-12)
+    assert not ev.converged  # 4 steps cannot undo a factor of 20
+
+    # An evidence that cannot be evaluated at any trial point (a failed solve)
+    # is a rejected step, not a crash: the start comes back, flagged.
+    def broken(*args):
+        raise eqx.EquinoxRuntimeError("A linear solver received non-finite input")
+
+    monkeypatch.setattr(F, "log_marginal_at", broken)
+    ev = F.fit(model, data, free, z0, start.xhat, scales)
+    assert not ev.converged
+    np.testing.assert_array_equal(ev.z, z0)

@@ -25,6 +25,11 @@ class Evaluation(eqx.Module):
     scores: np.ndarray  # (B, P)
     hessian: np.ndarray  # (P, P), total
     xhat: np.ndarray
+    # False when the fit that produced it stopped early: a non-finite
+    # gradient or curvature, an evidence that could not be evaluated, or the
+    # iteration limit. Its numbers are then the best point reached, not an
+    # optimum.
+    converged: bool = True
 
 
 def feature_scales(model: ChainModel, data: Sequences, xhat: np.ndarray) -> np.ndarray:
@@ -107,6 +112,33 @@ def log_marginal_at(model, data, z, init) -> tuple[float, np.ndarray]:
     return float(jnp.sum(batch_log_marginal(model, zj, data, xh))), np.asarray(xh)
 
 
+# Largest change of a log noise scale in one Newton step (a factor of e), and
+# the initial / largest trust radius in curvature-scaled coordinates. Noise
+# scales that the data cannot identify have almost no curvature, so an
+# unbounded Newton step sends them to exp(±hundreds), where the MAP solve
+# breaks down.
+_MAX_LOG_SCALE_STEP = 1.0
+_TRUST_RADIUS = (1.0, 10.0)
+_EVALUATION_ERRORS = (
+    eqx.EquinoxRuntimeError,
+    np.linalg.LinAlgError,
+    FloatingPointError,
+)
+
+
+def _bounded_step(step, d, free, num_coefficients, radius):
+    """Shrink a Newton step into the trust region and the log-scale bound."""
+    size = float(np.linalg.norm(step * d))
+    if size > radius:
+        step = step * (radius / size)
+    is_scale = free >= num_coefficients
+    return np.where(
+        is_scale,
+        np.clip(step, -_MAX_LOG_SCALE_STEP, _MAX_LOG_SCALE_STEP),
+        step,
+    )
+
+
 def fit(
     model: ChainModel,
     data: Sequences,
@@ -121,44 +153,69 @@ def fit(
     """Maximise the Laplace evidence over the parameters `free` (indices of z).
 
     Damped Newton (Levenberg) steps on the exact gradient and the
-    difference-of-gradients Hessian; each trial point gets a fresh MAP
-    (warm-started). Returns the evaluation at the optimum, with the Hessian
-    over `free` (for confidence intervals).
+    difference-of-gradients Hessian, inside a trust region (in coordinates
+    scaled by the curvature) and with every log noise scale moving by at most
+    1 per step; each trial point gets a fresh MAP (warm-started). A trial
+    whose evidence cannot be evaluated (a failed solve, non-finite numbers)
+    is rejected like a worse one. Never raises on finite data: if the fit
+    cannot go on, it returns the best point reached with `converged=False`.
+    Returns the evaluation at the optimum, with the Hessian over `free` (for
+    confidence intervals).
     """
     free = np.asarray(free, dtype=int)
+    num_coefficients = len(model.candidates)
     z = np.asarray(z0, dtype=float).copy()
     ev = evaluate(model, data, z, init, scales, free)
-    lam = 1e-3
+    lam, radius = 1e-3, _TRUST_RADIUS[0]
+    converged = False
     for _ in range(max_iter):
         g = np.sum(ev.scores, axis=0)[free]
         negH = -ev.hessian[np.ix_(free, free)]
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(negH))):
+            break
         # Newton in coordinates scaled by the curvature diagonal.
         d = np.sqrt(np.maximum(np.abs(np.diag(negH)), 1e-12))
         A = negH / np.outer(d, d)
-        w, V = np.linalg.eigh(A)
+        try:
+            w, V = np.linalg.eigh(A)
+        except np.linalg.LinAlgError:
+            break
         accepted = False
         for _ in range(8):
             wl = np.maximum(w, 1e-6) + lam
             step = (V @ ((V.T @ (g / d)) / wl)) / d
+            step = _bounded_step(step, d, free, num_coefficients, radius)
             z_new = z.copy()
             z_new[free] += step
-            ll_new, _ = log_marginal_at(model, data, z_new, ev.xhat)
+            try:
+                ll_new, _ = log_marginal_at(model, data, z_new, ev.xhat)
+            except _EVALUATION_ERRORS:
+                ll_new = -np.inf
             if np.isfinite(ll_new) and ll_new >= ev.log_marginal - 1e-9:
                 accepted = True
                 break
             lam = max(lam * 10.0, 1e-3)
+            radius = radius / 4.0
         if not accepted:
+            # No better point nearby: a (local) optimum when the gradient is
+            # small, otherwise a stop.
+            converged = bool(np.max(np.abs(g / d)) < 1e-6)
             break
         lam = max(lam / 10.0, 1e-9)
+        radius = min(2.0 * radius, _TRUST_RADIUS[1])
         gain = ll_new - ev.log_marginal
-        z = z_new
-        ev = evaluate(model, data, z, ev.xhat, scales, free)
+        try:
+            new_ev = evaluate(model, data, z_new, ev.xhat, scales, free)
+        except _EVALUATION_ERRORS:
+            break
+        z, ev = z_new, new_ev
         if (
             gain < tol * max(1.0, abs(ev.log_marginal))
             and np.max(np.abs(step * d)) < 1e-3
         ):
+            converged = True
             break
-    return ev
+    return eqx.tree_at(lambda e: e.converged, ev, converged)
 
 
 def null_z(model: ChainModel) -> np.ndarray:
