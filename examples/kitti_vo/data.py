@@ -375,7 +375,8 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
     frng = np.random.default_rng([seed, seq, 11])
     # Brightness: a slow log-normal drift, plus shadows/tunnels (dark spells).
     drift = np.cumsum(frng.normal(0, 0.03, N))
-    drift -= np.convolve(drift, np.ones(101) / 101, mode="same")
+    k = min(101, N)
+    drift -= np.convolve(drift, np.ones(k) / k, mode="same")[:N]
     gain = np.exp(drift)
     t = 0
     while t < N:
