@@ -22,8 +22,8 @@ class VehicleState(eqx.Module):
 
     A state pytree (tangent dimension 5, in the order `(δx, δy, δθ)` of the
     pose, then `(δv, δω)`); with leading batch axes it is a trajectory or a
-    stack of states, and it works with [`eqsmooth.retract`][],
-    [`eqsmooth.local`][] and every solver.
+    stack of states, and it works with [`eqsmooth.manifold.retract`][],
+    [`eqsmooth.manifold.local`][] and every solver.
 
     **Fields:**
 
@@ -102,7 +102,7 @@ class VehicleDynamicsFactor(AbstractFactor):
 
     Residual `x_{t+1} ⊖ f(x_t)` in tangent coordinates (5-D), with `f`
     [`eqsmooth.factors.vehicle_motion`][]. Its noise is normally one learnable
-    [`eqsmooth.DiagonalNoise`][] of shape `(5,)` shared by every step.
+    [`eqsmooth.factors.DiagonalNoise`][] of shape `(5,)` shared by every step.
 
     **Arguments:**
 
