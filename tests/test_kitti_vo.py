@@ -155,3 +155,65 @@ def test_real_kitti_poses():
     assert 5.0 < np.median(v[:, 0]) < 20.0  # a car on a road, m/s
     lateral = trajs[0].poses[:, :2] - trajs[1].poses[:, :2]
     np.testing.assert_allclose(np.linalg.norm(lateral, axis=1), 0.54, atol=1e-6)
+
+
+def _tiny_windows(B=2, T=5):
+    from kitti_vo import experiment as E, models as M
+
+    rng = np.random.default_rng(0)
+    xyt = _toy_path(T + 1)
+    vel = D.velocities(xyt)[:T]
+    return {
+        "z": (vel[None] + 0.1 * rng.normal(size=(B, T, 2))).astype(np.float32),
+        "log_sigma": np.zeros((B, T, 2), np.float32),
+        "features": rng.normal(size=(B, T, M.FEATURES)).astype(np.float32),
+        "pose": np.broadcast_to(E._relative_params(xyt[:T]), (B, T, 4)).astype(
+            np.float32
+        ),
+        "velocity": np.broadcast_to(vel, (B, T, 2)).astype(np.float32),
+    }
+
+
+@pytest.mark.slow
+def test_losses_have_finite_gradients():
+    import jax
+
+    # The example runs in float32 with JAX's default promotion rules, not the
+    # strict ones the library's tests use.
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        _check_losses()
+
+
+def _check_losses():
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    from kitti_vo import models as M
+
+    w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
+    sig = np.array([1.0, 0.1])
+    hetero = M.Estimator(M.HeteroscedasticNoise(sig, jax.random.key(0)))
+    for loss in (M.surrogate_loss, M.nll_loss, M.ekf_loss):
+        value, grads = eqx.filter_value_and_grad(loss)(hetero, w)
+        assert np.isfinite(float(value))
+        leaves = jax.tree_util.tree_leaves(grads)
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in leaves)
+        assert any(np.any(np.asarray(g) != 0) for g in leaves)
+    # The smoother recovers the true start and stays close to the truth.
+    est = M.smooth(hetero, jax.tree_util.tree_map(lambda a: a[0], w))
+    p = np.asarray(est.pose.unit_complex_xy)
+    np.testing.assert_allclose(p[0], np.asarray(w["pose"][0, 0]), atol=1e-3)
+    assert np.max(np.abs(p[:, 2:] - np.asarray(w["pose"][0, :, 2:]))) < 0.5
+
+
+@pytest.mark.slow
+def test_sensor_shapes():
+    import jax
+    import jax.numpy as jnp
+    from kitti_vo import models as M
+
+    sensor = M.VelocitySensor(jax.random.key(0))
+    pair = jnp.zeros((2,) + D.IMAGE_SHAPE, jnp.uint8)
+    with jax.numpy_dtype_promotion("standard"):
+        v, ls, h = sensor(pair)
+    assert v.shape == (2,) and ls.shape == (2,) and h.shape == (M.FEATURES,)
