@@ -114,7 +114,7 @@ def figures(state: dict, fold: int, out: Path) -> None:
             gx = x0 + c * est[k, :, 0] - sn * est[k, :, 1]
             gy = y0 + sn * est[k, :, 0] + c * est[k, :, 1]
             ax.plot(gx, gy, color=colours[m], lw=1, label=m if k == 0 else None)
-    ax.set_aspect("equal")
+    ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(f"Sequence {tr.seq:02d}, windows of {L} states\n{label}", fontsize=9)
