@@ -81,7 +81,9 @@ def parse_args(argv=None):
         "steps": args.steps,
         "lstm_steps": args.lstm_steps,
     }
-    cfg = dataclasses.replace(cfg, **{k: v for k, v in updates.items() if v is not None})
+    cfg = dataclasses.replace(
+        cfg, **{k: v for k, v in updates.items() if v is not None}
+    )
     folds = args.folds or ([3] if args.quick else list(range(D.NUM_FOLDS)))
     return cfg, folds, args
 

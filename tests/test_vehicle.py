@@ -115,7 +115,9 @@ def test_smoothing_recovers_trajectory():
             eqs.factors.VehicleDynamicsFactor(
                 eqs.Var("x", t[:-1]),
                 eqs.Var("x", t[1:]),
-                eqs.DiagonalNoise.from_sigmas(jnp.asarray([0.01, 0.01, 0.01, 0.2, 0.05])),
+                eqs.DiagonalNoise.from_sigmas(
+                    jnp.asarray([0.01, 0.01, 0.01, 0.2, 0.05])
+                ),
                 dt,
             ),
             eqs.factors.VelocityMeasurementFactor(

@@ -72,9 +72,7 @@ def poses_to_2d(poses: np.ndarray) -> np.ndarray:
 def offset_camera(xyt: np.ndarray, lateral: float) -> np.ndarray:
     """Planar poses of a camera mounted `lateral` metres to the left."""
     x, y, th = xyt.T
-    return np.stack(
-        [x - lateral * np.sin(th), y + lateral * np.cos(th), th], axis=1
-    )
+    return np.stack([x - lateral * np.sin(th), y + lateral * np.cos(th), th], axis=1)
 
 
 def velocities(xyt: np.ndarray, dt: float = DT) -> np.ndarray:
@@ -328,7 +326,9 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
     for s in rng.uniform(0, arc[-1], size=max(1, int(arc[-1] / 250))):
         sel = (dense > s) & (dense < s + 3) & ~dlow
         for lat in np.arange(-2.0, 5.8, 0.8):
-            ci, cj = cells(px[sel] + lat * normal[sel, 0], py[sel] + lat * normal[sel, 1])
+            ci, cj = cells(
+                px[sel] + lat * normal[sel, 0], py[sel] + lat * normal[sel, 1]
+            )
             _stamp(marks, ci, cj, 0.8)
     ground[marks] = [230.0, 230.0, 220.0]
     # Texture-poor stretches: the ground near them is a flat, even colour.
@@ -461,12 +461,10 @@ class Renderer:
         frames = np.atleast_1d(np.asarray(frames))
         poses = offset_camera(self.xyt[frames], CAMERA_OFFSETS[camera])
         cam = CAMERAS.index(camera)
-        return np.stack(
-            [self.render(p, int(f), cam) for p, f in zip(poses, frames)]
-        )
+        return np.stack([self.render(p, int(f), cam) for p, f in zip(poses, frames)])
 
     def render(self, pose: np.ndarray, frame: int, cam: int = 0) -> np.ndarray:
-        """One view from planar camera pose `(x, y, θ)` with frame `frame`'s nuisances."""
+        """One view from camera pose `(x, y, θ)` with frame `frame`'s nuisances."""
         w = self.world
         x, y, th = pose
         c, s = np.cos(th), np.sin(th)
@@ -485,7 +483,9 @@ class Renderer:
             dx, dy = ob[:, 0] - x, ob[:, 1] - y
             fwd = c * dx + s * dy
             left = -s * dx + c * dy
-            vis = (fwd > 1.0) & (fwd < MAX_RANGE) & (np.abs(left) < 1.2 * fwd + ob[:, 2])
+            vis = (
+                (fwd > 1.0) & (fwd < MAX_RANGE) & (np.abs(left) < 1.2 * fwd + ob[:, 2])
+            )
             if vis.any():
                 self._draw_objects(img, ob[vis], fwd[vis], left[vis])
         # Passing occluder (a near vehicle or sign): a flat dark shape.

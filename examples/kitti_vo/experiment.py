@@ -97,7 +97,10 @@ def quick_config() -> Config:
 def _git_hash() -> str:
     try:
         return subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
             cwd=Path(__file__).parent,
         ).stdout.strip()
     except Exception:
@@ -136,7 +139,7 @@ def load_trajectories(cfg: Config, seq: int) -> list[D.Trajectory]:
 
 
 def pair_dataset(trajs, frames_of, stride: int) -> dict:
-    """Frame pairs (t, t+1) of un-mirrored trajectories; mirroring is by batch parity."""
+    """Frame pairs (t, t+1) of un-mirrored trajectories (mirrored by batch parity)."""
     pairs, vels = [], []
     for tr in trajs:
         if tr.mirrored:
@@ -273,9 +276,7 @@ def _planar(state) -> np.ndarray:
 
 def evaluate(method: str, model, windows: dict, batch: int = 8):
     """Per-window (m/m, deg/m) and estimated planar poses."""
-    fn = eqx.filter_jit(
-        lambda m, w: jax.vmap(lambda x: estimate(method, m, x))(w)
-    )
+    fn = eqx.filter_jit(lambda m, w: jax.vmap(lambda x: estimate(method, m, x))(w))
     n = windows["z"].shape[0]
     est = []
     for i in range(0, n, batch):
@@ -284,7 +285,9 @@ def evaluate(method: str, model, windows: dict, batch: int = 8):
         w = {k: jnp.asarray(v[idx]) for k, v in windows.items()}
         est.append(_planar(fn(model, w))[: min(batch, n - i)])
     est = np.concatenate(est)
-    truth = _planar(eqs.factors.VehicleState(eqs.SE2(windows["pose"]), windows["velocity"]))
+    truth = _planar(
+        eqs.factors.VehicleState(eqs.SE2(windows["pose"]), windows["velocity"])
+    )
     metrics = np.array([D.window_metrics(e, t) for e, t in zip(est, truth)])
     return metrics, est
 
@@ -324,7 +327,9 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     key = jax.random.key(cfg.model_seed + 1000 * fold)
 
     t0 = time.perf_counter()
-    print(f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}")
+    print(
+        f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
+    )
     train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
     valid_trajs = load_trajectories(cfg, spec.valid)
     test_trajs = load_trajectories(cfg, spec.test)
@@ -344,7 +349,9 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     else:
         t1 = time.perf_counter()
         train_pairs = pair_dataset(train_trajs, D.pretrain_frames, cfg.sensor_stride)
-        valid_pairs = pair_dataset(valid_trajs, D.pretrain_frames, cfg.sensor_valid_stride)
+        valid_pairs = pair_dataset(
+            valid_trajs, D.pretrain_frames, cfg.sensor_valid_stride
+        )
         timings["sensor_data_s"] = time.perf_counter() - t1
         print(
             f"sensor: {len(train_pairs['pairs'])} training pairs, "
@@ -356,7 +363,8 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             sensor_train_loss,
             train_pairs,
             optimizer=eqs.learn.make_optimizer(
-                cfg.sensor_lr, warmup_steps=min(200, cfg.sensor_steps // 10),
+                cfg.sensor_lr,
+                warmup_steps=min(200, cfg.sensor_steps // 10),
                 decay_steps=cfg.sensor_steps,
             ),
             num_steps=cfg.sensor_steps,

@@ -69,7 +69,11 @@ class VelocitySensor(eqx.Module):
         self.convs = tuple(
             _he(
                 eqx.nn.Conv2d(
-                    chans[i], chans[i + 1], sizes[i], stride=2, padding=sizes[i] // 2,
+                    chans[i],
+                    chans[i + 1],
+                    sizes[i],
+                    stride=2,
+                    padding=sizes[i] // 2,
                     key=k[i],
                 ),
                 k[i],
@@ -88,7 +92,9 @@ class VelocitySensor(eqx.Module):
         """`(2, 50, 150, 3)` uint8 -> (velocity (2,), log σ (2,), features (64,))."""
         dtype = self.dense.weight.dtype
         prev, cur = pair[0].astype(dtype), pair[1].astype(dtype)
-        x = jnp.concatenate([(cur - IMAGE_MEAN) / IMAGE_STD, (cur - prev) / IMAGE_STD], -1)
+        x = jnp.concatenate(
+            [(cur - IMAGE_MEAN) / IMAGE_STD, (cur - prev) / IMAGE_STD], -1
+        )
         x = jnp.transpose(x, (2, 0, 1))
         for conv in self.convs:
             x = jax.nn.relu(conv(x))
@@ -104,7 +110,9 @@ def _he(layer, key):
     w = layer.weight
     fan_in = int(np.prod(w.shape[1:]))
     new = jax.random.normal(key, w.shape, w.dtype) * np.sqrt(2.0 / fan_in)
-    return eqx.tree_at(lambda lay: (lay.weight, lay.bias), layer, (new, jnp.zeros_like(layer.bias)))
+    return eqx.tree_at(
+        lambda lay: (lay.weight, lay.bias), layer, (new, jnp.zeros_like(layer.bias))
+    )
 
 
 def prepare_pairs(pairs: Array, mirrored: Array) -> Array:
@@ -172,9 +180,9 @@ class HeteroscedasticNoise(eqx.Module):
         lead = x.shape[:-1]
         out = jax.vmap(self.mlp)(x.reshape(-1, x.shape[-1])).reshape(lead + (2,))
         shift = float(np.log(np.expm1(1.0)))
-        return jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(self.log_base) * jax.nn.softplus(
-            out + shift
-        )
+        return jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(
+            self.log_base
+        ) * jax.nn.softplus(out + shift)
 
 
 # ---------------------------------------------------------------------------
@@ -183,7 +191,7 @@ class HeteroscedasticNoise(eqx.Module):
 
 
 class Estimator(eqx.Module):
-    """Learnable parts shared by the smoother and the EKF: noise head + dynamics noise."""
+    """What the smoother and the EKF learn: a noise head and the dynamics noise."""
 
     noise: ConstantNoise | HeteroscedasticNoise
     log_dynamics_sqrt_precision: Float[Array, " 5"]
@@ -318,7 +326,9 @@ class LstmOdometry(eqx.Module):
         self.cell = eqx.nn.LSTMCell(hidden, hidden, key=k[1])
         head = eqx.nn.Linear(hidden, 2, key=k[2])
         self.head = eqx.tree_at(
-            lambda h: (h.weight, h.bias), head, (head.weight * 0.01, jnp.zeros_like(head.bias))
+            lambda h: (h.weight, h.bias),
+            head,
+            (head.weight * 0.01, jnp.zeros_like(head.bias)),
         )
         self.hidden = hidden
 

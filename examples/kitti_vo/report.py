@@ -53,7 +53,9 @@ def write_summary(out: Path) -> None:
         for k in ("trans_m_per_m", "rot_deg_per_m"):
             x = np.array([v[k] for v in vals])
             entry[k] = float(x.mean())
-            entry[k + "_sem"] = float(x.std(ddof=1) / np.sqrt(x.size)) if x.size > 1 else None
+            entry[k + "_sem"] = (
+                float(x.std(ddof=1) / np.sqrt(x.size)) if x.size > 1 else None
+            )
         summary["methods"][m] = entry
     quick = any(r["config"].get("quick") for r in results)
     (Path(out) / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -73,7 +75,7 @@ def write_summary(out: Path) -> None:
 
     for m, e in summary["methods"].items():
         paper = PAPER_TABLE.get(m)
-        p = ("%.4f" % paper[0], "%.4f" % paper[1]) if paper else ("—", "—")
+        p = (f"{paper[0]:.4f}", f"{paper[1]:.4f}") if paper else ("—", "—")
         lines.append(
             f"| {m} | {fmt(e, 'trans_m_per_m')} | {fmt(e, 'rot_deg_per_m')} | "
             f"{p[0]} | {p[1]} |"
@@ -90,8 +92,10 @@ def figures(state: dict, fold: int, out: Path) -> None:
 
     models, tr = state["models"], state["test_trajs"][0]
     cache = state["caches"][tr.name]
-    L = E.Config().eval_window if not state["result"]["config"]["quick"] else (
-        state["result"]["config"]["eval_window"]
+    L = (
+        E.Config().eval_window
+        if not state["result"]["config"]["quick"]
+        else (state["result"]["config"]["eval_window"])
     )
     starts = D.windows(np.arange(tr.num_frames), L)
     if starts.size == 0:
@@ -105,7 +109,12 @@ def figures(state: dict, fold: int, out: Path) -> None:
     shown = ["dead_reckoning"] + [
         m for m in ("smoother_hetero_e2e", "ekf_hetero", "lstm") if m in models
     ]
-    colours = {"dead_reckoning": "0.6", "smoother_hetero_e2e": "C0", "ekf_hetero": "C3", "lstm": "C2"}
+    colours = {
+        "dead_reckoning": "0.6",
+        "smoother_hetero_e2e": "C0",
+        "ekf_hetero": "C3",
+        "lstm": "C2",
+    }
     for m in shown:
         _, est = E.evaluate(m, models.get(m), w)
         for k, s in enumerate(starts):
@@ -135,8 +144,12 @@ def figures(state: dict, fold: int, out: Path) -> None:
     err = np.abs(cache["z"] - vel)
     fig, axes = plt.subplots(3, 1, figsize=(10, 6), sharex=True)
     for i, (name, unit) in enumerate((("v", "m/s"), ("ω", "rad/s"))):
-        axes[i].plot(frames, err[:, i], color="0.6", lw=0.6, label=f"|sensor error| of {name}")
-        axes[i].plot(frames, sigma[:, i], color="C0", lw=1.0, label=f"learned σ of {name}")
+        axes[i].plot(
+            frames, err[:, i], color="0.6", lw=0.6, label=f"|sensor error| of {name}"
+        )
+        axes[i].plot(
+            frames, sigma[:, i], color="C0", lw=1.0, label=f"learned σ of {name}"
+        )
         axes[i].set_ylabel(unit)
         axes[i].legend(fontsize=7, loc="upper right")
     src = tr.source
@@ -149,7 +162,9 @@ def figures(state: dict, fold: int, out: Path) -> None:
         axes[2].plot(frames, nz["low_texture"] * 0.9, label="low texture", lw=0.8)
         axes[2].legend(fontsize=7, ncol=5, loc="upper right")
     axes[2].set_xlabel("frame")
-    axes[0].set_title(f"Learned noise along sequence {tr.seq:02d} ({label})", fontsize=9)
+    axes[0].set_title(
+        f"Learned noise along sequence {tr.seq:02d} ({label})", fontsize=9
+    )
     fig.tight_layout()
     fig.savefig(Path(out) / f"fig_noise_fold{fold}.png", dpi=120)
     plt.close(fig)
