@@ -149,6 +149,9 @@ def test_real_kitti_poses():
             f"KITTI ground-truth poses not found at {D.DEFAULT_POSES_DIR} "
             "(../shared/data/kitti_poses; see its README)"
         )
+    for seq, count in D.FRAME_COUNTS.items():
+        lines = (D.DEFAULT_POSES_DIR / f"{seq:02d}.txt").read_text().splitlines()
+        assert len(lines) == count
     trajs = D.rendered_sequence(4, seed=0)
     assert [t.num_frames for t in trajs] == [271, 271]
     v = D.velocities(trajs[0].poses)

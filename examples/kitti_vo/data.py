@@ -29,6 +29,10 @@ import numpy as np
 
 
 SEQUENCES = (0, 2, 3, 4, 5, 6, 7, 8, 9, 10)  # fold f tests on SEQUENCES[f]
+# Frames per sequence (KITTI odometry ground truth, 00..10).
+FRAME_COUNTS = dict(
+    enumerate((4541, 1101, 4661, 801, 271, 2761, 1101, 1101, 4071, 1591, 1201))
+)
 NUM_FOLDS = len(SEQUENCES)
 IMAGE_SHAPE = (50, 150, 3)
 DT = 0.1036  # mean frame spacing of KITTI odometry (s)

@@ -50,7 +50,7 @@ class Config:
     real_data_dir: str | None = None  # the preprocessed KITTI-10 release, if any
     cameras: tuple[str, ...] = D.CAMERAS
     mirror: bool = True
-    max_train_sequences: int | None = None
+    max_train_sequences: int | None = None  # keep only the k shortest ones
     # Sensor pretraining.
     sensor_stride: int = 2  # use every k-th pretraining frame pair
     sensor_valid_stride: int = 10
@@ -77,7 +77,7 @@ def quick_config() -> Config:
     return Config(
         cameras=("image_2",),
         max_train_sequences=2,
-        sensor_stride=15,
+        sensor_stride=5,
         sensor_valid_stride=60,
         sensor_steps=150,
         sensor_batch=16,
@@ -92,6 +92,13 @@ def quick_config() -> Config:
         validate=False,
         quick=True,
     )
+
+
+def train_sequences(cfg: Config, spec: D.FoldSpec) -> tuple[int, ...]:
+    if cfg.max_train_sequences is None:
+        return spec.train
+    shortest = sorted(spec.train, key=lambda s: D.FRAME_COUNTS[s])
+    return tuple(sorted(shortest[: cfg.max_train_sequences]))
 
 
 def _git_hash() -> str:
@@ -315,7 +322,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         fold=fold,
         test_sequence=spec.test,
         valid_sequence=spec.valid,
-        train_sequences=list(spec.train[: cfg.max_train_sequences]),
+        train_sequences=list(train_sequences(cfg, spec)),
         config=dataclasses.asdict(cfg),
         git=_git_hash(),
         machine=_machine(),
@@ -323,7 +330,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     result.setdefault("rows", {})
     result.setdefault("timings", {})
     timings = result["timings"]
-    train_seqs = spec.train[: cfg.max_train_sequences]
+    train_seqs = train_sequences(cfg, spec)
     key = jax.random.key(cfg.model_seed + 1000 * fold)
 
     t0 = time.perf_counter()
