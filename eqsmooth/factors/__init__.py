@@ -16,3 +16,9 @@ from ._noise import (
     SqrtInformationNoise as SqrtInformationNoise,
 )
 from ._variables import Var as Var
+from ._vehicle import (
+    vehicle_motion as vehicle_motion,
+    VehicleDynamicsFactor as VehicleDynamicsFactor,
+    VehicleState as VehicleState,
+    VelocityMeasurementFactor as VelocityMeasurementFactor,
+)

@@ -1,0 +1,166 @@
+"""A planar vehicle: SE(2) pose plus forward and yaw velocity.
+
+The state and factors of the visual-odometry task of Yi et al. (IROS 2021,
+Sec. V-B, after Kloss et al.): `x_t = (T_t ∈ SE(2), v_t, ω_t)`, tangent
+dimension 5, with a constant-velocity unicycle motion model and a
+measurement of the velocities (for example from a learned virtual sensor).
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ..lie import SE2, SO2
+from ..manifold import local
+from ._factor import AbstractFactor
+from ._noise import AbstractNoiseModel
+from ._variables import Var
+
+
+class VehicleState(eqx.Module):
+    """A planar vehicle state: pose `T ∈ SE(2)` and velocities `(v, ω)`.
+
+    A state pytree (tangent dimension 5, in the order `(δx, δy, δθ)` of the
+    pose, then `(δv, δω)`); with leading batch axes it is a trajectory or a
+    stack of states, and it works with [`eqsmooth.manifold.retract`][],
+    [`eqsmooth.manifold.local`][] and every solver.
+
+    **Fields:**
+
+    - `pose`: an [`eqsmooth.lie.SE2`][] (vehicle frame: x forward, y left).
+    - `velocity`: `(v, ω)`, forward speed and yaw rate, shape `(*batch, 2)`.
+    """
+
+    pose: SE2
+    velocity: Float[Array, "*batch 2"]
+
+    def __init__(self, pose: SE2, velocity: Float[ArrayLike, "*batch 2"]):
+        self.pose = pose
+        self.velocity = jnp.asarray(velocity, dtype=pose.unit_complex_xy.dtype)
+
+    def __check_init__(self):
+        if self.velocity.shape[-1:] != (2,):
+            raise ValueError(
+                f"VehicleState.velocity must have shape (*batch, 2), got "
+                f"{self.velocity.shape}"
+            )
+        if self.velocity.shape[:-1] != self.pose.unit_complex_xy.shape[:-1]:
+            raise ValueError(
+                f"VehicleState: pose has batch shape "
+                f"{self.pose.unit_complex_xy.shape[:-1]} but velocity has "
+                f"{self.velocity.shape[:-1]}"
+            )
+
+    @classmethod
+    def from_poses(cls, poses: SE2, dt: float = 1.0) -> "VehicleState":
+        """A trajectory whose velocities are read off consecutive poses.
+
+        `v_t` and `ω_t` are the forward translation and the rotation of
+        `T_t⁻¹ T_{t+1}`, divided by `dt`, so [`eqsmooth.factors.vehicle_motion`][]
+        reproduces every pose whose motion has no sideways component. The
+        last state repeats the previous velocities.
+
+        **Arguments:**
+
+        - `poses`: an [`eqsmooth.lie.SE2`][] of batch shape `(T,)`, `T ≥ 2`.
+        - `dt`: the time between poses.
+
+        **Returns:** a `VehicleState` of batch shape `(T,)`.
+        """
+        rel = poses[:-1].inverse() @ poses[1:]
+        c, s, x = (rel.unit_complex_xy[..., i] for i in range(3))
+        vel = jnp.stack([x, jnp.arctan2(s, c)], axis=-1) / dt
+        vel = jnp.concatenate([vel, vel[-1:]], axis=0)
+        return cls(poses, vel)
+
+    def __getitem__(self, index) -> "VehicleState":
+        return VehicleState(self.pose[index], self.velocity[index])
+
+
+def vehicle_motion(state: VehicleState, dt: float | Float[Array, ""] = 1.0):
+    """The noise-free next state: `T ∘ (rotate by ω dt, translate [v dt, 0])`.
+
+    The pose moves `v dt` along its heading and turns by `ω dt`; the
+    velocities carry over.
+
+    **Arguments:**
+
+    - `state`: a [`eqsmooth.factors.VehicleState`][] (any batch shape).
+    - `dt`: the time step.
+
+    **Returns:** the predicted `VehicleState`.
+    """
+    v, w = state.velocity[..., 0], state.velocity[..., 1]
+    step = SE2.from_rotation_and_translation(
+        SO2.from_radians(w * dt), jnp.stack([v * dt, jnp.zeros_like(v)], axis=-1)
+    )
+    return VehicleState(state.pose @ step, state.velocity)
+
+
+class VehicleDynamicsFactor(AbstractFactor):
+    """Constant-velocity unicycle dynamics between `x_t` and `x_{t+1}`.
+
+    Residual `x_{t+1} ⊖ f(x_t)` in tangent coordinates (5-D), with `f`
+    [`eqsmooth.factors.vehicle_motion`][]. Its noise is normally one learnable
+    [`eqsmooth.factors.DiagonalNoise`][] of shape `(5,)` shared by every step.
+
+    **Arguments:**
+
+    - `prev`, `next`: [`eqsmooth.factors.Var`][]s with `n` rows (usually
+        `Var("x", t[:-1])` and `Var("x", t[1:])`).
+    - `noise`: noise model on the 5-D residual.
+    - `dt`: the time step (static).
+    """
+
+    variables: tuple[Var, ...]
+    noise: AbstractNoiseModel
+    dt: float = eqx.field(static=True)
+
+    def __init__(
+        self, prev: Var, next: Var, noise: AbstractNoiseModel, dt: float = 1.0
+    ):
+        self.variables = (prev, next)
+        self.noise = noise
+        self.dt = float(dt)
+
+    def residual(self, prev: VehicleState, next: VehicleState) -> Float[Array, " 5"]:
+        return local(vehicle_motion(prev, self.dt), next)
+
+
+class VelocityMeasurementFactor(AbstractFactor):
+    """A measurement `z_t = (v_t, ω_t)` of a vehicle's velocities.
+
+    Residual `(v_t, ω_t) − z_t` (2-D). With a per-row noise model (for
+    example `DiagonalNoise` of shape `(n, 2)`) every frame has its own trust:
+    the heteroscedastic virtual sensor of Yi et al.
+
+    **Arguments:**
+
+    - `variable`: a [`eqsmooth.factors.Var`][] with `n` rows.
+    - `measurement`: `(n, 2)` measured `(v, ω)`.
+    - `noise`: noise model on the 2-D residual (shared or per row).
+    """
+
+    variables: tuple[Var, ...]
+    measurement: Float[Array, "n 2"]
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self,
+        variable: Var,
+        measurement: Float[ArrayLike, "n 2"],
+        noise: AbstractNoiseModel,
+    ):
+        self.variables = (variable,)
+        self.measurement = jnp.asarray(measurement)
+        self.noise = noise
+
+    def __check_init__(self):
+        if self.measurement.ndim != 2 or self.measurement.shape[1] != 2:
+            raise ValueError(
+                "VelocityMeasurementFactor.measurement must have shape (n, 2), got "
+                f"{self.measurement.shape}"
+            )
+
+    def residual(self, x: VehicleState) -> Float[Array, " 2"]:
+        return x.velocity - self.measurement.astype(x.velocity.dtype)

@@ -1,0 +1,515 @@
+"""One fold of the KITTI-10 visual odometry experiment, resumable step by step.
+
+A fold: (1) pretrain the virtual sensor on the training trajectories minus
+their last 205 frames (checkpoint selection on the validation sequence);
+(2) run the frozen sensor once over every frame pair that later stages need
+and cache its outputs; (3) train every smoother / EKF / LSTM variant on
+windows of the last 200 frames of each training trajectory with
+`eqs.learn.train` (resumable checkpoints, selection on the validation
+sequence's last 200 frames); (4) score every method on disjoint length-100
+windows of the test sequence. `fold_K.json` is rewritten after every method,
+so a killed run started again with the same command skips what is done and
+resumes the rest from its checkpoints.
+"""
+
+import dataclasses
+import json
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+import eqsmooth as eqs
+
+from . import data as D, models as M
+
+
+LABEL = "rendered views on real KITTI trajectories"
+METHODS = (
+    "smoother_hetero_e2e",
+    "smoother_hetero_nll",
+    "smoother_const_e2e",
+    "smoother_const_nll",
+    "ekf_hetero",
+    "ekf_const",
+    "lstm",
+)
+
+
+@dataclasses.dataclass
+class Config:
+    data_seed: int = 0
+    model_seed: int = 0
+    poses_dir: str = str(D.DEFAULT_POSES_DIR)
+    real_data_dir: str | None = None  # the preprocessed KITTI-10 release, if any
+    cameras: tuple[str, ...] = D.CAMERAS
+    mirror: bool = True
+    max_train_sequences: int | None = None  # keep only the k shortest ones
+    # Sensor pretraining.
+    sensor_stride: int = 2  # use every k-th pretraining frame pair
+    sensor_valid_stride: int = 10
+    sensor_steps: int = 6000
+    sensor_batch: int = 32
+    sensor_lr: float = 1e-3
+    # Smoother / EKF / LSTM training on windows of the last 200 frames.
+    window: int = 50
+    window_stride: int = 10
+    steps: int = 1500
+    lstm_steps: int = 3000
+    batch: int = 8
+    lr: float = 3e-3
+    eval_every: int = 100
+    gn_steps: int = 3  # K of the surrogate loss
+    methods: tuple[str, ...] = METHODS
+    eval_window: int = D.EVAL_WINDOW
+    eval_copies: int | None = None  # score only the first k test trajectories
+    validate: bool = True  # checkpoint selection on the validation sequence
+    quick: bool = False
+
+
+def quick_config() -> Config:
+    return Config(
+        cameras=("image_2",),
+        max_train_sequences=2,
+        sensor_stride=5,
+        sensor_valid_stride=60,
+        sensor_steps=150,
+        sensor_batch=16,
+        window=20,
+        window_stride=20,
+        steps=40,
+        lstm_steps=60,
+        batch=4,
+        eval_every=20,
+        # The key comparison only; compile time dominates a quick run.
+        methods=("smoother_hetero_e2e", "smoother_const_e2e", "ekf_hetero", "lstm"),
+        validate=False,
+        quick=True,
+    )
+
+
+def train_sequences(cfg: Config, spec: D.FoldSpec) -> tuple[int, ...]:
+    if cfg.max_train_sequences is None:
+        return spec.train
+    shortest = sorted(spec.train, key=lambda s: D.FRAME_COUNTS[s])
+    return tuple(sorted(shortest[: cfg.max_train_sequences]))
+
+
+def _git_hash() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).parent,
+        ).stdout.strip()
+    except Exception:
+        return "unknown"
+
+
+def _machine() -> dict:
+    import os
+
+    return {
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+        "processor": platform.processor(),
+        "jax": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+    }
+
+
+# ---------------------------------------------------------------------------
+# Trajectories of a fold
+# ---------------------------------------------------------------------------
+
+
+def load_trajectories(cfg: Config, seq: int) -> list[D.Trajectory]:
+    if cfg.real_data_dir is not None:
+        trajs = D.load_kitti10_sequence(cfg.real_data_dir, seq)
+    else:
+        trajs = D.rendered_sequence(seq, cfg.data_seed, cfg.poses_dir)
+    trajs = [t for t in trajs if t.camera in cfg.cameras]
+    return D.with_mirrors(trajs) if cfg.mirror else trajs
+
+
+# ---------------------------------------------------------------------------
+# Sensor
+# ---------------------------------------------------------------------------
+
+
+def pair_dataset(trajs, frames_of, stride: int) -> dict:
+    """Frame pairs (t, t+1) of un-mirrored trajectories (mirrored by batch parity)."""
+    pairs, vels = [], []
+    for tr in trajs:
+        if tr.mirrored:
+            continue
+        frames = frames_of(tr.num_frames)
+        frames = frames[frames < tr.num_frames - 1][::stride]
+        imgs = tr.images(np.concatenate([frames, frames + 1]))
+        n = frames.size
+        pairs.append(np.stack([imgs[:n], imgs[n:]], axis=1))
+        vels.append(D.velocities(tr.poses)[frames])
+    return {
+        "pairs": np.concatenate(pairs),
+        "velocity": np.concatenate(vels).astype(np.float32),
+    }
+
+
+def _parity_mirror(batch: dict) -> dict:
+    # Odd batch positions see the mirrored copy: flipped images, negated ω.
+    B = batch["pairs"].shape[0]
+    mirrored = jnp.arange(B) % 2 == 1
+    vel = batch["velocity"] * jnp.where(mirrored[:, None], jnp.array([1.0, -1.0]), 1.0)
+    return {"pairs": batch["pairs"], "mirrored": mirrored, "velocity": vel}
+
+
+def sensor_train_loss(sensor, batch):
+    return M.sensor_loss(sensor, _parity_mirror(batch))
+
+
+def sensor_valid_loss(sensor, batch):
+    return M.sensor_loss(sensor, _parity_mirror(batch))[1]["mse"]
+
+
+@eqx.filter_jit
+def _sensor_forward(sensor, pairs, mirrored):
+    return jax.vmap(sensor)(M.prepare_pairs(pairs, mirrored))
+
+
+def sensor_outputs(sensor, tr: D.Trajectory, frames: np.ndarray, batch: int = 64):
+    """Cached outputs for pairs (t, t+1), t in `frames`: z, log σ, features."""
+    outs = []
+    for i in range(0, frames.size, batch):
+        f = frames[i : i + batch]
+        n = f.size
+        pad = np.concatenate([f, np.repeat(f[-1:], batch - n)])
+        imgs = tr.images(np.concatenate([pad, pad + 1]))
+        pairs = np.stack([imgs[:batch], imgs[batch:]], axis=1)
+        # Trajectory.images already flipped mirrored views.
+        z, ls, h = _sensor_forward(sensor, jnp.asarray(pairs), jnp.zeros(batch, bool))
+        outs.append([np.asarray(a)[:n] for a in (z, ls, h)])
+    z, ls, h = (np.concatenate([o[k] for o in outs]) for k in range(3))
+    return {"z": z, "log_sigma": ls, "features": h}
+
+
+# ---------------------------------------------------------------------------
+# Windows
+# ---------------------------------------------------------------------------
+
+
+def trajectory_cache(sensor, tr: D.Trajectory, first: int) -> dict:
+    frames = np.arange(first, tr.num_frames - 1)
+    out = sensor_outputs(sensor, tr, frames)
+    out["first"] = np.asarray(first)
+    return out
+
+
+def _relative_params(xyt: np.ndarray) -> np.ndarray:
+    # Poses relative to the first one (keeps float32 coordinates small).
+    x0, y0, t0 = xyt[0]
+    c, s = np.cos(t0), np.sin(t0)
+    dx, dy = xyt[:, 0] - x0, xyt[:, 1] - y0
+    th = xyt[:, 2] - t0
+    return np.stack([np.cos(th), np.sin(th), c * dx + s * dy, -s * dx + c * dy], 1)
+
+
+def make_windows(tr: D.Trajectory, cache: dict, starts: np.ndarray, length: int):
+    f0 = int(cache["first"])
+    vel = D.velocities(tr.poses)
+    out = {k: [] for k in ("z", "log_sigma", "features", "pose", "velocity")}
+    for s in starts:
+        sl = slice(s - f0, s - f0 + length)
+        for k in ("z", "log_sigma", "features"):
+            out[k].append(cache[k][sl])
+        out["pose"].append(_relative_params(tr.poses[s : s + length]))
+        out["velocity"].append(vel[s : s + length])
+    return {k: np.stack(v).astype(np.float32) for k, v in out.items()}
+
+
+def concat(ws: list[dict]) -> dict:
+    return {k: np.concatenate([w[k] for w in ws]) for k in ws[0]}
+
+
+# ---------------------------------------------------------------------------
+# Methods
+# ---------------------------------------------------------------------------
+
+
+def build_model(method: str, sigmas, key):
+    if method == "lstm":
+        return M.LstmOdometry(key)
+    if "hetero" in method:
+        noise = M.HeteroscedasticNoise(sigmas, key)
+    else:
+        noise = M.ConstantNoise(sigmas)
+    return M.Estimator(noise)
+
+
+def losses(method: str, cfg: Config):
+    if method == "lstm":
+        return M.lstm_loss, M.lstm_loss
+    if method.startswith("ekf"):
+        return M.ekf_loss, M.ekf_loss
+
+    def e2e(model, batch):
+        return M.surrogate_loss(model, batch, cfg.gn_steps)
+
+    train = e2e if method.endswith("e2e") else M.nll_loss
+    return train, e2e
+
+
+def estimate(method: str, model, window: dict) -> eqs.factors.VehicleState:
+    if method == "lstm":
+        return model(window)
+    if method.startswith("ekf"):
+        return M.run_ekf(model, window).mean
+    if method == "dead_reckoning":
+        return M.dead_reckoning(window)
+    return M.smooth(model, window)
+
+
+def _planar(state) -> np.ndarray:
+    p = np.asarray(state.pose.unit_complex_xy)
+    return np.stack([p[..., 2], p[..., 3], np.arctan2(p[..., 1], p[..., 0])], -1)
+
+
+def evaluate(method: str, model, windows: dict, batch: int = 8):
+    """Per-window (m/m, deg/m) and estimated planar poses."""
+    fn = eqx.filter_jit(lambda m, w: jax.vmap(lambda x: estimate(method, m, x))(w))
+    n = windows["z"].shape[0]
+    est = []
+    for i in range(0, n, batch):
+        idx = np.arange(i, min(i + batch, n))
+        idx = np.concatenate([idx, np.repeat(idx[-1:], batch - idx.size)])
+        w = {k: jnp.asarray(v[idx]) for k, v in windows.items()}
+        est.append(_planar(fn(model, w))[: min(batch, n - i)])
+    est = np.concatenate(est)
+    truth = _planar(
+        eqs.factors.VehicleState(eqs.SE2(windows["pose"]), windows["velocity"])
+    )
+    metrics = np.array([D.window_metrics(e, t) for e, t in zip(est, truth)])
+    return metrics, est
+
+
+# ---------------------------------------------------------------------------
+# A fold
+# ---------------------------------------------------------------------------
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    tmp.replace(path)
+
+
+def run_fold(cfg: Config, fold: int, out: Path) -> dict:
+    spec = D.fold_spec(fold)
+    out.mkdir(parents=True, exist_ok=True)
+    work = out / "work" / f"fold_{fold}"
+    work.mkdir(parents=True, exist_ok=True)
+    result_path = out / f"fold_{fold}.json"
+    result = json.loads(result_path.read_text()) if result_path.exists() else {}
+    result.update(
+        label=LABEL,
+        fold=fold,
+        test_sequence=spec.test,
+        valid_sequence=spec.valid,
+        train_sequences=list(train_sequences(cfg, spec)),
+        config=dataclasses.asdict(cfg),
+        git=_git_hash(),
+        machine=_machine(),
+    )
+    result.setdefault("rows", {})
+    result.setdefault("timings", {})
+    timings = result["timings"]
+    train_seqs = train_sequences(cfg, spec)
+    key = jax.random.key(cfg.model_seed + 1000 * fold)
+
+    t0 = time.perf_counter()
+    print(
+        f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
+    )
+    train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
+    valid_trajs = load_trajectories(cfg, spec.valid)
+    test_trajs = load_trajectories(cfg, spec.test)
+    timings["load_s"] = time.perf_counter() - t0
+    if cfg.real_data_dir is None:
+        r = test_trajs[0]
+        frames = np.arange(min(200, r.num_frames))
+        t1 = time.perf_counter()
+        r.images(frames)
+        timings["render_ms_per_frame"] = (time.perf_counter() - t1) / frames.size * 1e3
+
+    # (1) Sensor pretraining.
+    sensor_path = out / f"sensor_fold{fold}.eqx"
+    sensor = M.VelocitySensor(jax.random.fold_in(key, 0))
+    if sensor_path.exists():
+        sensor = eqx.tree_deserialise_leaves(sensor_path, sensor)
+    else:
+        t1 = time.perf_counter()
+        train_pairs = pair_dataset(train_trajs, D.pretrain_frames, cfg.sensor_stride)
+        valid_pairs = pair_dataset(
+            valid_trajs, D.pretrain_frames, cfg.sensor_valid_stride
+        )
+        timings["sensor_data_s"] = time.perf_counter() - t1
+        print(
+            f"sensor: {len(train_pairs['pairs'])} training pairs, "
+            f"{len(valid_pairs['pairs'])} validation pairs"
+        )
+        t1 = time.perf_counter()
+        res = eqs.learn.train(
+            sensor,
+            sensor_train_loss,
+            train_pairs,
+            optimizer=eqs.learn.make_optimizer(
+                cfg.sensor_lr,
+                warmup_steps=min(200, cfg.sensor_steps // 10),
+                decay_steps=cfg.sensor_steps,
+            ),
+            num_steps=cfg.sensor_steps,
+            batch_size=cfg.sensor_batch,
+            seed=cfg.model_seed,
+            has_aux=True,
+            valid_data=valid_pairs,
+            valid_loss_fn=sensor_valid_loss,
+            eval_every=max(cfg.sensor_steps // 10, 1),
+            checkpoint_path=work / "sensor.ckpt",
+            checkpoint_every=200,
+            log_path=work / "sensor.jsonl",
+        )
+        sensor = res.best_model
+        timings["sensor_train_s"] = time.perf_counter() - t1
+        timings["sensor_best_step"] = res.best_step
+        timings["sensor_valid_mse_normalised"] = res.best_valid_loss
+        eqx.tree_serialise_leaves(sensor_path, sensor)
+        del train_pairs, valid_pairs
+    _write_json(result_path, result)
+
+    # (2) Cache the frozen sensor's outputs.
+    t1 = time.perf_counter()
+    caches = {}
+    cache_dir = work / "cache"
+    cache_dir.mkdir(exist_ok=True)
+    all_trajs = (
+        [(t, "train") for t in train_trajs]
+        + [(t, "valid") for t in valid_trajs]
+        + [(t, "test") for t in test_trajs]
+    )
+    for tr, role in tqdm(all_trajs, desc="sensor cache"):
+        path = cache_dir / (tr.name.replace("/", "_") + ".npz")
+        if path.exists():
+            caches[tr.name] = dict(np.load(path))
+            continue
+        first = 0 if role == "test" else int(D.smoother_frames(tr.num_frames)[0])
+        caches[tr.name] = trajectory_cache(sensor, tr, first)
+        np.savez(path, **caches[tr.name])
+    timings["cache_s"] = time.perf_counter() - t1
+
+    def windows_of(trajs, length, stride, role):
+        ws = []
+        for tr in trajs:
+            c = caches[tr.name]
+            frames = (
+                np.arange(tr.num_frames)
+                if role == "test"
+                else D.smoother_frames(tr.num_frames)
+            )
+            starts = D.windows(frames, length, stride)
+            if starts.size:
+                ws.append(make_windows(tr, c, starts, length))
+        return concat(ws)
+
+    train_w = windows_of(train_trajs, cfg.window, cfg.window_stride, "train")
+    valid_w = windows_of(valid_trajs, cfg.window, cfg.window, "valid")
+    scored = test_trajs[: cfg.eval_copies] if cfg.eval_copies else test_trajs
+    test_w = windows_of(scored, cfg.eval_window, None, "test")
+    # Sensor accuracy on the smoother-training windows sets the noise heads' start.
+    err = train_w["z"] - train_w["velocity"]
+    sigmas = np.sqrt(np.mean(err.reshape(-1, 2) ** 2, 0))
+    result["sensor"] = {
+        "train_window_rmse": sigmas.tolist(),
+        "test_rmse": np.sqrt(
+            np.mean((test_w["z"] - test_w["velocity"]).reshape(-1, 2) ** 2, 0)
+        ).tolist(),
+        "num_train_windows": int(train_w["z"].shape[0]),
+        "num_valid_windows": int(valid_w["z"].shape[0]),
+        "num_test_windows": int(test_w["z"].shape[0]),
+    }
+    print(
+        f"windows: {train_w['z'].shape[0]} train, {valid_w['z'].shape[0]} valid, "
+        f"{test_w['z'].shape[0]} test; sensor RMSE (v, ω) {sigmas}"
+    )
+
+    # Dead reckoning from the sensor: a reference row, no training.
+    if "dead_reckoning" not in result["rows"]:
+        m, _ = evaluate("dead_reckoning", None, test_w)
+        result["rows"]["dead_reckoning"] = _row(m, 0.0, 0.0, None)
+    _write_json(result_path, result)
+
+    # (3) + (4) Train and score each method.
+    models = {}
+    for i, method in enumerate(cfg.methods):
+        model = build_model(method, sigmas, jax.random.fold_in(key, 10 + i))
+        train_loss, valid_loss = losses(method, cfg)
+        steps = cfg.lstm_steps if method == "lstm" else cfg.steps
+        t1 = time.perf_counter()
+        res = eqs.learn.train(
+            model,
+            train_loss,
+            train_w,
+            optimizer=eqs.learn.make_optimizer(
+                cfg.lr, warmup_steps=min(50, steps // 10), decay_steps=steps
+            ),
+            num_steps=steps,
+            batch_size=min(cfg.batch, train_w["z"].shape[0]),
+            seed=cfg.model_seed,
+            valid_data=valid_w if cfg.validate else None,
+            valid_loss_fn=valid_loss if cfg.validate else None,
+            eval_every=cfg.eval_every,
+            checkpoint_path=work / f"{method}.ckpt",
+            checkpoint_every=100,
+            log_path=work / f"{method}.jsonl",
+            progress=True,
+        )
+        train_s = time.perf_counter() - t1
+        models[method] = res.best_model
+        if method in result["rows"]:
+            continue
+        t1 = time.perf_counter()
+        m, _ = evaluate(method, res.best_model, test_w)
+        eval_s = time.perf_counter() - t1
+        result["rows"][method] = _row(m, train_s, eval_s, res.best_step)
+        print(
+            f"{method}: {result['rows'][method]['trans_m_per_m']:.4f} m/m, "
+            f"{result['rows'][method]['rot_deg_per_m']:.4f} deg/m"
+        )
+        _write_json(result_path, result)
+    timings["total_s"] = time.perf_counter() - t0
+    _write_json(result_path, result)
+    return {
+        "result": result,
+        "models": models,
+        "test_trajs": scored,
+        "test_windows": test_w,
+        "caches": caches,
+    }
+
+
+def _row(metrics: np.ndarray, train_s: float, eval_s: float, best_step) -> dict:
+    return {
+        "trans_m_per_m": float(np.mean(metrics[:, 0])),
+        "rot_deg_per_m": float(np.mean(metrics[:, 1])),
+        "trans_m_per_m_windows": metrics[:, 0].tolist(),
+        "rot_deg_per_m_windows": metrics[:, 1].tolist(),
+        "train_s": train_s,
+        "eval_s": eval_s,
+        "best_step": best_step,
+    }

@@ -1,0 +1,361 @@
+"""Models for KITTI visual odometry: virtual sensor, noise heads, smoother, EKF, LSTM.
+
+- Virtual sensor: a small strided CNN on the 6-channel stack
+  `[image_{t+1}, image_{t+1} − image_t]` (50 x 150) giving the velocities
+  `(v_t, ω_t)` of the motion `t → t+1`, a log standard deviation per
+  component (trained with a Gaussian NLL whose mean is held fixed, so it does
+  not bias the velocities) and a 64-D feature vector. It is trained once per
+  fold and then frozen; its outputs are cached, so nothing downstream runs it.
+- Noise heads giving the square-root precision of the velocity factor:
+  constant (two learned numbers) or heteroscedastic (an MLP on the cached
+  features and log standard deviations).
+- Smoother: prior on the first state at its true value,
+  [`eqsmooth.factors.VehicleDynamicsFactor`][] with a learned diagonal noise
+  shared by all steps, one [`eqsmooth.factors.VelocityMeasurementFactor`][]
+  per frame.
+- EKF: the same factors through [`eqsmooth.filters.ekf`][].
+- LSTM: reads the cached features, outputs velocities that are integrated
+  from the true initial state with the same motion model.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+import eqsmooth as eqs
+from eqsmooth.factors import (
+    vehicle_motion,
+    VehicleDynamicsFactor,
+    VehicleState,
+    VelocityMeasurementFactor,
+)
+
+from . import data as D
+
+
+VELOCITY_SCALE = np.array([5.0, 0.2], np.float32)  # m/s, rad/s: output units
+VELOCITY_MEAN = np.array([7.0, 0.0], np.float32)
+IMAGE_MEAN = 110.0
+IMAGE_STD = 60.0
+FEATURES = 64
+SQRT_PRECISION_FLOOR = np.array([0.05, 1.0], np.float32)  # σ ≤ 20 m/s, 1 rad/s
+PRIOR_SIGMAS = np.array([0.01, 0.01, 0.001, 0.05, 0.01], np.float32)
+INITIAL_DYNAMICS_SIGMAS = np.array([0.1, 0.1, 0.01, 1.0, 0.1], np.float32)
+
+
+# ---------------------------------------------------------------------------
+# Virtual sensor
+# ---------------------------------------------------------------------------
+
+
+class VelocitySensor(eqx.Module):
+    """CNN: uint8 image pair `(2, 50, 150, 3)` -> velocity, log σ, features.
+
+    Four 3 x 3 convolutions with stride 2 (after a 5 x 5 first layer), ReLU,
+    16-32-32-32 channels, flattened (32 x 4 x 10) into a 64-unit layer; a
+    linear head gives the normalised velocities and their log σ.
+    """
+
+    convs: tuple[eqx.nn.Conv2d, ...]
+    dense: eqx.nn.Linear
+    head: eqx.nn.Linear
+
+    def __init__(self, key: PRNGKeyArray):
+        k = jax.random.split(key, 6)
+        chans = (6, 16, 32, 32, 32)
+        sizes = (5, 3, 3, 3)
+        self.convs = tuple(
+            _he(
+                eqx.nn.Conv2d(
+                    chans[i],
+                    chans[i + 1],
+                    sizes[i],
+                    stride=2,
+                    padding=sizes[i] // 2,
+                    key=k[i],
+                ),
+                k[i],
+            )
+            for i in range(4)
+        )
+        self.dense = _he(eqx.nn.Linear(32 * 4 * 10, FEATURES, key=k[4]), k[4])
+        head = eqx.nn.Linear(FEATURES, 4, key=k[5])
+        self.head = eqx.tree_at(
+            lambda h: (h.weight, h.bias),
+            head,
+            (head.weight * 0.1, jnp.zeros_like(head.bias)),
+        )
+
+    def __call__(self, pair: Array) -> tuple[Array, Array, Array]:
+        """`(2, 50, 150, 3)` uint8 -> (velocity (2,), log σ (2,), features (64,))."""
+        dtype = self.dense.weight.dtype
+        prev, cur = pair[0].astype(dtype), pair[1].astype(dtype)
+        x = jnp.concatenate(
+            [(cur - IMAGE_MEAN) / IMAGE_STD, (cur - prev) / IMAGE_STD], -1
+        )
+        x = jnp.transpose(x, (2, 0, 1))
+        for conv in self.convs:
+            x = jax.nn.relu(conv(x))
+        h = jax.nn.relu(self.dense(x.reshape(-1)))
+        out = self.head(h)
+        scale = jnp.asarray(VELOCITY_SCALE, dtype)
+        vel = jnp.asarray(VELOCITY_MEAN, dtype) + scale * out[:2]
+        log_sigma = out[2:] + jnp.log(scale)
+        return vel, log_sigma, h
+
+
+def _he(layer, key):
+    w = layer.weight
+    fan_in = int(np.prod(w.shape[1:]))
+    new = jax.random.normal(key, w.shape, w.dtype) * np.sqrt(2.0 / fan_in)
+    return eqx.tree_at(
+        lambda lay: (lay.weight, lay.bias), layer, (new, jnp.zeros_like(layer.bias))
+    )
+
+
+def prepare_pairs(pairs: Array, mirrored: Array) -> Array:
+    """Flip mirrored examples' images left-right: `(B, 2, H, W, 3)`, `(B,)`."""
+    return jnp.where(mirrored[:, None, None, None, None], pairs[:, :, :, ::-1], pairs)
+
+
+def sensor_loss(sensor: VelocitySensor, batch: dict) -> tuple[Array, dict]:
+    """Normalised velocity MSE plus a Gaussian NLL for log σ (mean held fixed)."""
+    pairs = prepare_pairs(batch["pairs"], batch["mirrored"])
+    vel, log_sigma, _ = jax.vmap(sensor)(pairs)
+    dtype = vel.dtype
+    target = batch["velocity"].astype(dtype)
+    scale = jnp.asarray(VELOCITY_SCALE, dtype)
+    err = (vel - target) / scale
+    mse = jnp.mean(err * err)
+    e2 = jax.lax.stop_gradient(vel - target) ** 2
+    nll = jnp.mean(0.5 * e2 * jnp.exp(-2 * log_sigma) + log_sigma)
+    return mse + 0.1 * nll, {"mse": mse, "nll": nll}
+
+
+# ---------------------------------------------------------------------------
+# Noise heads (read the cached sensor outputs)
+# ---------------------------------------------------------------------------
+
+
+class ConstantNoise(eqx.Module):
+    """One learned square-root precision per component, shared by every frame."""
+
+    log_sqrt_precision: Float[Array, " 2"]
+
+    def __init__(self, sigmas):
+        sp = 1.0 / np.asarray(sigmas, np.float32) - SQRT_PRECISION_FLOOR
+        self.log_sqrt_precision = jnp.asarray(np.log(np.maximum(sp, 1e-3)))
+
+    def __call__(self, features, log_sigma):
+        s = jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(self.log_sqrt_precision)
+        return jnp.broadcast_to(s, log_sigma.shape)
+
+
+class HeteroscedasticNoise(eqx.Module):
+    """Per-frame square-root precisions from the sensor's features and log σ.
+
+    `σ⁻¹ = floor + base · softplus(MLP([features, log σ]) + softplus⁻¹(1))`;
+    the MLP's last layer starts at zero, so training starts from a constant.
+    """
+
+    mlp: eqx.nn.MLP
+    log_base: Float[Array, " 2"]
+
+    def __init__(self, sigmas, key: PRNGKeyArray):
+        mlp = eqx.nn.MLP(FEATURES + 2, 2, 32, 2, activation=jax.nn.relu, key=key)
+        last = mlp.layers[-1]
+        last = eqx.tree_at(
+            lambda lin: (lin.weight, lin.bias),
+            last,
+            (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)),
+        )
+        self.mlp = eqx.tree_at(lambda m: m.layers[-1], mlp, last)
+        sp = 1.0 / np.asarray(sigmas, np.float32) - SQRT_PRECISION_FLOOR
+        self.log_base = jnp.asarray(np.log(np.maximum(sp, 1e-3)))
+
+    def __call__(self, features, log_sigma):
+        x = jnp.concatenate([features / 4.0, log_sigma], axis=-1)
+        lead = x.shape[:-1]
+        out = jax.vmap(self.mlp)(x.reshape(-1, x.shape[-1])).reshape(lead + (2,))
+        shift = float(np.log(np.expm1(1.0)))
+        return jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(
+            self.log_base
+        ) * jax.nn.softplus(out + shift)
+
+
+# ---------------------------------------------------------------------------
+# Smoother and EKF
+# ---------------------------------------------------------------------------
+
+
+class Estimator(eqx.Module):
+    """What the smoother and the EKF learn: a noise head and the dynamics noise."""
+
+    noise: ConstantNoise | HeteroscedasticNoise
+    log_dynamics_sqrt_precision: Float[Array, " 5"]
+
+    def __init__(self, noise, dynamics_sigmas=INITIAL_DYNAMICS_SIGMAS):
+        self.noise = noise
+        self.log_dynamics_sqrt_precision = jnp.asarray(
+            -np.log(np.asarray(dynamics_sigmas, np.float32))
+        )
+
+    def factors(self, window: dict):
+        """Prior, dynamics and velocity factors for one window (no batch axis)."""
+        z = window["z"]
+        T = z.shape[0]
+        t = np.arange(T)
+        truth = truth_state(window)
+        prior = eqs.PriorFactor(
+            eqs.Var("x", [0]),
+            truth[:1],
+            eqs.DiagonalNoise(jnp.asarray(1.0 / PRIOR_SIGMAS, z.dtype)),
+        )
+        dyn = VehicleDynamicsFactor(
+            eqs.Var("x", t[:-1]),
+            eqs.Var("x", t[1:]),
+            eqs.DiagonalNoise(jnp.exp(self.log_dynamics_sqrt_precision)),
+            dt=D.DT,
+        )
+        sp = self.noise(window["features"], window["log_sigma"])
+        meas = VelocityMeasurementFactor(eqs.Var("x", t), z, eqs.DiagonalNoise(sp))
+        return prior, dyn, meas
+
+    def graph(self, window: dict) -> eqs.FactorGraph:
+        return eqs.FactorGraph(list(self.factors(window)))
+
+    def measurement_sigmas(self, window: dict) -> Array:
+        return 1.0 / self.noise(window["features"], window["log_sigma"])
+
+
+def truth_state(window: dict) -> VehicleState:
+    return VehicleState(eqs.SE2(window["pose"]), window["velocity"])
+
+
+def position_weights(state: VehicleState):
+    """Weights for `manifold_mse` that score the position only."""
+    leaves, treedef = jax.tree_util.tree_flatten(state, is_leaf=eqs.manifold.is_group)
+    del leaves
+    return jax.tree_util.tree_unflatten(
+        treedef, [jnp.asarray([1.0, 1.0, 0.0]), jnp.asarray([0.0, 0.0])]
+    )
+
+
+def dead_reckoning(window: dict) -> VehicleState:
+    """Integrate the measured velocities from the true first pose."""
+    z = window["z"]
+    first = eqs.SE2(window["pose"][0])
+
+    def step(pose, v):
+        nxt = vehicle_motion(VehicleState(pose, v), D.DT).pose
+        return nxt, pose.unit_complex_xy
+
+    _, poses = jax.lax.scan(step, first, z)
+    return VehicleState(eqs.SE2(poses), z)
+
+
+def smooth(model: Estimator, window: dict, max_steps: int = 20) -> VehicleState:
+    """MAP trajectory of one window (GN from dead reckoning)."""
+    sol = eqs.least_squares(
+        model.graph(window),
+        {"x": dead_reckoning(window)},
+        eqs.GaussNewton(eqs.BlockTridiagonal()),
+        max_steps=max_steps,
+        throw=False,
+    )
+    return sol.value["x"]
+
+
+def run_ekf(model: Estimator, window: dict):
+    prior, dyn, meas = model.factors(window)
+    truth = truth_state(window)
+    cov = jnp.diag(jnp.asarray(PRIOR_SIGMAS, window["z"].dtype) ** 2)
+    return eqs.filters.ekf(dyn, [meas], truth[0], cov, throw=False)
+
+
+def surrogate_loss(model: Estimator, batch: dict, num_steps: int = 3):
+    solver = eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=num_steps)
+
+    def one(w):
+        truth = truth_state(w)
+        return eqs.learn.surrogate_loss(
+            model.graph(w),
+            {"x": truth},
+            solver=solver,
+            adjoint=eqs.UnrolledAdjoint(),
+            weights={"x": position_weights(truth)},
+        )
+
+    return jnp.mean(jax.vmap(one)(batch))
+
+
+def nll_loss(model: Estimator, batch: dict):
+    def one(w):
+        return eqs.learn.joint_nll(model.graph(w), {"x": truth_state(w)})
+
+    return jnp.mean(jax.vmap(one)(batch))
+
+
+def ekf_loss(model: Estimator, batch: dict):
+    def one(w):
+        truth = truth_state(w)
+        belief = run_ekf(model, w)
+        return eqs.filters.ekf_mse_loss(belief, truth, position_weights(truth))
+
+    return jnp.mean(jax.vmap(one)(batch))
+
+
+# ---------------------------------------------------------------------------
+# LSTM baseline
+# ---------------------------------------------------------------------------
+
+
+class LstmOdometry(eqx.Module):
+    """LSTM over cached features -> velocities, integrated from the true start."""
+
+    cell: eqx.nn.LSTMCell
+    inp: eqx.nn.Linear
+    head: eqx.nn.Linear
+    hidden: int = eqx.field(static=True)
+
+    def __init__(self, key: PRNGKeyArray, hidden: int = 64):
+        k = jax.random.split(key, 3)
+        self.inp = eqx.nn.Linear(FEATURES + 4, hidden, key=k[0])
+        self.cell = eqx.nn.LSTMCell(hidden, hidden, key=k[1])
+        head = eqx.nn.Linear(hidden, 2, key=k[2])
+        self.head = eqx.tree_at(
+            lambda h: (h.weight, h.bias),
+            head,
+            (head.weight * 0.01, jnp.zeros_like(head.bias)),
+        )
+        self.hidden = hidden
+
+    def velocities(self, window: dict) -> Array:
+        dtype = self.inp.weight.dtype
+        scale = jnp.asarray(VELOCITY_SCALE, dtype)
+        zn = (window["z"] - jnp.asarray(VELOCITY_MEAN, dtype)) / scale
+        x = jnp.concatenate([window["features"] / 4.0, window["log_sigma"], zn], -1)
+        x = jax.nn.relu(jax.vmap(self.inp)(x))
+        h0 = jnp.zeros(self.hidden, dtype)
+
+        def step(carry, xt):
+            carry = self.cell(xt, carry)
+            return carry, carry[0]
+
+        _, hs = jax.lax.scan(step, (h0, h0), x)
+        # Residual on the sensor's velocities: starts as the sensor itself.
+        return window["z"] + scale * jax.vmap(self.head)(hs)
+
+    def __call__(self, window: dict) -> VehicleState:
+        return dead_reckoning({**window, "z": self.velocities(window)})
+
+
+def lstm_loss(model: LstmOdometry, batch: dict):
+    def one(w):
+        est = model(w)
+        truth = truth_state(w)
+        return eqs.manifold_mse(truth, est, position_weights(truth))
+
+    return jnp.mean(jax.vmap(one)(batch))

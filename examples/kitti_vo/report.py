@@ -1,0 +1,170 @@
+"""Tables and figures for the KITTI visual odometry experiment."""
+
+import json
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from . import data as D, experiment as E
+
+
+# The paper's KITTI-10 numbers (Yi et al. 2021, Table II) go here as
+# {method: (m/m, deg/m)} once transcribed and checked against the paper;
+# they are NOT the same experiment as the rendered data and are shown beside
+# it, never merged.
+PAPER_TABLE: dict[str, tuple[float, float]] = {}
+
+ORDER = ("dead_reckoning",) + E.METHODS
+
+
+def fold_table(result: dict) -> str:
+    rows = result["rows"]
+    lines = [
+        f"Fold {result['fold']} (test sequence {result['test_sequence']:02d}), "
+        f"{result['label']}" + (" -- QUICK" if result["config"].get("quick") else ""),
+        "",
+        "| method | m/m | deg/m | train s |",
+        "|---|---|---|---|",
+    ]
+    for m in ORDER:
+        if m in rows:
+            r = rows[m]
+            lines.append(
+                f"| {m} | {r['trans_m_per_m']:.4f} | {r['rot_deg_per_m']:.4f} | "
+                f"{r['train_s']:.0f} |"
+            )
+    return "\n".join(lines)
+
+
+def write_summary(out: Path) -> None:
+    """summary.json / summary.md: mean ± std/√n over the committed folds."""
+    folds = sorted(Path(out).glob("fold_*.json"))
+    if not folds:
+        return
+    results = [json.loads(p.read_text()) for p in folds]
+    summary = {"label": E.LABEL, "folds": [r["fold"] for r in results], "methods": {}}
+    for m in ORDER:
+        vals = [r["rows"][m] for r in results if m in r["rows"]]
+        if not vals:
+            continue
+        entry = {"num_folds": len(vals)}
+        for k in ("trans_m_per_m", "rot_deg_per_m"):
+            x = np.array([v[k] for v in vals])
+            entry[k] = float(x.mean())
+            entry[k + "_sem"] = (
+                float(x.std(ddof=1) / np.sqrt(x.size)) if x.size > 1 else None
+            )
+        summary["methods"][m] = entry
+    quick = any(r["config"].get("quick") for r in results)
+    (Path(out) / "summary.json").write_text(json.dumps(summary, indent=1))
+    lines = [
+        f"# KITTI-10 visual odometry: {E.LABEL}" + (" (QUICK run)" if quick else ""),
+        "",
+        f"Folds: {summary['folds']} ({len(results)}/10). Mean ± std/√n over folds. "
+        "The paper's numbers are for the real KITTI images: a different experiment.",
+        "",
+        "| method | m/m | deg/m | paper m/m | paper deg/m |",
+        "|---|---|---|---|---|",
+    ]
+
+    def fmt(e, k):
+        s = e.get(k + "_sem")
+        return f"{e[k]:.4f}" + ("" if s is None else f" ± {s:.4f}")
+
+    for m, e in summary["methods"].items():
+        paper = PAPER_TABLE.get(m)
+        p = (f"{paper[0]:.4f}", f"{paper[1]:.4f}") if paper else ("—", "—")
+        lines.append(
+            f"| {m} | {fmt(e, 'trans_m_per_m')} | {fmt(e, 'rot_deg_per_m')} | "
+            f"{p[0]} | {p[1]} |"
+        )
+    (Path(out) / "summary.md").write_text("\n".join(lines) + "\n")
+
+
+def figures(state: dict, fold: int, out: Path) -> None:
+    """Trajectories against ground truth, and learned noise along the test sequence."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models, tr = state["models"], state["test_trajs"][0]
+    cache = state["caches"][tr.name]
+    L = (
+        E.Config().eval_window
+        if not state["result"]["config"]["quick"]
+        else (state["result"]["config"]["eval_window"])
+    )
+    starts = D.windows(np.arange(tr.num_frames), L)
+    if starts.size == 0:
+        return
+    w = E.make_windows(tr, cache, starts, L)
+    label = E.LABEL + (" (QUICK)" if state["result"]["config"]["quick"] else "")
+
+    # Figure 1: each window's estimate, placed at its true start in the world.
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(tr.poses[:, 0], tr.poses[:, 1], "k-", lw=1.5, label="ground truth")
+    shown = ["dead_reckoning"] + [
+        m for m in ("smoother_hetero_e2e", "ekf_hetero", "lstm") if m in models
+    ]
+    colours = {
+        "dead_reckoning": "0.6",
+        "smoother_hetero_e2e": "C0",
+        "ekf_hetero": "C3",
+        "lstm": "C2",
+    }
+    for m in shown:
+        _, est = E.evaluate(m, models.get(m), w)
+        for k, s in enumerate(starts):
+            x0, y0, t0 = tr.poses[s]
+            c, sn = np.cos(t0), np.sin(t0)
+            gx = x0 + c * est[k, :, 0] - sn * est[k, :, 1]
+            gy = y0 + sn * est[k, :, 0] + c * est[k, :, 1]
+            ax.plot(gx, gy, color=colours[m], lw=1, label=m if k == 0 else None)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"Sequence {tr.seq:02d}, windows of {L} states\n{label}", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(Path(out) / f"fig_trajectories_fold{fold}.png", dpi=120)
+    plt.close(fig)
+
+    # Figure 2: learned per-frame σ of the velocity factor vs the sensor error.
+    m = "smoother_hetero_e2e" if "smoother_hetero_e2e" in models else None
+    if m is None:
+        return
+    feats = jnp.asarray(cache["features"])
+    ls = jnp.asarray(cache["log_sigma"])
+    sigma = np.asarray(1.0 / eqx.filter_jit(models[m].noise)(feats, ls))
+    frames = np.arange(int(cache["first"]), int(cache["first"]) + sigma.shape[0])
+    vel = D.velocities(tr.poses)[frames]
+    err = np.abs(cache["z"] - vel)
+    fig, axes = plt.subplots(3, 1, figsize=(10, 6), sharex=True)
+    for i, (name, unit) in enumerate((("v", "m/s"), ("ω", "rad/s"))):
+        axes[i].plot(
+            frames, err[:, i], color="0.6", lw=0.6, label=f"|sensor error| of {name}"
+        )
+        axes[i].plot(
+            frames, sigma[:, i], color="C0", lw=1.0, label=f"learned σ of {name}"
+        )
+        axes[i].set_ylabel(unit)
+        axes[i].legend(fontsize=7, loc="upper right")
+    src = tr.source
+    if hasattr(src, "nuisances"):
+        nz = src.nuisances(frames)
+        axes[2].plot(frames, nz["gain"], label="brightness gain", lw=0.8)
+        axes[2].plot(frames, nz["blur"] / 10, label="blur / 10 px", lw=0.8)
+        axes[2].plot(frames, nz["noise"] / 45, label="pixel noise / 45", lw=0.8)
+        axes[2].plot(frames, nz["occluded"] * 1.0, label="occluder", lw=0.8)
+        axes[2].plot(frames, nz["low_texture"] * 0.9, label="low texture", lw=0.8)
+        axes[2].legend(fontsize=7, ncol=5, loc="upper right")
+    axes[2].set_xlabel("frame")
+    axes[0].set_title(
+        f"Learned noise along sequence {tr.seq:02d} ({label})", fontsize=9
+    )
+    fig.tight_layout()
+    fig.savefig(Path(out) / f"fig_noise_fold{fold}.png", dpi=120)
+    plt.close(fig)

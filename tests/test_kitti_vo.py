@@ -1,0 +1,222 @@
+"""KITTI visual odometry example: loader, renderer, folds, metrics (tiny and quick)."""
+
+import struct
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+
+from kitti_vo import data as D  # noqa: E402
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """A minimal RGB8 PNG writer (zlib only), to build the layout without Pillow."""
+    h, w, _ = image.shape
+    raw = b"".join(b"\x00" + image[i].tobytes() for i in range(h))
+
+    def chunk(kind, body):
+        out = struct.pack(">I", len(body)) + kind + body
+        return out + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    png = b"\x89PNG\r\n\x1a\n"
+    png += chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+    png += chunk(b"IDAT", zlib.compress(raw))
+    png += chunk(b"IEND", b"")
+    path.write_bytes(png)
+
+
+def _yaw_pose(x_cam, z_cam, yaw):
+    # Camera turned left by `yaw` (about its down-pointing y axis).
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+    return np.concatenate([R, [[x_cam], [0.0], [z_cam]]], axis=1)
+
+
+def test_poses_to_2d_convention():
+    poses = np.stack([_yaw_pose(0.0, 0.0, 0.0), _yaw_pose(-2.0, 5.0, 0.3)])
+    xyt = D.poses_to_2d(poses)
+    np.testing.assert_allclose(xyt[0], [0.0, 0.0, 0.0], atol=1e-12)
+    # x = forward z, y = -x_cam (left), θ = the yaw to the left.
+    np.testing.assert_allclose(xyt[1], [5.0, 2.0, 0.3], atol=1e-12)
+
+
+def test_loader_reads_generated_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    N, seq = 5, 4
+    images = {}
+    for cam, pose_file in (("image_2", "image1"), ("image_3", "image2")):
+        folder = tmp_path / f"{seq:02d}" / cam
+        folder.mkdir(parents=True)
+        imgs = rng.integers(0, 256, (N,) + D.IMAGE_SHAPE, dtype=np.uint8)
+        images[cam] = imgs
+        for f in reversed(range(N)):  # written out of order: sorted by frame
+            _write_png(folder / f"kitti_{seq:02d}_{f:06d}.png", imgs[f])
+        lines = [
+            " ".join(f"{v:.9e}" for v in _yaw_pose(-0.1 * f, 1.0 * f, 0.05 * f).ravel())
+            for f in range(N)
+        ]
+        (tmp_path / f"{seq:02d}_{pose_file}.txt").write_text("\n".join(lines) + "\n")
+    trajs = D.load_kitti10_sequence(tmp_path, seq)
+    assert [t.camera for t in trajs] == ["image_2", "image_3"]
+    for t in trajs:
+        assert t.num_frames == N
+        np.testing.assert_array_equal(t.images(np.arange(N)), images[t.camera])
+        np.testing.assert_allclose(t.poses[:, 0], np.arange(N), atol=1e-8)
+        np.testing.assert_allclose(t.poses[:, 2], 0.05 * np.arange(N), atol=1e-8)
+    mirrored = D.with_mirrors(trajs)
+    assert len(mirrored) == 4 and mirrored[1].mirrored
+    np.testing.assert_array_equal(
+        mirrored[1].images([2]), images["image_2"][[2]][:, :, ::-1]
+    )
+    np.testing.assert_allclose(mirrored[1].poses[:, 2], -trajs[0].poses[:, 2])
+
+
+def _toy_path(N=40):
+    t = np.arange(N) * D.DT
+    theta = 0.2 * np.sin(t)
+    x = np.cumsum(10.0 * np.cos(theta) * D.DT)
+    y = np.cumsum(10.0 * np.sin(theta) * D.DT)
+    return np.stack([x, y, theta], 1)
+
+
+def test_renderer_is_deterministic_and_nuisances_vary():
+    xyt = _toy_path()
+    a = D.Renderer(xyt, seed=3, seq=4).images("image_2", [0, 7, 20])
+    b = D.Renderer(xyt, seed=3, seq=4).images("image_2", [0, 7, 20])
+    c = D.Renderer(xyt, seed=4, seq=4).images("image_2", [0, 7, 20])
+    d = D.Renderer(xyt, seed=3, seq=4).images("image_3", [0, 7, 20])
+    assert a.shape == (3,) + D.IMAGE_SHAPE and a.dtype == np.uint8
+    np.testing.assert_array_equal(a, b)
+    assert np.any(a != c) and np.any(a != d)
+    assert a.std() > 10  # not a blank image
+    r = D.Renderer(_toy_path(600), seed=0, seq=0)
+    nz = r.nuisances(np.arange(600))
+    assert nz["gain"].min() < 0.5 < nz["gain"].max()
+    assert 0 < np.mean(nz["blur"] > 0) < 0.5
+    assert np.any(nz["occluded"]) and np.any(nz["low_texture"])
+
+
+def test_folds_and_splits():
+    seen = set()
+    for f in range(D.NUM_FOLDS):
+        spec = D.fold_spec(f)
+        assert spec.test == D.SEQUENCES[f]
+        assert spec.valid != spec.test and 1 not in (spec.test, spec.valid)
+        assert spec.test not in spec.train and spec.valid not in spec.train
+        assert 1 not in spec.train and len(spec.train) == 8
+        seen.add(spec.test)
+    assert seen == set(D.SEQUENCES)
+    pre, smo = D.pretrain_frames(1000), D.smoother_frames(1000)
+    assert pre[-1] == 794 and smo[0] == 800 and smo[-1] == 999 and smo.size == 200
+    # Windows of 100 states need 101 frames; sequence 04 has 271 frames.
+    np.testing.assert_array_equal(D.windows(np.arange(271), 100), [0, 100])
+    np.testing.assert_array_equal(D.windows(smo, 50, 25), np.arange(800, 950, 25))
+
+
+def test_metric_on_known_trajectory():
+    truth = np.zeros((101, 3))
+    truth[:, 0] = np.linspace(0.0, 100.0, 101)
+    est = truth.copy()
+    est[-1, 1] += 1.0
+    est[-1, 2] += np.radians(2.0)
+    trans, rot = D.window_metrics(est, truth)
+    assert trans == pytest.approx(0.01)
+    assert rot == pytest.approx(0.02)
+
+
+def test_velocities_match_the_library_state():
+    import jax.numpy as jnp
+
+    import eqsmooth as eqs
+
+    xyt = _toy_path(10)
+    v = D.velocities(xyt)
+    poses = eqs.SE2.from_xy_theta(
+        jnp.asarray(xyt[:, 0]), jnp.asarray(xyt[:, 1]), jnp.asarray(xyt[:, 2])
+    )
+    state = eqs.factors.VehicleState.from_poses(poses, D.DT)
+    np.testing.assert_allclose(np.asarray(state.velocity), v, atol=1e-9)
+
+
+def test_real_kitti_poses():
+    if not (D.DEFAULT_POSES_DIR / "04.txt").exists():
+        pytest.skip(
+            f"KITTI ground-truth poses not found at {D.DEFAULT_POSES_DIR} "
+            "(../shared/data/kitti_poses; see its README)"
+        )
+    for seq, count in D.FRAME_COUNTS.items():
+        lines = (D.DEFAULT_POSES_DIR / f"{seq:02d}.txt").read_text().splitlines()
+        assert len(lines) == count
+    trajs = D.rendered_sequence(4, seed=0)
+    assert [t.num_frames for t in trajs] == [271, 271]
+    v = D.velocities(trajs[0].poses)
+    assert 5.0 < np.median(v[:, 0]) < 20.0  # a car on a road, m/s
+    lateral = trajs[0].poses[:, :2] - trajs[1].poses[:, :2]
+    np.testing.assert_allclose(np.linalg.norm(lateral, axis=1), 0.54, atol=1e-6)
+
+
+def _tiny_windows(B=2, T=5):
+    from kitti_vo import experiment as E, models as M
+
+    rng = np.random.default_rng(0)
+    xyt = _toy_path(T + 1)
+    vel = D.velocities(xyt)[:T]
+    return {
+        "z": (vel[None] + 0.1 * rng.normal(size=(B, T, 2))).astype(np.float32),
+        "log_sigma": np.zeros((B, T, 2), np.float32),
+        "features": rng.normal(size=(B, T, M.FEATURES)).astype(np.float32),
+        "pose": np.broadcast_to(E._relative_params(xyt[:T]), (B, T, 4)).astype(
+            np.float32
+        ),
+        "velocity": np.broadcast_to(vel, (B, T, 2)).astype(np.float32),
+    }
+
+
+@pytest.mark.slow
+def test_losses_have_finite_gradients():
+    import jax
+
+    # The example runs in float32 with JAX's default promotion rules, not the
+    # strict ones the library's tests use.
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        _check_losses()
+
+
+def _check_losses():
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    from kitti_vo import models as M
+
+    w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
+    sig = np.array([1.0, 0.1])
+    hetero = M.Estimator(M.HeteroscedasticNoise(sig, jax.random.key(0)))
+    for loss in (M.surrogate_loss, M.nll_loss, M.ekf_loss):
+        value, grads = eqx.filter_value_and_grad(loss)(hetero, w)
+        assert np.isfinite(float(value))
+        leaves = jax.tree_util.tree_leaves(grads)
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in leaves)
+        assert any(np.any(np.asarray(g) != 0) for g in leaves)
+    # The smoother recovers the true start and stays close to the truth.
+    est = M.smooth(hetero, jax.tree_util.tree_map(lambda a: a[0], w))
+    p = np.asarray(est.pose.unit_complex_xy)
+    np.testing.assert_allclose(p[0], np.asarray(w["pose"][0, 0]), atol=1e-3)
+    assert np.max(np.abs(p[:, 2:] - np.asarray(w["pose"][0, :, 2:]))) < 0.5
+
+
+@pytest.mark.slow
+def test_sensor_shapes():
+    import jax
+    import jax.numpy as jnp
+    from kitti_vo import models as M
+
+    sensor = M.VelocitySensor(jax.random.key(0))
+    pair = jnp.zeros((2,) + D.IMAGE_SHAPE, jnp.uint8)
+    with jax.numpy_dtype_promotion("standard"):
+        v, ls, h = sensor(pair)
+    assert v.shape == (2,) and ls.shape == (2,) and h.shape == (M.FEATURES,)
