@@ -8,7 +8,7 @@ from ..factors import FactorGraph
 from ..manifold import is_group
 from ..solve import (
     AbstractAdjoint,
-    AbstractLeastSquaresSolver,
+    AbstractGraphSolver,
     BlockTridiagonal,
     FixedStepGaussNewton,
     least_squares,
@@ -129,7 +129,7 @@ def surrogate_loss(
     graph: FactorGraph,
     truth: Values,
     *,
-    solver: AbstractLeastSquaresSolver = _DEFAULT_SOLVER,
+    solver: AbstractGraphSolver = _DEFAULT_SOLVER,
     adjoint: AbstractAdjoint = UnrolledAdjoint(),
     weights: PyTree | None = None,
     max_steps: int = 100,
