@@ -143,10 +143,15 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
         `num_steps`. [`eqsmooth.solve.UnrolledAdjoint`][] scans this many
         iterations.
         """
+        if isinstance(self, AbstractFixedStepSolver):
+            return self.num_steps
         return max_steps
 
     def at_max_steps(self) -> RESULTS:
-        """The result when the iteration limit is reached before convergence."""
+        """The result when the iteration limit is reached before convergence
+        (success for an [`eqsmooth.solve.AbstractFixedStepSolver`][])."""
+        if isinstance(self, AbstractFixedStepSolver):
+            return RESULTS.successful
         return RESULTS.nonlinear_max_steps_reached
 
 
@@ -161,12 +166,6 @@ class AbstractFixedStepSolver(AbstractGraphSolver):
 
     num_steps: eqx.AbstractVar[int]
 
-    def iteration_limit(self, max_steps: int) -> int:
-        return self.num_steps
-
-    def at_max_steps(self) -> RESULTS:
-        return RESULTS.successful
-
 
 def start(graph: FactorGraph, values: Values, gtol: float):
     """Linearise at the initial values: `(lin, done, result)` of the first state."""
@@ -180,7 +179,7 @@ def start(graph: FactorGraph, values: Values, gtol: float):
 def least_squares(
     graph: FactorGraph,
     values: Values,
-    solver: AbstractGraphSolver,
+    solver: optx.AbstractLeastSquaresSolver,
     *,
     max_steps: int = 100,
     adjoint: AbstractAdjoint = ImplicitAdjoint(),
@@ -194,7 +193,8 @@ def least_squares(
 
     - `graph`: the [`eqsmooth.factors.FactorGraph`][].
     - `values`: initial values, a dict `{group: stacked states}`.
-    - `solver`: e.g. `GaussNewton()`, `GaussNewton(BlockTridiagonal())` or
+    - `solver`: an eqsmooth [`eqsmooth.solve.AbstractGraphSolver`][], e.g.
+        `GaussNewton()`, `GaussNewton(BlockTridiagonal())` or
         `LevenbergMarquardt(PCG())`. (For optimistix's own solvers, which
         update additively, see [`eqsmooth.solve.tangent_least_squares`][].)
     - `max_steps`: iteration limit (ignored by `FixedStepGaussNewton`, which

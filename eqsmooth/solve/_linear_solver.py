@@ -98,7 +98,7 @@ class NormalOperator(lx.AbstractLinearOperator):
         out = {}
         for g in self.lin.layout:
             eye = jnp.eye(g.dim, dtype=self.lin.dtype)
-            out[g.name] = blocks[g.name] + self.damping_of(g.name)[:, :, None] * eye
+            out[g.name] = blocks[g.name] + self.damping_of(g.name)[:, :, None] * eye[None]
         return out
 
 
