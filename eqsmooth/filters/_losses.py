@@ -6,8 +6,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from ..learn import manifold_mse
-from ..manifold import local
+from ..manifold import local, manifold_mse
 from ._ekf import EKFSolution
 from ._rts import RTSSolution
 

@@ -8,12 +8,11 @@ from ._checkpoint import (
     save_checkpoint as save_checkpoint,
     TrainState as TrainState,
 )
-from ._losses import (
-    joint_nll as joint_nll,
+from ..manifold import (
     manifold_errors as manifold_errors,
     manifold_mse as manifold_mse,
-    surrogate_loss as surrogate_loss,
 )
+from ._losses import joint_nll as joint_nll, surrogate_loss as surrogate_loss
 from ._optim import (
     make_optimizer as make_optimizer,
     standard_promotion as standard_promotion,

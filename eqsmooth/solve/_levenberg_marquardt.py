@@ -74,9 +74,8 @@ class LevenbergMarquardt(AbstractGraphSolver):
     - `initial_damping`: λ₀, relative to the diagonal of `JᵀJ`. The default
         `1e-8` starts close to Gauss-Newton: λ shrinks by at most a factor 3
         per accepted step, so a large λ₀ costs many steps on long pose-graph
-        chains (MIT.g2o: 55 steps to GTSAM's optimum from `1e-8`, not
-        converged after 100 from `1e-4`), while a rejected step raises λ
-        quickly (factors 2, 4, 8, … in a row).
+        chains (measured in `benchmarks/results/`), while a rejected step
+        raises λ quickly (factors 2, 4, 8, … in a row).
     - `min_diagonal`, `max_diagonal`: clipping of `D`.
     - `max_damping`: if λ exceeds this, the solve stops with
         `RESULTS.linear_solve_failed` (or success if already converged).
