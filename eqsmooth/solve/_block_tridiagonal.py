@@ -41,6 +41,7 @@ from ._linear_solver import (
     AbstractNormalSolver,
     normal_operator_of,
     pivot_tolerance,
+    register_symmetric_psd,
 )
 from ._linearization import Linearization, Tangent
 from ._small_blocks import block_cholesky, block_solve_lower
@@ -344,40 +345,12 @@ class BlockTridiagonalOperator(lx.AbstractLinearOperator):
         return self.in_structure()
 
 
-@lx.linearise.register(BlockTridiagonalOperator)
-@lx.materialise.register(BlockTridiagonalOperator)
-@lx.conj.register(BlockTridiagonalOperator)
-def _(operator):
-    return operator
-
-
-@lx.diagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return jnp.diagonal(operator.diagonal, axis1=1, axis2=2).reshape(-1)
-
-
-@lx.is_symmetric.register(BlockTridiagonalOperator)
-@lx.is_positive_semidefinite.register(BlockTridiagonalOperator)
-def _(operator):
-    return True
-
-
-@lx.is_negative_semidefinite.register(BlockTridiagonalOperator)
-@lx.is_lower_triangular.register(BlockTridiagonalOperator)
-@lx.is_upper_triangular.register(BlockTridiagonalOperator)
-@lx.has_unit_diagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return False
-
-
-@lx.is_diagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return operator.diagonal.shape[0] == 1 and operator.diagonal.shape[1] == 1
-
-
-@lx.is_tridiagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return operator.diagonal.shape[1] == 1
+register_symmetric_psd(
+    BlockTridiagonalOperator,
+    diagonal=lambda op: jnp.diagonal(op.diagonal, axis1=1, axis2=2).reshape(-1),
+    is_diagonal=lambda op: op.diagonal.shape[0] == 1 and op.diagonal.shape[1] == 1,
+    is_tridiagonal=lambda op: op.diagonal.shape[1] == 1,
+)
 
 
 # ---------------------------------------------------------------------------

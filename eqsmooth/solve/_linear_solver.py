@@ -9,6 +9,7 @@ that read the block structure of the operator.
 """
 
 import abc
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -102,15 +103,36 @@ class NormalOperator(lx.AbstractLinearOperator):
         return out
 
 
-@lx.linearise.register(NormalOperator)
-@lx.materialise.register(NormalOperator)
-@lx.conj.register(NormalOperator)
-def _(operator):
-    return operator
+def register_symmetric_psd(
+    cls: type,
+    diagonal: Callable,
+    is_diagonal: Callable = lambda operator: False,
+    is_tridiagonal: Callable = lambda operator: False,
+) -> None:
+    """Register lineax's rules for a symmetric positive semidefinite operator class.
+
+    `linearise`, `materialise` and `conj` return the operator itself (it is
+    linear, structured and real); it is symmetric and positive semidefinite,
+    neither negative semidefinite nor triangular; `diagonal`, `is_diagonal`
+    and `is_tridiagonal` are given.
+    """
+    for rule in (lx.linearise, lx.materialise, lx.conj):
+        rule.register(cls)(lambda operator: operator)
+    for rule in (lx.is_symmetric, lx.is_positive_semidefinite):
+        rule.register(cls)(lambda operator: True)
+    for rule in (
+        lx.is_negative_semidefinite,
+        lx.is_lower_triangular,
+        lx.is_upper_triangular,
+        lx.has_unit_diagonal,
+    ):
+        rule.register(cls)(lambda operator: False)
+    lx.diagonal.register(cls)(diagonal)
+    lx.is_diagonal.register(cls)(is_diagonal)
+    lx.is_tridiagonal.register(cls)(is_tridiagonal)
 
 
-@lx.diagonal.register(NormalOperator)
-def _(operator):
+def _normal_diagonal(operator: NormalOperator) -> Array:
     blocks = operator.block_diagonal()
     return jnp.concatenate(
         [
@@ -120,20 +142,7 @@ def _(operator):
     )
 
 
-@lx.is_symmetric.register(NormalOperator)
-@lx.is_positive_semidefinite.register(NormalOperator)
-def _(operator):
-    return True
-
-
-@lx.is_negative_semidefinite.register(NormalOperator)
-@lx.is_lower_triangular.register(NormalOperator)
-@lx.is_upper_triangular.register(NormalOperator)
-@lx.has_unit_diagonal.register(NormalOperator)
-@lx.is_diagonal.register(NormalOperator)
-@lx.is_tridiagonal.register(NormalOperator)
-def _(operator):
-    return False
+register_symmetric_psd(NormalOperator, _normal_diagonal)
 
 
 class AbstractNormalSolver(lx.AbstractLinearSolver):
