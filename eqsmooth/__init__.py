@@ -15,6 +15,7 @@ from . import (
     manifold as manifold,
     solve as solve,
 )
+from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 from .factors import (
     AbstractFactor as AbstractFactor,
     AbstractNoiseModel as AbstractNoiseModel,
@@ -55,7 +56,6 @@ from .solve import (
     TruncatedAdjoint as TruncatedAdjoint,
     UnrolledAdjoint as UnrolledAdjoint,
 )
-from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 
 
 __version__ = "0.1.0"

@@ -17,7 +17,10 @@ from ._default_solver import (
     default_linear_solver as default_linear_solver,
     factorize as factorize,
 )
-from ._dense import DenseCholesky as DenseCholesky, DenseFactorization as DenseFactorization
+from ._dense import (
+    DenseCholesky as DenseCholesky,
+    DenseFactorization as DenseFactorization,
+)
 from ._gauss_newton import (
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
