@@ -150,7 +150,7 @@ def make_iteration(linear_solver):
     @jax.jit
     def iteration(graph, values):
         lin = linearize(graph, values)
-        delta, result = linear_solver.solve(lin, None)
+        delta, result = eqs.solve.solve_normal(linear_solver, lin)
         return retract_values(values, delta), lin.cost
 
     return iteration
@@ -243,14 +243,10 @@ def main(argv=None):
         "--tail-size",
         type=int,
         default=None,
-        help="override eqsmooth.solve._block_tridiagonal.TAIL_SIZE (1 = cyclic "
-        "reduction all the way down, the behaviour before the sequential tail)",
+        help="BlockTridiagonal(tail_size=...) (1 = cyclic reduction all the way "
+        "down, the behaviour before the sequential tail; default 32)",
     )
     args = parser.parse_args(argv)
-    if args.tail_size is not None:
-        from eqsmooth.solve import _block_tridiagonal
-
-        _block_tridiagonal.TAIL_SIZE = args.tail_size
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
     builders = {"disk": disk_problem, "se2vel": se2vel_problem}
     if args.stages:
@@ -264,7 +260,11 @@ def main(argv=None):
             write_json(args.json, records)
         return
     solvers = {
-        "BlockTridiagonal": eqs.BlockTridiagonal(),
+        "BlockTridiagonal": (
+            eqs.BlockTridiagonal()
+            if args.tail_size is None
+            else eqs.BlockTridiagonal(tail_size=args.tail_size)
+        ),
         "PCG": eqs.PCG(),
         "DenseCholesky": eqs.DenseCholesky(),
         "SparseLU": eqs.solve.SparseLU(),

@@ -4,8 +4,9 @@ Each trial is a fresh process that factors a random `T x D` block-tridiagonal
 system and calls the jitted `cyclic_reduction_solve` `--calls` times; a
 process that has not finished after `--timeout` seconds (all threads asleep
 in `block_until_ready`, see `eqsmooth/_xla_flags.py`) counts as hung. Trials
-alternate between JAX's default XLA flags (`EQSMOOTH_KEEP_XLA_FLAGS=1`) and
-the flags eqsmooth sets on import, so machine load affects both arms alike.
+alternate between JAX's default XLA flags and the flag set by
+`eqsmooth.set_xla_cpu_flags()` (opt-in), so machine load affects both arms
+alike.
 
     python benchmarks/xla_cpu_hang.py --trials 6 --json results/xla_cpu_hang.json
 """
@@ -21,8 +22,11 @@ from _common import write_json
 
 CHILD = """
 import sys, time
-import jax, jax.numpy as jnp
+import os
 import eqsmooth
+if os.environ.get("HANG_TRIAL_FLAGS") == "1":
+    eqsmooth.set_xla_cpu_flags()
+import jax, jax.numpy as jnp
 from eqsmooth.solve._block_tridiagonal import (
     cyclic_reduction_factor, cyclic_reduction_solve)
 jax.config.update("jax_enable_x64", True)
@@ -43,10 +47,7 @@ for i in range(calls):
 def trial(keep_default: bool, args) -> dict:
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
-    if keep_default:
-        env["EQSMOOTH_KEEP_XLA_FLAGS"] = "1"
-    else:
-        env.pop("EQSMOOTH_KEEP_XLA_FLAGS", None)
+    env["HANG_TRIAL_FLAGS"] = "0" if keep_default else "1"
     cmd = [sys.executable, "-c", CHILD, str(args.T), str(args.D), str(args.calls)]
     t0 = time.perf_counter()
     try:

@@ -5,11 +5,6 @@ The most used names are re-exported here; the subpackages are
 [`eqsmooth.solve`][].
 """
 
-from ._xla_flags import apply_default_xla_flags
-
-
-apply_default_xla_flags()  # before anything starts JAX's backend; see _xla_flags
-
 from . import (
     discover as discover,
     factors as factors,
@@ -20,6 +15,7 @@ from . import (
     manifold as manifold,
     solve as solve,
 )
+from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 from .factors import (
     AbstractFactor as AbstractFactor,
     AbstractNoiseModel as AbstractNoiseModel,

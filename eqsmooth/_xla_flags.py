@@ -1,4 +1,8 @@
-"""XLA:CPU settings that eqsmooth applies when it is imported.
+"""An opt-in XLA:CPU setting: `eqsmooth.set_xla_cpu_flags()`.
+
+`import eqsmooth` changes no environment variable. Call
+`set_xla_cpu_flags()` before the first JAX computation to turn off XLA's
+concurrency-optimised CPU scheduler; the history below says why one might.
 
 jaxlib 0.10's CPU runtime can wait forever for the result of a program that
 has many independent operations, such as the levels of block cyclic
@@ -33,9 +37,8 @@ programs with independent batched LAPACK calls.
 
 The scheduler only reorders independent operations, so turning it off
 changes no result. XLA reads `XLA_FLAGS` when JAX first starts its backend,
-so this takes effect only if `eqsmooth` is imported before the first JAX
-computation. A flag the user has set already is left alone, and
-`EQSMOOTH_KEEP_XLA_FLAGS=1` opts out altogether.
+so the function takes effect only if called before the first JAX
+computation. A flag the user has set already is left alone.
 """
 
 import os
@@ -44,10 +47,21 @@ import os
 _FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false",)
 
 
-def apply_default_xla_flags() -> None:
-    if os.environ.get("EQSMOOTH_KEEP_XLA_FLAGS", "") not in ("", "0"):
-        return
+def set_xla_cpu_flags() -> str:
+    """Turn off XLA:CPU's concurrency-optimised scheduler (opt-in).
+
+    Appends `--xla_cpu_enable_concurrency_optimized_scheduler=false` to the
+    `XLA_FLAGS` environment variable unless that flag is set already. XLA
+    reads the variable when JAX starts its backend, so call this before the
+    first JAX computation. It lowers the odds of a jaxlib 0.10 CPU hang in
+    programs that run several batched LAPACK kernels concurrently (see
+    "Running on CPU" in the getting-started guide); eqsmooth's own chain
+    solver no longer needs it. Results do not change.
+
+    **Returns:** the new value of `XLA_FLAGS`.
+    """
     current = os.environ.get("XLA_FLAGS", "")
     extra = [f for f in _FLAGS if f.split("=")[0] not in current]
     if extra:
         os.environ["XLA_FLAGS"] = " ".join([current, *extra]).strip()
+    return os.environ.get("XLA_FLAGS", "")

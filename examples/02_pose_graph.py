@@ -87,10 +87,15 @@ def load(args):
 
 
 def solve_with_table(pg, solver, max_steps):
-    """Run the solver step by step, printing one table row per iteration."""
-    init = eqx.filter_jit(solver.init)
-    step = eqx.filter_jit(solver.step)
-    terminate = eqx.filter_jit(solver.terminate, donate="none")
+    """Run the solver step by step (optimistix's init / step / terminate, the
+    graph as `args`), printing one table row per iteration."""
+    fn, opts, tags = eqs.solve.graph_residuals, {}, frozenset()
+    init = eqx.filter_jit(
+        lambda graph, values: solver.init(fn, values, graph, opts, None, None, tags)
+    )
+    step = eqx.filter_jit(
+        lambda graph, values, state: solver.step(fn, values, graph, opts, state, tags)
+    )
 
     t0 = time.perf_counter()
     state = jax.block_until_ready(init(pg.graph, pg.values))
@@ -101,7 +106,7 @@ def solve_with_table(pg, solver, max_steps):
     times = []
     for _ in range(max_steps):
         t0 = time.perf_counter()
-        values, state = step(pg.graph, values, state)
+        values, state, _ = step(pg.graph, values, state)
         jax.block_until_ready(state.lin.cost)
         times.append(time.perf_counter() - t0)
         print(
@@ -109,9 +114,11 @@ def solve_with_table(pg, solver, max_steps):
             f"{float(state.damping):.1e} | {int(state.num_accepted)} | "
             f"{times[-1]:.3f} |"
         )
-        stop, result = terminate(state, max_steps)
-        if bool(stop):
+        if bool(state.done):
             break
+    result = state.result
+    if not bool(state.done) and bool(result == eqs.RESULTS.successful):
+        result = eqs.RESULTS.nonlinear_max_steps_reached
     return values, state, times, result, initial_cost
 
 

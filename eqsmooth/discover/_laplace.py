@@ -2,19 +2,21 @@
 
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
 from ..solve import (
-    AbstractLeastSquaresSolver,
-    AbstractLinearSolver,
+    AbstractGraphSolver,
     BlockTridiagonal,
     GaussNewton,
     least_squares,
     linearize,
     normal_log_det,
+    solve_normal,
 )
+from ..solve._default_solver import linear_solver_for
 from ..solve._linearization import gradient, retract_values
 
 
@@ -24,7 +26,7 @@ Values = dict[str, PyTree]
 def laplace_log_marginal(
     graph: FactorGraph,
     values: Values,
-    solver: AbstractLeastSquaresSolver | None = None,
+    solver: AbstractGraphSolver | None = None,
     *,
     max_steps: int = 50,
 ) -> tuple[Float[Array, ""], Values]:
@@ -70,9 +72,9 @@ def laplace_log_marginal(
     """
     if solver is None:
         solver = GaussNewton(BlockTridiagonal())
-    if not isinstance(solver, AbstractLeastSquaresSolver):
+    if not isinstance(solver, AbstractGraphSolver):
         raise TypeError(
-            "laplace_log_marginal: solver must be an AbstractLeastSquaresSolver, "
+            "laplace_log_marginal: solver must be an AbstractGraphSolver, "
             f"got {type(solver).__name__}"
         )
     frozen = jax.lax.stop_gradient(graph)
@@ -82,7 +84,9 @@ def laplace_log_marginal(
 
 
 def laplace_at_map(
-    graph: FactorGraph, map_values: Values, linear_solver: AbstractLinearSolver
+    graph: FactorGraph,
+    map_values: Values,
+    linear_solver: lx.AbstractLinearSolver | None = None,
 ) -> Float[Array, ""]:
     """The Laplace log marginal likelihood given the MAP `map_values`.
 
@@ -96,7 +100,8 @@ def laplace_at_map(
 
     - `graph`: the factor graph (parameters may be traced).
     - `map_values`: its MAP values.
-    - `linear_solver`: e.g. `BlockTridiagonal()` (chains) or `DenseCholesky()`.
+    - `linear_solver`: e.g. `BlockTridiagonal()` (chains) or `DenseCholesky()`;
+        `None` picks one from the graph's structure.
 
     **Returns:** the scalar log marginal likelihood.
     """
@@ -106,7 +111,8 @@ def laplace_at_map(
     lin = linearize(graph, x_hat)
     g = gradient(lin)
     rhs = {k: -v for k, v in g.items()}
-    delta, _ = linear_solver.solve(lin_frozen, None, rhs)
+    linear_solver = linear_solver_for(linear_solver, lin_frozen)
+    delta, _ = solve_normal(linear_solver, lin_frozen, None, rhs)
     x_tilde = retract_values(x_hat, delta)
     lin_t = linearize(graph, x_tilde)
     log_det = normal_log_det(lin_t, linear_solver)

@@ -5,10 +5,16 @@ from ._builtin import (
     FunctionFactor as FunctionFactor,
     PriorFactor as PriorFactor,
 )
-from ._factor import AbstractFactor as AbstractFactor, shared_field as shared_field
+from ._factor import (
+    AbstractFactor as AbstractFactor,
+    per_row_fields as per_row_fields,
+    shared_field as shared_field,
+    with_rows as with_rows,
+)
 from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
+    AbstractRobustNoise as AbstractRobustNoise,
     CauchyNoise as CauchyNoise,
     DiagonalNoise as DiagonalNoise,
     HuberNoise as HuberNoise,

@@ -79,6 +79,62 @@ class AbstractFactor(eqx.Module):
         return len(self.variables[0])
 
 
+def _is_per_row(f: dataclasses.Field) -> bool:
+    """Whether a field's array leaves carry one entry per factor row: the one
+    rule, used by the smoother's vmap, the shape check and the filters."""
+    return not (
+        f.metadata.get("static", False)
+        or f.name in ("variables", "noise")
+        or f.metadata.get(_SHARED, False)
+    )
+
+
+def per_row_fields(factor: AbstractFactor) -> dict[str, PyTree]:
+    """The fields of a factor stack whose array leaves have one entry per row.
+
+    Every field except `variables`, `noise`, static fields and fields
+    declared with [`eqsmooth.factors.shared_field`][].
+
+    **Arguments:**
+
+    - `factor`: a factor stack.
+
+    **Returns:** a dict `{field name: value}`.
+    """
+    return {
+        f.name: getattr(factor, f.name)
+        for f in dataclasses.fields(factor)
+        if _is_per_row(f)
+    }
+
+
+def with_rows(factor: AbstractFactor, rows: dict[str, PyTree]) -> AbstractFactor:
+    """A copy of `factor` whose per-row fields are replaced by `rows`.
+
+    Built without `__init__` (like the smoother's vmap prefix), so a one-row
+    copy inside a `lax.scan` skips the stack's shape checks.
+
+    **Arguments:**
+
+    - `factor`: a factor stack.
+    - `rows`: a dict `{field name: value}`, e.g. one row of
+        [`eqsmooth.factors.per_row_fields`][].
+
+    **Returns:** the new factor.
+    """
+    unknown = set(rows) - {f.name for f in dataclasses.fields(factor) if _is_per_row(f)}
+    if unknown:
+        raise ValueError(
+            f"with_rows: {type(factor).__name__} has no per-row fields "
+            f"{sorted(unknown)}"
+        )
+    new = object.__new__(type(factor))
+    for f in dataclasses.fields(factor):
+        value = rows[f.name] if f.name in rows else getattr(factor, f.name)
+        object.__setattr__(new, f.name, value)
+    return new
+
+
 def _row_axes(factor: AbstractFactor) -> AbstractFactor:
     """A prefix of `factor` for `filter_vmap`: 0 for per-row fields, None else."""
     axes = object.__new__(type(factor))
@@ -86,10 +142,7 @@ def _row_axes(factor: AbstractFactor) -> AbstractFactor:
         if f.metadata.get("static", False):
             object.__setattr__(axes, f.name, getattr(factor, f.name))
             continue
-        per_row = f.name not in ("variables", "noise") and not f.metadata.get(
-            _SHARED, False
-        )
-        object.__setattr__(axes, f.name, 0 if per_row else None)
+        object.__setattr__(axes, f.name, 0 if _is_per_row(f) else None)
     return axes
 
 
@@ -97,18 +150,12 @@ def check_row_leaves(factor: AbstractFactor) -> None:
     """Raise if a per-row leaf of `factor` lacks the leading axis of length n."""
     name = type(factor).__name__
     n = factor.num_rows
-    for f in dataclasses.fields(factor):
-        if (
-            f.metadata.get("static", False)
-            or f.name in ("variables", "noise")
-            or f.metadata.get(_SHARED, False)
-        ):
-            continue
-        for leaf in jax.tree_util.tree_leaves(getattr(factor, f.name)):
+    for field_name, value in per_row_fields(factor).items():
+        for leaf in jax.tree_util.tree_leaves(value):
             if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != n):
                 raise ValueError(
-                    f"{name}.{f.name}: per-row leaf of shape {leaf.shape} must have "
-                    f"a leading axis of length {n} (the number of factor rows); "
+                    f"{name}.{field_name}: per-row leaf of shape {leaf.shape} must "
+                    f"have a leading axis of length {n} (the number of factor rows); "
                     "declare shared parameters with eqsmooth.factors.shared_field()"
                 )
 

@@ -247,14 +247,50 @@ def _check_scale(name: str, scale) -> None:
     _check_positive(name, "scale", scale)
 
 
-class HuberNoise(AbstractNoiseModel):
+class AbstractRobustNoise(AbstractNoiseModel):
+    """A robust loss `ρ` on top of a Gaussian noise model.
+
+    Whitening, shapes and `log_det_sqrt_information` are those of `base`;
+    subclasses give `ρ(s)` and `ρ'(s)` of the whitened squared norm
+    `s = ‖R r‖²` through `rho`. Solvers use IRLS weights `√ρ'(s)` on
+    residuals and Jacobians, whose Gauss-Newton gradient equals the gradient
+    of the true cost `½ρ(s)`; the reported cost is `½ρ(s)`. Filters (which
+    are Gaussian) reject robust models.
+
+    **Fields:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: the loss's scale `k > 0` (whitened units), shared `()` or per
+        row `(n,)`; learnable.
+    """
+
+    base: eqx.AbstractVar[AbstractNoiseModel]
+    scale: eqx.AbstractVar[Float[Array, "*rows"]]
+
+    def __check_init__(self):
+        _check_scale(type(self).__name__, self.scale)
+
+    def whiten(self, r):
+        return self.base.whiten(r)
+
+    def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
+        return self.base.log_det_sqrt_information(n, m)
+
+    def check_shapes(self, factor_name: str, n: int, m: int) -> None:
+        self.base.check_shapes(factor_name, n, m)
+        if self.scale.shape not in ((), (n,)):
+            raise ValueError(
+                f"{factor_name}: {type(self).__name__}.scale has shape "
+                f"{self.scale.shape}; expected () or ({n},)"
+            )
+
+
+class HuberNoise(AbstractRobustNoise):
     """Huber robust loss on top of a Gaussian model.
 
     With whitened squared norm `s = ‖R r‖²` and scale `k` (in whitened units):
-    `ρ(s) = s` for `s ≤ k²`, else `2k√s − k²`. Solvers use IRLS weights
-    `√ρ'(s)` on residuals and Jacobians, whose Gauss-Newton gradient equals the
-    gradient of the true cost `½ρ(s)`; the reported cost is `½ρ(s)` for every
-    scale. `log_det_sqrt_information` is that of the base model.
+    `ρ(s) = s` for `s ≤ k²`, else `2k√s − k²`. Conventions of
+    [`eqsmooth.factors.AbstractRobustNoise`][].
 
     **Arguments:**
 
@@ -269,15 +305,6 @@ class HuberNoise(AbstractNoiseModel):
         self.base = base
         self.scale = jnp.asarray(scale)
 
-    def __check_init__(self):
-        _check_scale("HuberNoise", self.scale)
-
-    def whiten(self, r):
-        return self.base.whiten(r)
-
-    def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
-        return self.base.log_det_sqrt_information(n, m)
-
     def rho(self, s):
         k = self.scale.astype(s.dtype)
         inside = s <= k * k
@@ -287,19 +314,11 @@ class HuberNoise(AbstractNoiseModel):
         deriv = jnp.where(inside, jnp.ones_like(s), k / root)
         return value, deriv
 
-    def check_shapes(self, factor_name: str, n: int, m: int) -> None:
-        self.base.check_shapes(factor_name, n, m)
-        if self.scale.shape not in ((), (n,)):
-            raise ValueError(
-                f"{factor_name}: HuberNoise.scale has shape {self.scale.shape}; "
-                f"expected () or ({n},)"
-            )
 
-
-class CauchyNoise(AbstractNoiseModel):
+class CauchyNoise(AbstractRobustNoise):
     """Cauchy (Lorentzian) robust loss: `ρ(s) = k² log(1 + s/k²)`.
 
-    Same conventions as [`eqsmooth.factors.HuberNoise`][].
+    Conventions of [`eqsmooth.factors.AbstractRobustNoise`][].
 
     **Arguments:**
 
@@ -314,23 +333,6 @@ class CauchyNoise(AbstractNoiseModel):
         self.base = base
         self.scale = jnp.asarray(scale)
 
-    def __check_init__(self):
-        _check_scale("CauchyNoise", self.scale)
-
-    def whiten(self, r):
-        return self.base.whiten(r)
-
-    def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
-        return self.base.log_det_sqrt_information(n, m)
-
     def rho(self, s):
         k2 = (self.scale * self.scale).astype(s.dtype)
         return k2 * jnp.log1p(s / k2), 1.0 / (1.0 + s / k2)
-
-    def check_shapes(self, factor_name: str, n: int, m: int) -> None:
-        self.base.check_shapes(factor_name, n, m)
-        if self.scale.shape not in ((), (n,)):
-            raise ValueError(
-                f"{factor_name}: CauchyNoise.scale has shape {self.scale.shape}; "
-                f"expected () or ({n},)"
-            )

@@ -6,8 +6,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from ..learn import manifold_mse
-from ..manifold import local
+from ..manifold import local, manifold_mse
 from ._ekf import EKFSolution
 from ._rts import RTSSolution
 
@@ -34,7 +33,7 @@ def ekf_mse_loss(
 ) -> Float[Array, ""]:
     """End-to-end MSE of the estimated means against ground truth.
 
-    [`eqsmooth.learn.manifold_mse`][] of the means against the truth: the
+    [`eqsmooth.manifold.manifold_mse`][] of the means against the truth: the
     error of every time step is `mean_t ⊖ truth_t` (manifold
     [`eqsmooth.manifold.local`][], so Lie-group states are compared in their
     tangent space), and the loss is `Σ w e² / (number of error entries)`,
@@ -51,7 +50,7 @@ def ekf_mse_loss(
     - `weights`: `None` or per-component weights with the structure of the
         state (or a prefix of it), e.g. `jnp.array([1.0, 1.0, 10.0])` for an
         SE(2) state or `{"pose": ..., "vel": ...}` for a dict state; see
-        [`eqsmooth.learn.manifold_mse`][].
+        [`eqsmooth.manifold.manifold_mse`][].
 
     **Returns:** a scalar.
     """

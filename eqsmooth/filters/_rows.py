@@ -7,30 +7,20 @@ over), rebuild a one-row factor inside the scan, and turn the stack's noise
 model into one square-root information matrix per row.
 """
 
-import dataclasses
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
-from ..factors import AbstractFactor, AbstractNoiseModel, CauchyNoise, HuberNoise
-from ..factors._factor import _SHARED, check_row_leaves
-
-
-def per_row_fields(factor: AbstractFactor) -> dict[str, PyTree]:
-    """The fields of `factor` whose array leaves carry one entry per row."""
-    out = {}
-    for f in dataclasses.fields(factor):
-        if (
-            f.metadata.get("static", False)
-            or f.name in ("variables", "noise")
-            or f.metadata.get(_SHARED, False)
-        ):
-            continue
-        out[f.name] = getattr(factor, f.name)
-    return out
+from ..factors import (
+    AbstractFactor,
+    AbstractNoiseModel,
+    AbstractRobustNoise,
+    per_row_fields as per_row_fields,
+    with_rows as with_rows,
+)
+from ..factors._factor import check_row_leaves
 
 
 def gather_rows(rows: dict[str, PyTree], index: np.ndarray) -> dict[str, PyTree]:
@@ -40,22 +30,9 @@ def gather_rows(rows: dict[str, PyTree], index: np.ndarray) -> dict[str, PyTree]
     )
 
 
-def with_rows(factor: AbstractFactor, rows: dict[str, PyTree]) -> AbstractFactor:
-    """A copy of `factor` whose per-row fields are replaced by `rows`.
-
-    Built without `__init__` (as the smoother's vmap prefix is), so that the
-    one-row copy inside a scan skips the stack's shape checks.
-    """
-    new = object.__new__(type(factor))
-    for f in dataclasses.fields(factor):
-        value = rows[f.name] if f.name in rows else getattr(factor, f.name)
-        object.__setattr__(new, f.name, value)
-    return new
-
-
 def check_gaussian(noise: AbstractNoiseModel, where: str) -> None:
     """Raise a `TypeError` if `noise` is a robust (non-Gaussian) model."""
-    robust = isinstance(noise, (HuberNoise, CauchyNoise))
+    robust = isinstance(noise, AbstractRobustNoise)
     if not robust:
         # Probe user-defined models: a Gaussian model has rho(s) = s. Skipped
         # when the noise parameters are traced (the value is then unknown).

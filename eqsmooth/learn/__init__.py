@@ -1,5 +1,9 @@
 """Learning through the solver: losses, training loop, data parallelism."""
 
+from ..manifold import (
+    manifold_errors as manifold_errors,
+    manifold_mse as manifold_mse,
+)
 from ._batch import stack_trees as stack_trees
 from ._checkpoint import (
     atomic_write as atomic_write,
@@ -10,12 +14,7 @@ from ._checkpoint import (
     save_checkpoint as save_checkpoint,
     TrainState as TrainState,
 )
-from ._losses import (
-    joint_nll as joint_nll,
-    manifold_errors as manifold_errors,
-    manifold_mse as manifold_mse,
-    surrogate_loss as surrogate_loss,
-)
+from ._losses import joint_nll as joint_nll, surrogate_loss as surrogate_loss
 from ._optim import (
     make_optimizer as make_optimizer,
     standard_promotion as standard_promotion,

@@ -19,3 +19,4 @@ from ._manifold import (
     tangent_dim as tangent_dim,
     tangent_dims as tangent_dims,
 )
+from ._metrics import manifold_errors as manifold_errors, manifold_mse as manifold_mse

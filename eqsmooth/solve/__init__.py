@@ -7,32 +7,47 @@ from ._adjoint import (
     UnrolledAdjoint as UnrolledAdjoint,
 )
 from ._block_tridiagonal import (
+    block_tridiagonal_log_det as block_tridiagonal_log_det,
     BlockCyclicReduction as BlockCyclicReduction,
     BlockTridiagonal as BlockTridiagonal,
     BlockTridiagonalOperator as BlockTridiagonalOperator,
+    ChainFactorization as ChainFactorization,
 )
-from ._dense import DenseCholesky as DenseCholesky
+from ._default_solver import (
+    default_linear_solver as default_linear_solver,
+    factorize as factorize,
+)
+from ._dense import (
+    DenseCholesky as DenseCholesky,
+    DenseFactorization as DenseFactorization,
+)
 from ._gauss_newton import (
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
+    GaussNewtonState as GaussNewtonState,
 )
 from ._least_squares import (
     AbstractFixedStepSolver as AbstractFixedStepSolver,
-    AbstractLeastSquaresSolver as AbstractLeastSquaresSolver,
+    AbstractGraphSolver as AbstractGraphSolver,
+    graph_residuals as graph_residuals,
     least_squares as least_squares,
-    LeastSquaresState as LeastSquaresState,
 )
-from ._levenberg_marquardt import LevenbergMarquardt as LevenbergMarquardt
-from ._linear_solver import AbstractLinearSolver as AbstractLinearSolver
+from ._levenberg_marquardt import (
+    LevenbergMarquardt as LevenbergMarquardt,
+    LevenbergMarquardtState as LevenbergMarquardtState,
+)
+from ._linear_solver import (
+    AbstractFactorization as AbstractFactorization,
+    AbstractNormalSolver as AbstractNormalSolver,
+    NormalOperator as NormalOperator,
+    solve_normal as solve_normal,
+)
 from ._linearization import (
     FactorLinearization as FactorLinearization,
     Linearization as Linearization,
     linearize as linearize,
 )
-from ._logdet import (
-    block_tridiagonal_log_det as block_tridiagonal_log_det,
-    normal_log_det as normal_log_det,
-)
+from ._logdet import normal_log_det as normal_log_det
 from ._marginals import marginal_covariances as marginal_covariances
 from ._pcg import (
     AbstractPreconditioner as AbstractPreconditioner,
@@ -42,3 +57,7 @@ from ._pcg import (
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
 from ._sparse import SparseCholesky as SparseCholesky, SparseLU as SparseLU
+from ._tangent import (
+    tangent_least_squares as tangent_least_squares,
+    TangentResiduals as TangentResiduals,
+)

@@ -24,12 +24,14 @@ import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, PyTree
 
 from ..factors import FactorGraph
-from ._linear_solver import AbstractLinearSolver
+from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize, retract_values, Tangent
+from ._misc import preconditioned_cg, tree_where
 
 
 Values = dict[str, PyTree]
@@ -37,10 +39,6 @@ Carry = tuple[Values, Any, Array]
 InitFn = Callable[[FactorGraph, Values], Carry]
 BodyFn = Callable[[FactorGraph, Carry], Carry]
 CondFn = Callable[[Carry], Bool[Array, ""]]
-
-
-def _tree_where(pred, a, b):
-    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
 def _stop(tree):
@@ -53,7 +51,7 @@ def _masked_scan(body: BodyFn, cond: CondFn, graph, carry: Carry, length: int):
     """`length` iterations of `body`, each a no-op once `cond` is false."""
 
     def scan_body(c, _):
-        return _tree_where(cond(c), body(graph, c), c), None
+        return tree_where(cond(c), body(graph, c), c), None
 
     carry, _ = lax.scan(scan_body, carry, None, length=length)
     return carry
@@ -81,7 +79,7 @@ class AbstractAdjoint(eqx.Module):
         cond: CondFn,
         graph: FactorGraph,
         values: Values,
-        linear_solver: AbstractLinearSolver,
+        linear_solver: lx.AbstractLinearSolver,
         max_steps: int,
     ) -> Carry:
         """Run the solve and return the final carry `(values, state, history)`.
@@ -179,8 +177,8 @@ class TruncatedAdjoint(AbstractAdjoint):
         stopped = ~cond(carry1)
         restart = jnp.where(stopped, jnp.maximum(n1 - k, 0), n1)
         from_ring = jax.tree_util.tree_map(lambda r: r[(n1 - k) % k], ring)
-        resumed = _tree_where(stopped, from_ring + (carry1[2],), carry1)
-        start = _tree_where(restart == 0, carry0, _stop(resumed))
+        resumed = tree_where(stopped, from_ring + (carry1[2],), carry1)
+        start = tree_where(restart == 0, carry0, _stop(resumed))
         start = _relinearize(graph, start)
         return _masked_scan(body, cond, graph, start, k)
 
@@ -222,7 +220,7 @@ class ImplicitAdjoint(AbstractAdjoint):
     **Arguments:**
 
     - `hessian`: `"exact"` or `"gauss_newton"`.
-    - `rtol`, `atol`: CG stops when `‖H w − x̄‖₂ ≤ rtol ‖x̄‖₂ + atol` (`rtol`
+    - `rtol`, `atol`: CG stops when `‖H w − x̄‖₂ ≤ max(rtol ‖x̄‖₂, atol)` (`rtol`
         is raised to `10 ε` of the dtype if smaller).
     - `max_steps`: CG iteration limit; the last iterate is used if it is
         reached.
@@ -270,49 +268,9 @@ def _zeros(lin: Linearization) -> Tangent:
     }
 
 
-def _dot(a: Tangent, b: Tangent):
-    return sum(jnp.sum(a[k] * b[k]) for k in a)
-
-
-def _axpy(alpha, x: Tangent, y: Tangent) -> Tangent:
-    return {k: alpha * x[k] + y[k] for k in x}
-
-
 def _tangent_gradient(graph: FactorGraph, x_star: Values, delta: Tangent) -> Tangent:
     """`∇_δ C(x* ⊕ δ)`: gradient of the true (robust) cost in tangent coordinates."""
     return jax.grad(lambda d: graph.cost(retract_values(x_star, d)))(delta)
-
-
-def _pcg(matvec, precondition, b: Tangent, rtol, atol, max_steps: int) -> Tangent:
-    """Preconditioned CG (Polak-Ribière form, tolerant of a slightly varying
-    preconditioner such as an inner iterative solve).
-    """
-    x = {k: jnp.zeros_like(v) for k, v in b.items()}
-    z = precondition(b)
-    rz = _dot(b, z)
-    tol = rtol * jnp.sqrt(_dot(b, b)) + atol
-
-    def keep_going(loop):
-        _, r, _, _, rz, i = loop
-        return (i < max_steps) & (jnp.sqrt(_dot(r, r)) > tol) & (rz > 0)
-
-    def step(loop):
-        x, r, z, p, rz, i = loop
-        hp = matvec(p)
-        php = _dot(p, hp)
-        ok = php > 0  # negative curvature: not at a minimum, stop here
-        alpha = jnp.where(ok, rz / jnp.where(ok, php, 1.0), 0.0)
-        x = _axpy(alpha, p, x)
-        r_new = _axpy(-alpha, hp, r)
-        z_new = precondition(r_new)
-        rz_new = _dot(r_new, z_new)
-        beta = _dot(z_new, {k: r_new[k] - r[k] for k in r}) / rz
-        p = _axpy(beta, p, z_new)
-        rz_new = jnp.where(ok, rz_new, 0.0)
-        return x, r_new, z_new, p, rz_new, i + 1
-
-    x, *_ = lax.while_loop(keep_going, step, (x, b, z, z, rz, jnp.array(0)))
-    return x
 
 
 @eqx.filter_custom_vjp
@@ -336,7 +294,7 @@ def _implicit_delta_bwd(
     v = {k: zero[k] if grad_obj[k] is None else grad_obj[k] for k in zero}
 
     def structured_solve(rhs):
-        w, _ = linear_solver.solve(lin, None, rhs=rhs)
+        w, _ = solve_normal(linear_solver, lin, None, rhs=rhs)
         return w
 
     if adjoint.hessian == "gauss_newton":
@@ -345,7 +303,10 @@ def _implicit_delta_bwd(
         _, hvp = jax.linearize(lambda d: _tangent_gradient(graph, x_star, d), zero)
         eps = float(np.finfo(lin.dtype).eps)
         rtol = max(adjoint.rtol, 10 * eps)
-        w = _pcg(hvp, structured_solve, v, rtol, adjoint.atol, adjoint.max_steps)
+        # Flexible CG: the preconditioner may itself be an inexact solve (PCG).
+        w, *_ = preconditioned_cg(
+            hvp, structured_solve, v, rtol, adjoint.atol, adjoint.max_steps, True
+        )
     neg_w = {k: -w[k] for k in w}
     _, vjp_fn = eqx.filter_vjp(lambda g: _tangent_gradient(g, x_star, zero), graph)
     (grad_graph,) = vjp_fn(neg_w)

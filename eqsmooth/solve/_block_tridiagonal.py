@@ -10,11 +10,12 @@ The system is solved by block cyclic reduction (odd-even reduction; Heller
 1976, "Some aspects of the cyclic reduction algorithm for block tridiagonal
 linear systems", SIAM J. Numer. Anal. 13(4)). Eliminating the odd-indexed
 blocks leaves a block-tridiagonal Schur complement on the even blocks, half the
-size; once at most `TAIL_SIZE` blocks remain, a sequential block Cholesky
+size; once at most `tail_size` blocks remain (a static field of
+[`eqsmooth.solve.BlockTridiagonal`][], 32 by default), a sequential block Cholesky
 (one `lax.scan`) factors them. Every level is a handful of batched `D × D`
 Cholesky factorisations, triangular solves and products, so the cost is
 `O(T D³)` like a sequential block Cholesky, but the depth is
-`O(log T + TAIL_SIZE)` instead of `O(T)`: no per-time-step loop over a long
+`O(log T + tail_size)` instead of `O(T)`: no per-time-step loop over a long
 chain on CPU, and parallel on GPU.
 It is the Cholesky factorisation of the odd-even permuted matrix, hence
 backward stable for symmetric positive definite systems.
@@ -35,10 +36,15 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ..factors import GroupLayout, Var
-from ._linear_solver import AbstractLinearSolver, pivot_tolerance
+from ._linear_solver import (
+    AbstractFactorization,
+    AbstractNormalSolver,
+    normal_operator_of,
+    pivot_tolerance,
+    register_symmetric_psd,
+)
 from ._linearization import Linearization, Tangent
 from ._small_blocks import block_cholesky, block_solve_lower
-from ._solution import RESULTS
 
 
 # ---------------------------------------------------------------------------
@@ -339,40 +345,12 @@ class BlockTridiagonalOperator(lx.AbstractLinearOperator):
         return self.in_structure()
 
 
-@lx.linearise.register(BlockTridiagonalOperator)
-@lx.materialise.register(BlockTridiagonalOperator)
-@lx.conj.register(BlockTridiagonalOperator)
-def _(operator):
-    return operator
-
-
-@lx.diagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return jnp.diagonal(operator.diagonal, axis1=1, axis2=2).reshape(-1)
-
-
-@lx.is_symmetric.register(BlockTridiagonalOperator)
-@lx.is_positive_semidefinite.register(BlockTridiagonalOperator)
-def _(operator):
-    return True
-
-
-@lx.is_negative_semidefinite.register(BlockTridiagonalOperator)
-@lx.is_lower_triangular.register(BlockTridiagonalOperator)
-@lx.is_upper_triangular.register(BlockTridiagonalOperator)
-@lx.has_unit_diagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return False
-
-
-@lx.is_diagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return operator.diagonal.shape[0] == 1 and operator.diagonal.shape[1] == 1
-
-
-@lx.is_tridiagonal.register(BlockTridiagonalOperator)
-def _(operator):
-    return operator.diagonal.shape[1] == 1
+register_symmetric_psd(
+    BlockTridiagonalOperator,
+    diagonal=lambda op: jnp.diagonal(op.diagonal, axis1=1, axis2=2).reshape(-1),
+    is_diagonal=lambda op: op.diagonal.shape[0] == 1 and op.diagonal.shape[1] == 1,
+    is_tridiagonal=lambda op: op.diagonal.shape[1] == 1,
+)
 
 
 # ---------------------------------------------------------------------------
@@ -439,14 +417,32 @@ class CyclicReductionState(eqx.Module):
     levels: tuple[_Level, ...]
     tail: _Tail
     ok: Bool[Array, ""]
+    tail_size: int = eqx.field(static=True, default=32)
+
+    def log_det(self) -> Float[Array, ""]:
+        """`log det` of the factorised matrix: the pivots of every level and the tail.
+
+        The matrix is the Cholesky factorisation of its odd-even permutation,
+        so its determinant is the product of the squared pivots, `−2 Σ log
+        diag(L⁻¹)` over the stored inverse factors. Differentiable by
+        ordinary autodiff; NaN when a pivot is not positive.
+        """
+        total = -2.0 * jnp.sum(
+            jnp.log(jnp.diagonal(self.tail.chol_inv, axis1=-2, axis2=-1))
+        )
+        for level in self.levels:
+            total = total - 2.0 * jnp.sum(
+                jnp.log(jnp.diagonal(level.chol_inv, axis1=-2, axis2=-1))
+            )
+        return total
 
 
-TAIL_SIZE = 32
-"""Cyclic reduction stops once at most this many blocks are left; a sequential
-block Cholesky (one `lax.scan`) factors the rest. The tail runs about as fast
-as the levels it replaces, but every reduction level compiles to a dozen XLA
-kernels of its own while the scan body compiles once, which cuts the compile
-time of long chains (`benchmarks/chain.py`)."""
+DEFAULT_TAIL_SIZE = 32
+"""Default of `BlockTridiagonal.tail_size`: cyclic reduction stops once at most
+this many blocks are left and a sequential block Cholesky (one `lax.scan`)
+factors the rest. Every reduction level compiles to a dozen XLA kernels of its
+own while the scan body compiles once, so a larger tail cuts the compile time
+of long chains (measurements in `benchmarks/results/chain_tail_s5`)."""
 
 
 def _tail_factor(A, B) -> tuple[_Tail, Array]:
@@ -518,7 +514,9 @@ def _tail_inverse_blocks(tail: _Tail):
 
 
 def cyclic_reduction_factor(
-    diagonal: Float[Array, "T D D"], upper: Float[Array, "T-1 D D"]
+    diagonal: Float[Array, "T D D"],
+    upper: Float[Array, "T-1 D D"],
+    tail_size: int = DEFAULT_TAIL_SIZE,
 ) -> CyclicReductionState:
     """Factorise a symmetric positive definite block-tridiagonal matrix.
 
@@ -528,7 +526,7 @@ def cyclic_reduction_factor(
     The reduction levels call jaxlib's batched LAPACK kernels: each level's
     Cholesky and triangular solve depend on the previous level's, so these
     calls run one after another (see `_small_blocks` for why that matters).
-    The last `TAIL_SIZE` blocks (or fewer) are factorised by a sequential
+    The last `tail_size` blocks (or fewer) are factorised by a sequential
     block Cholesky, and the solves that use the factorisation call no LAPACK.
     """
     dtype = diagonal.dtype
@@ -545,7 +543,9 @@ def cyclic_reduction_factor(
     def check(piv, ref):
         return jnp.all(piv * piv > rel_tol * ref)
 
-    while A.shape[0] > TAIL_SIZE:
+    if tail_size < 1:
+        raise ValueError(f"tail_size must be >= 1, got {tail_size}")
+    while A.shape[0] > tail_size:
         n = A.shape[0]
         m, k = n // 2, n - n // 2
         Bp = _pad_end(B, n)
@@ -566,12 +566,12 @@ def cyclic_reduction_factor(
         levels.append(_Level(chol_inv, left, right))
     tail, pivots = _tail_factor(A, B)
     ok = ok & check(pivots, scale)
-    return CyclicReductionState(tuple(levels), tail, ok)
+    return CyclicReductionState(tuple(levels), tail, ok, tail_size)
 
 
-def _level_sizes(T: int) -> list[int]:
+def _level_sizes(T: int, tail_size: int) -> list[int]:
     sizes = []
-    while T > TAIL_SIZE:
+    while T > tail_size:
         sizes.append(T)
         T = T - T // 2
     return sizes
@@ -581,7 +581,7 @@ def cyclic_reduction_solve(
     state: CyclicReductionState, rhs: Float[Array, "T D"]
 ) -> Float[Array, "T D"]:
     """Solve with a factorisation from `cyclic_reduction_factor`."""
-    sizes = _level_sizes(rhs.shape[0])
+    sizes = _level_sizes(rhs.shape[0], state.tail_size)
     b = rhs
     partial = []
     for n, level in zip(sizes, state.levels):
@@ -618,7 +618,7 @@ def cyclic_reduction_inverse_blocks(
     `A_oo` is block diagonal and `W` has two blocks per row (`left`, `right`),
     so only the tridiagonal part of `Σ_ee` is ever needed.
     """
-    sizes = _level_sizes(T)
+    sizes = _level_sizes(T, state.tail_size)
     D = state.tail.chol_inv.shape[-1]
     diag, upper = _tail_inverse_blocks(state.tail)
     for n, level in zip(reversed(sizes), reversed(state.levels)):
@@ -686,7 +686,38 @@ class BlockCyclicReduction(lx.AbstractLinearSolver):
 # ---------------------------------------------------------------------------
 
 
-class BlockTridiagonal(AbstractLinearSolver):
+class ChainFactorization(AbstractFactorization):
+    """The state of [`eqsmooth.solve.BlockTridiagonal`][]: a chain's block cyclic
+    reduction, with the static layout that maps blocks to tangent groups."""
+
+    factor: CyclicReductionState
+    ok: Bool[Array, ""]
+    layout: tuple[GroupLayout, ...] = eqx.field(static=True)
+    offsets: tuple[int, ...] = eqx.field(static=True)
+
+    def to_tangent(self, blocks: Array) -> Tangent:
+        return {
+            g.name: blocks[:, off : off + g.dim]
+            for g, off in zip(self.layout, self.offsets)
+        }
+
+    def from_tangent(self, tangent: Tangent, dtype) -> Array:
+        return jnp.concatenate(
+            [tangent[g.name].astype(dtype) for g in self.layout], axis=1
+        )
+
+    def log_det(self) -> Float[Array, ""]:
+        return self.factor.log_det()
+
+    def inverse_block_diagonal(self) -> dict[str, Float[Array, "_N _d _d"]]:
+        cov, _ = cyclic_reduction_inverse_blocks(self.factor, self.layout[0].count)
+        return {
+            g.name: cov[:, off : off + g.dim, off : off + g.dim]
+            for g, off in zip(self.layout, self.offsets)
+        }
+
+
+class BlockTridiagonal(AbstractNormalSolver):
     """Exact solver for chains (smoothing problems): block cyclic reduction.
 
     Use it when every variable group has one variable per time step and every
@@ -696,22 +727,77 @@ class BlockTridiagonal(AbstractLinearSolver):
     time step. The structure is checked once, at trace time; a graph that is
     not a chain raises a `ValueError` naming the first offending factor row.
 
-    Derivatives go through `lineax.linear_solve`, so reverse mode costs one
-    more block-tridiagonal solve with the same factorisation, and the solver
+    A lineax solver of a [`eqsmooth.solve.NormalOperator`][]: derivatives go
+    through `lineax.linear_solve`, so reverse mode costs one more
+    block-tridiagonal solve with the same factorisation, and the solver
     `vmap`s over batches of graphs. (lineax raises at run time when a
     derivative of a failed solve is requested: there is no result code to
-    carry it.)
+    carry it.) Its state is a [`eqsmooth.solve.ChainFactorization`][]
+    (log-determinant, marginal covariances).
+
+    **Arguments:**
+
+    - `tail_size`: cyclic reduction stops once at most this many blocks are
+        left; a sequential block Cholesky factors the rest. Changes compile
+        time, not results.
     """
 
-    def solve(
-        self,
-        lin: Linearization,
-        damping: Tangent | None,
-        rhs: Tangent | None = None,
-    ) -> tuple[Tangent, RESULTS]:
-        plan = chain_plan(lin)
-        diag, upper, grad = assemble_chain(lin, plan, damping)
-        b = -grad if rhs is None else plan.from_tangent(rhs, lin.layout, lin.dtype)
-        operator = BlockTridiagonalOperator(diag, upper)
-        sol = lx.linear_solve(operator, b, BlockCyclicReduction(), throw=False)
-        return plan.to_tangent(sol.value, lin.layout), RESULTS.promote(sol.result)
+    tail_size: int = eqx.field(static=True, default=DEFAULT_TAIL_SIZE)
+
+    def __check_init__(self):
+        if not isinstance(self.tail_size, int) or self.tail_size < 1:
+            raise ValueError(
+                "BlockTridiagonal.tail_size must be an int >= 1, got "
+                f"{self.tail_size!r}"
+            )
+
+    def init(
+        self, operator: lx.AbstractLinearOperator, options: dict[str, Any]
+    ) -> ChainFactorization:
+        del options
+        op = normal_operator_of(operator, "BlockTridiagonal")
+        plan = chain_plan(op.lin)
+        diag, upper, _ = assemble_chain(op.lin, plan, op.damping)
+        factor = cyclic_reduction_factor(diag, upper, self.tail_size)
+        return ChainFactorization(factor, factor.ok, op.lin.layout, plan.offsets)
+
+    def compute(self, state: ChainFactorization, vector, options: dict[str, Any]):
+        del options
+        dtype = state.factor.tail.chol_inv.dtype
+        x = cyclic_reduction_solve(state.factor, state.from_tangent(vector, dtype))
+        x = jnp.where(state.ok, x, jnp.zeros_like(x))
+        result = lx.RESULTS.where(state.ok, lx.RESULTS.successful, lx.RESULTS.singular)
+        return state.to_tangent(x), result, {}
+
+
+def block_tridiagonal_log_det(
+    diagonal: Float[Array, "T D D"], upper: Float[Array, "T-1 D D"]
+) -> Float[Array, ""]:
+    """`log det` of a symmetric positive definite block-tridiagonal matrix.
+
+    From the block cyclic reduction of [`eqsmooth.solve.BlockTridiagonal`][]
+    (the same factorisation the solves use): `O(T D³)` work, differentiable
+    by ordinary reverse- or forward-mode autodiff.
+
+    **Arguments:**
+
+    - `diagonal`: the `(T, D, D)` diagonal blocks.
+    - `upper`: the `(T − 1, D, D)` super-diagonal blocks.
+
+    **Returns:**
+
+    The scalar log-determinant; NaN when the matrix is not positive definite
+    (a non-positive pivot).
+    """
+    if diagonal.ndim != 3 or diagonal.shape[1] != diagonal.shape[2]:
+        raise ValueError(
+            f"block_tridiagonal_log_det: diagonal must be (T, D, D), got "
+            f"{diagonal.shape}"
+        )
+    T, D, _ = diagonal.shape
+    if upper.shape != (T - 1, D, D):
+        raise ValueError(
+            f"block_tridiagonal_log_det: upper must be ({T - 1}, {D}, {D}), got "
+            f"{upper.shape}"
+        )
+    return cyclic_reduction_factor(diagonal, upper).log_det()

@@ -1,71 +1,139 @@
-import abc
+"""The nonlinear least-squares entry point and the base of its solvers.
+
+eqsmooth's solvers ([`eqsmooth.solve.GaussNewton`][],
+[`eqsmooth.solve.LevenbergMarquardt`][],
+[`eqsmooth.solve.FixedStepGaussNewton`][]) are optimistix least-squares
+solvers whose `args` is the [`eqsmooth.factors.FactorGraph`][] and whose `y`
+is the values dict; they update the values on the manifold (`x ⊕ δ`).
+They run through `optx.least_squares(eqs.solve.graph_residuals, solver,
+values, args=graph)` and through [`eqsmooth.solve.least_squares`][], which
+adds eqsmooth's adjoints (unrolled, truncated, implicit in tangent
+coordinates) and cost statistics.
+"""
+
+from typing import Any
 
 import equinox as eqx
 import jax
-import jax.lax as lax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int, PyTree
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
-from ._linear_solver import AbstractLinearSolver
-from ._linearization import (
-    apply_jacobian,
-    block_diagonal,
-    gradient,
-    Linearization,
-    linearize,
-    retract_values,
-    Tangent,
-)
+from ._default_solver import default_linear_solver
+from ._linearization import gradient, linearize
+from ._misc import finite_lin, max_abs
 from ._solution import RESULTS, Solution
 
 
 Values = dict[str, PyTree]
 
 
-class LeastSquaresState(eqx.Module):
-    """State shared by the nonlinear least-squares solvers.
+def graph_residuals(
+    values: Values, graph: FactorGraph
+) -> tuple[Float[Array, "_n _m"], ...]:
+    """Residuals of every factor stack whose half squared norm is the graph's cost.
 
-    Invariant the adjoints rely on: `lin` is the linearisation at the current
-    values.
+    The residual function to pass to `optx.least_squares` together with
+    `args=graph`: `½ Σ‖r‖² = graph.cost(values)`. Gaussian factors give their
+    whitened residuals; a robust noise model scales row `i` by
+    `√(ρ(sᵢ)/sᵢ)` (`sᵢ` its squared whitened norm; `√ρ'(0)` at `sᵢ = 0`).
+
+    **Arguments:**
+
+    - `values`: the values dict `{group: stacked states}`.
+    - `graph`: the [`eqsmooth.factors.FactorGraph`][].
+
+    **Returns:** a tuple of `(n, m)` arrays, one per factor stack.
+    """
+    if not isinstance(graph, FactorGraph):
+        raise TypeError(
+            f"graph_residuals(values, graph): graph must be a FactorGraph, got "
+            f"{type(graph).__name__}"
+        )
+    out = []
+    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
+        s = jnp.sum(rw * rw, axis=1)
+        positive = s > 0
+        safe = jnp.where(positive, s, 1.0)
+        rho, _ = f.noise.rho(safe)
+        _, drho0 = f.noise.rho(jnp.zeros_like(s))
+        scale = jnp.where(positive, jnp.sqrt(rho / safe), jnp.sqrt(drho0))
+        out.append(rw * scale[:, None])
+    return tuple(out)
+
+
+def graph_of(args: Any, who: str) -> FactorGraph:
+    """The factor graph passed as optimistix's `args`."""
+    if not isinstance(args, FactorGraph):
+        raise TypeError(
+            f"{who} solves an eqsmooth factor graph: call optx.least_squares("
+            "eqsmooth.solve.graph_residuals, solver, values, args=graph), or "
+            f"eqsmooth.least_squares(graph, values, solver); got args of type "
+            f"{type(args).__name__}"
+        )
+    return args
+
+
+def to_optx_result(result: RESULTS) -> optx.RESULTS:
+    """An eqsmooth result code as the nearest `optimistix.RESULTS` code."""
+    out = optx.RESULTS.successful
+    for item in optx.RESULTS._name_to_item.values():  # pyright: ignore
+        out = optx.RESULTS.where(result == RESULTS.promote(item), item, out)
+    out = optx.RESULTS.where(
+        result == RESULTS.linear_solve_failed, optx.RESULTS.singular, out
+    )
+    return optx.RESULTS.where(
+        result == RESULTS.nonfinite_problem, optx.RESULTS.nonfinite, out
+    )
+
+
+class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
+    """Base of eqsmooth's nonlinear solvers: optimistix least-squares solvers on graphs.
+
+    Subclasses implement optimistix's `init`, `step` and `terminate` with
+    `args` the [`eqsmooth.factors.FactorGraph`][] and `y` the values dict.
+    They linearise every factor stack with forward-mode autodiff, hand a
+    [`eqsmooth.solve.NormalOperator`][] to their lineax `linear_solver` and
+    update the values on the manifold (`x ⊕ δ`). Their states keep `lin`,
+    the linearisation at the current values (the adjoints of
+    [`eqsmooth.solve.least_squares`][] rely on it), `step`, `num_accepted`,
+    `done` and `result` (an [`eqsmooth.solve.RESULTS`][] code).
+
+    `options` (optimistix's per-call knobs): `"linear_options"` is passed to
+    `lineax.linear_solve` at every step.
     """
 
-    lin: Linearization
-    step: Int[Array, ""]
-    num_accepted: Int[Array, ""]
-    damping: Float[Array, ""]
-    nu: Float[Array, ""]
-    done: Bool[Array, ""]
-    result: RESULTS
-    last_step_norm: Float[Array, ""]
+    linear_solver: eqx.AbstractVar[lx.AbstractLinearSolver | None]
+    ftol: eqx.AbstractVar[float]
+    gtol: eqx.AbstractVar[float]
+    xtol: eqx.AbstractVar[float]
 
+    # optimistix's names for the tolerances and the norm of its solvers.
+    @property
+    def rtol(self) -> float:
+        return self.ftol
 
-class AbstractLeastSquaresSolver(eqx.Module):
-    """Base of the nonlinear solvers (optimistix shape: init / step / terminate).
+    @property
+    def atol(self) -> float:
+        return self.xtol
 
-    Solvers update the values on the manifold (`x ⊕ δ`), linearise every factor
-    stack with forward-mode autodiff and hand the block-sparse Gauss-Newton
-    model to their `linear_solver`.
-    """
+    @property
+    def norm(self):
+        return optx.max_norm
 
-    linear_solver: eqx.AbstractVar[AbstractLinearSolver]
-
-    @abc.abstractmethod
-    def init(self, graph: FactorGraph, values: Values) -> LeastSquaresState:
-        """Linearise at the initial values and build the state."""
-
-    @abc.abstractmethod
-    def step(
-        self, graph: FactorGraph, values: Values, state: LeastSquaresState
-    ) -> tuple[Values, LeastSquaresState]:
-        """One iteration."""
-
-    @abc.abstractmethod
-    def terminate(
-        self, state: LeastSquaresState, max_steps: int
-    ) -> tuple[Bool[Array, ""], RESULTS]:
-        """Whether to stop, and with which result."""
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        del fn, args, options, tags, result
+        return (
+            y,
+            aux,
+            {
+                "num_accepted": state.num_accepted,
+                "final_cost": state.lin.cost,
+            },
+        )
 
     def iteration_limit(self, max_steps: int) -> int:
         """The static iteration limit of a solve called with `max_steps`.
@@ -79,116 +147,45 @@ class AbstractLeastSquaresSolver(eqx.Module):
             return self.num_steps
         return max_steps
 
+    def at_max_steps(self) -> RESULTS:
+        """The result when the iteration limit is reached before convergence
+        (success for an [`eqsmooth.solve.AbstractFixedStepSolver`][])."""
+        if isinstance(self, AbstractFixedStepSolver):
+            return RESULTS.successful
+        return RESULTS.nonlinear_max_steps_reached
 
-class AbstractFixedStepSolver(AbstractLeastSquaresSolver):
+
+class AbstractFixedStepSolver(AbstractGraphSolver):
     """A solver that always runs exactly `num_steps` iterations.
 
     [`eqsmooth.solve.least_squares`][] ignores its `max_steps` argument for
     these solvers (see
-    [`eqsmooth.solve.AbstractLeastSquaresSolver.iteration_limit`][]).
+    [`eqsmooth.solve.AbstractGraphSolver.iteration_limit`][]); reaching
+    `num_steps` is success.
     """
 
     num_steps: eqx.AbstractVar[int]
 
 
-def _tree_where(pred, a, b):
-    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
-
-
-def _max_abs(tree) -> Float[Array, ""]:
-    leaves = jax.tree_util.tree_leaves(tree)
-    return jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in leaves]))
-
-
-def _sq_norm(tree) -> Float[Array, ""]:
-    return sum(jnp.sum(x * x) for x in jax.tree_util.tree_leaves(tree))
-
-
-def _finite_lin(lin: Linearization) -> Bool[Array, ""]:
-    ok = jnp.isfinite(lin.cost)
-    for fl in lin.factors:
-        ok = ok & jnp.all(jnp.isfinite(fl.residual))
-        for j in fl.jacobians:
-            ok = ok & jnp.all(jnp.isfinite(j))
-    return ok
-
-
-def initial_state(
-    graph: FactorGraph, values: Values, damping: float, gtol: float
-) -> LeastSquaresState:
+def start(graph: FactorGraph, values: Values, gtol: float):
+    """Linearise at the initial values: `(lin, done, result)` of the first state."""
     lin = linearize(graph, values)
-    finite = _finite_lin(lin)
-    converged = _max_abs(gradient(lin)) <= gtol
+    finite = finite_lin(lin)
+    converged = max_abs(gradient(lin)) <= gtol
     result = RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_problem)
-    dtype = lin.dtype
-    return LeastSquaresState(
-        lin=lin,
-        step=jnp.array(0),
-        num_accepted=jnp.array(0),
-        damping=jnp.asarray(damping, dtype),
-        nu=jnp.asarray(2.0, dtype),
-        done=(~finite) | converged,
-        result=result,
-        last_step_norm=jnp.asarray(jnp.inf, dtype),
-    )
-
-
-def converged_test(
-    old_cost, new_lin: Linearization, delta: Tangent, ftol, gtol, xtol
-) -> Bool[Array, ""]:
-    finfo = jnp.finfo(new_lin.dtype)
-    rel = jnp.abs(old_cost - new_lin.cost) / jnp.maximum(old_cost, finfo.tiny)
-    # A relative change below a few ulps is rounding: never ask for less.
-    ftol = jnp.where(ftol > 0, jnp.maximum(ftol, 4 * finfo.eps), ftol)
-    gnorm = _max_abs(gradient(new_lin))
-    xnorm = _max_abs(delta)
-    return (rel <= ftol) | (gnorm <= gtol) | (xnorm <= xtol)
-
-
-def gauss_newton_step(
-    solver, graph: FactorGraph, values: Values, state: LeastSquaresState
-) -> tuple[Values, LeastSquaresState]:
-    delta, lres = solver.linear_solver.solve(state.lin, None)
-    solved = lres == RESULTS.successful
-    new_values = retract_values(values, delta)
-    new_lin = linearize(graph, new_values)
-    finite = _finite_lin(new_lin)
-    ok = solved & finite
-    converged = ok & converged_test(
-        state.lin.cost, new_lin, delta, solver.ftol, solver.gtol, solver.xtol
-    )
-    result = RESULTS.where(
-        solved,
-        RESULTS.where(finite, RESULTS.successful, RESULTS.nonlinear_divergence),
-        RESULTS.linear_solve_failed,
-    )
-    values = _tree_where(ok, new_values, values)
-    state = LeastSquaresState(
-        lin=_tree_where(ok, new_lin, state.lin),
-        step=state.step + 1,
-        num_accepted=state.num_accepted + ok.astype(state.num_accepted.dtype),
-        damping=state.damping,
-        nu=state.nu,
-        done=converged | ~ok,
-        result=result,
-        # Diagnostic only; stopped so that sqrt at a zero step never puts a
-        # NaN into masked iterations of an unrolled backward pass.
-        last_step_norm=lax.stop_gradient(
-            jnp.sqrt(_sq_norm(delta)).astype(state.damping.dtype)
-        ),
-    )
-    return values, state
+    return lin, (~finite) | converged, result
 
 
 def least_squares(
     graph: FactorGraph,
     values: Values,
-    solver: AbstractLeastSquaresSolver,
+    solver: optx.AbstractLeastSquaresSolver,
     *,
     max_steps: int = 100,
     adjoint: AbstractAdjoint = ImplicitAdjoint(),
     throw: bool = True,
     verbose: bool = False,
+    options: dict[str, Any] | None = None,
 ) -> Solution:
     """Minimise the cost of `graph` starting from `values`.
 
@@ -196,8 +193,10 @@ def least_squares(
 
     - `graph`: the [`eqsmooth.factors.FactorGraph`][].
     - `values`: initial values, a dict `{group: stacked states}`.
-    - `solver`: e.g. `GaussNewton(BlockTridiagonal())` or
-        `LevenbergMarquardt(PCG())`.
+    - `solver`: an eqsmooth [`eqsmooth.solve.AbstractGraphSolver`][], e.g.
+        `GaussNewton()`, `GaussNewton(BlockTridiagonal())` or
+        `LevenbergMarquardt(PCG())`. (For optimistix's own solvers, which
+        update additively, see [`eqsmooth.solve.tangent_least_squares`][].)
     - `max_steps`: iteration limit (ignored by `FixedStepGaussNewton`, which
         always runs its `num_steps`).
     - `adjoint`: how reverse-mode autodiff differentiates the solve:
@@ -209,40 +208,70 @@ def least_squares(
     - `throw`: raise an `EquinoxRuntimeError` if the solve did not succeed;
         with `throw=False` read `Solution.result`.
     - `verbose`: print cost, damping and step norm at every iteration.
+    - `options`: the solver's per-call options (see
+        [`eqsmooth.solve.AbstractGraphSolver`][]).
 
     **Returns:** a [`eqsmooth.solve.Solution`][].
     """
-    if not isinstance(solver, AbstractLeastSquaresSolver):
+    if not isinstance(solver, AbstractGraphSolver):
+        hint = (
+            " (optimistix solvers: use eqsmooth.solve.tangent_least_squares)"
+            if isinstance(solver, optx.AbstractLeastSquaresSolver)
+            else ""
+        )
         raise TypeError(
-            f"solver must be an AbstractLeastSquaresSolver, got {type(solver).__name__}"
+            f"solver must be an eqsmooth AbstractGraphSolver, got "
+            f"{type(solver).__name__}{hint}"
         )
     if not isinstance(adjoint, AbstractAdjoint):
         raise TypeError(
             f"adjoint must be an AbstractAdjoint, got {type(adjoint).__name__}"
         )
-    return _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose)
+    if not isinstance(graph, FactorGraph):
+        raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
+    return _least_squares(
+        graph, values, solver, max_steps, adjoint, throw, verbose, options or {}
+    )
 
 
 @eqx.filter_jit
-def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose):
+def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, options):
     max_steps = solver.iteration_limit(max_steps)
+    at_max = solver.at_max_steps()
+    linear_solver = solver.linear_solver
+    if linear_solver is None:
+        linear_solver = default_linear_solver(
+            graph.validate(values), tuple(f.variables for f in graph.factors)
+        )
+        solver = eqx.tree_at(
+            lambda s: s.linear_solver, solver, linear_solver, is_leaf=_is_none
+        )
+    tags = frozenset()
 
     def init(graph, values):
-        state = solver.init(graph, values)
+        state = solver.init(graph_residuals, values, graph, options, None, None, tags)
         history = jnp.full((max_steps + 1,), state.lin.cost)
         return values, state, history
 
     def body(graph, carry):
         values, state, history = carry
-        new_values, new_state = solver.step(graph, values, state)
-        stop, result = solver.terminate(new_state, max_steps)
-        new_state = eqx.tree_at(lambda s: (s.done, s.result), new_state, (stop, result))
+        new_values, new_state, _ = solver.step(
+            graph_residuals, values, graph, options, state, tags
+        )
+        # Out of steps without converging: stop with the solver's at-max code.
+        out = (new_state.step >= max_steps) & ~new_state.done
+        result = RESULTS.where(
+            out & (new_state.result == RESULTS.successful), at_max, new_state.result
+        )
+        new_state = eqx.tree_at(
+            lambda s: (s.done, s.result), new_state, (new_state.done | out, result)
+        )
         if verbose:
             jax.debug.print(
                 "step {step:4d}  cost {cost:.6e}  damping {lam:.2e}  |δ| {dx:.2e}",
                 step=new_state.step,
                 cost=new_state.lin.cost,
-                lam=new_state.damping,
+                lam=getattr(new_state, "damping", jnp.zeros(())),
                 dx=new_state.last_step_norm,
             )
         history = history.at[new_state.step].set(new_state.lin.cost)
@@ -253,14 +282,11 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose):
         return ~state.done & (state.step < max_steps)
 
     values, state, history = adjoint.apply(
-        init, body, cond, graph, values, solver.linear_solver, max_steps
+        init, body, cond, graph, values, linear_solver, max_steps
     )
     steps = state.step
     history = jnp.where(jnp.arange(max_steps + 1) <= steps, history, state.lin.cost)
-    _, final_result = solver.terminate(state, max_steps)
-    result = RESULTS.where(
-        state.result == RESULTS.successful, final_result, state.result
-    )
+    result = state.result
     stats = {
         "num_steps": steps,
         "num_accepted": state.num_accepted,
@@ -273,17 +299,5 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose):
     return Solution(value=values, result=result, stats=stats, state=state)
 
 
-def marquardt_damping(lin: Linearization, lam, min_diag: float, max_diag: float):
-    blocks = block_diagonal(lin)
-    return {
-        name: lam * jnp.clip(jnp.diagonal(b, axis1=1, axis2=2), min_diag, max_diag)
-        for name, b in blocks.items()
-    }
-
-
-def predicted_decrease(lin: Linearization, delta: Tangent) -> Float[Array, ""]:
-    """Decrease of the Gauss-Newton model: `−gᵀδ − ½‖Jδ‖²`."""
-    g = gradient(lin)
-    gd = sum(jnp.sum(g[k] * delta[k]) for k in g)
-    jd = _sq_norm(apply_jacobian(lin, delta))
-    return -gd - 0.5 * jd
+def _is_none(x) -> bool:
+    return x is None

@@ -1,24 +1,60 @@
+from typing import Any
+
 import equinox as eqx
 import jax.numpy as jnp
+import lineax as lx
+from jaxtyping import Array, Bool, Float, Int
 
-from ._gauss_newton import _terminate
-from ._least_squares import (
-    _finite_lin,
-    _sq_norm,
-    _tree_where,
-    AbstractLeastSquaresSolver,
-    converged_test,
-    initial_state,
-    LeastSquaresState,
-    marquardt_damping,
-    predicted_decrease,
+from ._default_solver import linear_solver_for
+from ._least_squares import AbstractGraphSolver, graph_of, start, to_optx_result
+from ._linear_solver import solve_normal
+from ._linearization import (
+    apply_jacobian,
+    block_diagonal,
+    gradient,
+    Linearization,
+    linearize,
+    retract_values,
+    Tangent,
 )
-from ._linear_solver import AbstractLinearSolver
-from ._linearization import linearize, retract_values
+from ._misc import converged_test, finite_lin, sq_norm, tree_where
 from ._solution import RESULTS
 
 
-class LevenbergMarquardt(AbstractLeastSquaresSolver):
+class LevenbergMarquardtState(eqx.Module):
+    """The state of [`eqsmooth.solve.LevenbergMarquardt`][].
+
+    **Fields:** those of [`eqsmooth.solve.GaussNewtonState`][], plus
+    `damping` (λ) and `nu` (the factor λ grows by on the next rejection).
+    """
+
+    lin: Linearization
+    step: Int[Array, ""]
+    num_accepted: Int[Array, ""]
+    damping: Float[Array, ""]
+    nu: Float[Array, ""]
+    done: Bool[Array, ""]
+    result: RESULTS
+    last_step_norm: Float[Array, ""]
+
+
+def marquardt_damping(lin: Linearization, lam, min_diag: float, max_diag: float):
+    blocks = block_diagonal(lin)
+    return {
+        name: lam * jnp.clip(jnp.diagonal(b, axis1=1, axis2=2), min_diag, max_diag)
+        for name, b in blocks.items()
+    }
+
+
+def predicted_decrease(lin: Linearization, delta: Tangent) -> Float[Array, ""]:
+    """Decrease of the Gauss-Newton model: `−gᵀδ − ½‖Jδ‖²`."""
+    g = gradient(lin)
+    gd = sum(jnp.sum(g[k] * delta[k]) for k in g)
+    jd = sq_norm(apply_jacobian(lin, delta))
+    return -gd - 0.5 * jd
+
+
+class LevenbergMarquardt(AbstractGraphSolver):
     """Levenberg-Marquardt on the manifold, robust to singular Gauss-Newton systems.
 
     Solves `(JᵀJ + λ D) δ = −Jᵀr` with `D = clip(diag(JᵀJ), min_diagonal,
@@ -31,22 +67,22 @@ class LevenbergMarquardt(AbstractLeastSquaresSolver):
 
     **Arguments:**
 
-    - `linear_solver`: the linear solver.
+    - `linear_solver`: the linear solver (`None`: chosen from the graph, see
+        [`eqsmooth.solve.GaussNewton`][]).
     - `ftol`, `gtol`, `xtol`: Ceres-like tolerances (see
         [`eqsmooth.solve.GaussNewton`][]).
     - `initial_damping`: λ₀, relative to the diagonal of `JᵀJ`. The default
         `1e-8` starts close to Gauss-Newton: λ shrinks by at most a factor 3
         per accepted step, so a large λ₀ costs many steps on long pose-graph
-        chains (MIT.g2o: 55 steps to GTSAM's optimum from `1e-8`, not
-        converged after 100 from `1e-4`), while a rejected step raises λ
-        quickly (factors 2, 4, 8, … in a row).
+        chains (measured in `benchmarks/results/`), while a rejected step
+        raises λ quickly (factors 2, 4, 8, … in a row).
     - `min_diagonal`, `max_diagonal`: clipping of `D`.
     - `max_damping`: if λ exceeds this, the solve stops with
         `RESULTS.linear_solve_failed` (or success if already converged).
     - `min_gain`: acceptance threshold of the gain ratio.
     """
 
-    linear_solver: AbstractLinearSolver
+    linear_solver: lx.AbstractLinearSolver | None = None
     ftol: float = eqx.field(static=True, default=1e-8)
     gtol: float = eqx.field(static=True, default=1e-10)
     xtol: float = eqx.field(static=True, default=1e-10)
@@ -56,14 +92,31 @@ class LevenbergMarquardt(AbstractLeastSquaresSolver):
     max_damping: float = eqx.field(static=True, default=1e16)
     min_gain: float = eqx.field(static=True, default=1e-3)
 
-    def init(self, graph, values):
-        return initial_state(graph, values, self.initial_damping, self.gtol)
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del fn, options, f_struct, aux_struct, tags
+        lin, done, result = start(graph_of(args, "LevenbergMarquardt"), y, self.gtol)
+        return LevenbergMarquardtState(
+            lin=lin,
+            step=jnp.array(0),
+            num_accepted=jnp.array(0),
+            damping=jnp.asarray(self.initial_damping, lin.dtype),
+            nu=jnp.asarray(2.0, lin.dtype),
+            done=done,
+            result=result,
+            last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
+        )
 
-    def step(self, graph, values, state: LeastSquaresState):
+    def step(self, fn, y, args, options: dict[str, Any], state, tags):
+        del fn, tags
+        graph = graph_of(args, "LevenbergMarquardt")
+        values = y
         lin = state.lin
         lam = state.damping
         damping = marquardt_damping(lin, lam, self.min_diagonal, self.max_diagonal)
-        delta, lres = self.linear_solver.solve(lin, damping)
+        linear_solver = linear_solver_for(self.linear_solver, lin)
+        delta, lres = solve_normal(
+            linear_solver, lin, damping, options=options.get("linear_options")
+        )
         solved = lres == RESULTS.successful
         trial_values = retract_values(values, delta)
         trial_lin = linearize(graph, trial_values)
@@ -71,7 +124,7 @@ class LevenbergMarquardt(AbstractLeastSquaresSolver):
         actual = lin.cost - trial_lin.cost
         gain = actual / jnp.where(predicted > 0, predicted, 1.0)
         accept = (
-            solved & _finite_lin(trial_lin) & (predicted > 0) & (gain > self.min_gain)
+            solved & finite_lin(trial_lin) & (predicted > 0) & (gain > self.min_gain)
         )
         converged = accept & converged_test(
             lin.cost, trial_lin, delta, self.ftol, self.gtol, self.xtol
@@ -91,18 +144,19 @@ class LevenbergMarquardt(AbstractLeastSquaresSolver):
         result = RESULTS.where(
             gave_up & ~stalled, RESULTS.linear_solve_failed, RESULTS.successful
         )
-        values = _tree_where(accept, trial_values, values)
-        new_state = LeastSquaresState(
-            lin=_tree_where(accept, trial_lin, lin),
+        values = tree_where(accept, trial_values, values)
+        new_state = LevenbergMarquardtState(
+            lin=tree_where(accept, trial_lin, lin),
             step=state.step + 1,
             num_accepted=state.num_accepted + accept.astype(state.num_accepted.dtype),
             damping=new_lam.astype(lam.dtype),
             nu=new_nu.astype(lam.dtype),
             done=converged | stalled | gave_up,
             result=result,
-            last_step_norm=jnp.sqrt(_sq_norm(delta)).astype(lam.dtype),
+            last_step_norm=jnp.sqrt(sq_norm(delta)).astype(lam.dtype),
         )
-        return values, new_state
+        return values, new_state, None
 
-    def terminate(self, state, max_steps):
-        return _terminate(state, max_steps, RESULTS.nonlinear_max_steps_reached)
+    def terminate(self, fn, y, args, options, state: LevenbergMarquardtState, tags):
+        del fn, y, args, options, tags
+        return state.done, to_optx_result(state.result)

@@ -124,12 +124,22 @@ def block_diagonal(lin: Linearization) -> dict[str, Float[Array, "_N _d _d"]]:
 
 def flatten_tangent(lin: Linearization, delta: Tangent) -> Float[Array, " N"]:
     """Group-major flat vector (groups in sorted order, variables, coordinates)."""
-    return jnp.concatenate([delta[g.name].reshape(-1) for g in lin.layout])
+    return flatten_layout(lin.layout, delta)
 
 
 def unflatten_tangent(lin: Linearization, flat: Float[Array, " N"]) -> Tangent:
+    return unflatten_layout(lin.layout, flat)
+
+
+def flatten_layout(layout: tuple[GroupLayout, ...], delta: Tangent) -> Array:
+    """`flatten_tangent` given only the (static) layout."""
+    return jnp.concatenate([delta[g.name].reshape(-1) for g in layout])
+
+
+def unflatten_layout(layout: tuple[GroupLayout, ...], flat: Array) -> Tangent:
+    """The inverse of `flatten_layout`."""
     out, start = {}, 0
-    for g in lin.layout:
+    for g in layout:
         size = g.count * g.dim
         out[g.name] = flat[start : start + size].reshape(g.count, g.dim)
         start += size

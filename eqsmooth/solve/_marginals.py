@@ -3,21 +3,11 @@
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax
-import jax.numpy as jnp
-import numpy as np
+import lineax as lx
 from jaxtyping import Array, Float
 
-from ._block_tridiagonal import (
-    assemble_chain,
-    BlockTridiagonal,
-    chain_plan,
-    cyclic_reduction_factor,
-    cyclic_reduction_inverse_blocks,
-)
-from ._dense import dense_cholesky_ok, dense_normal_matrix
-from ._linear_solver import AbstractLinearSolver
-from ._linearization import group_offsets, Linearization
+from ._default_solver import factorize
+from ._linearization import Linearization
 
 
 _SINGULAR = (
@@ -29,7 +19,7 @@ _SINGULAR = (
 @eqx.filter_jit
 def marginal_covariances(
     lin: Linearization,
-    solver: AbstractLinearSolver | None = None,
+    solver: lx.AbstractLinearSolver | None = None,
     groups: Sequence[str] | None = None,
 ) -> dict[str, Float[Array, "_N _d _d"]]:
     """Marginal covariance of every variable: the diagonal blocks of `(JᵀJ)⁻¹`.
@@ -38,16 +28,19 @@ def marginal_covariances(
     the tangent coordinates of the linearisation point (right perturbations,
     `x ⊕ δ` with `δ ~ N(0, Σ)`).
 
-    Chains (see [`eqsmooth.solve.BlockTridiagonal`][]) use the selected
-    inversion of the block cyclic reduction, `O(T D³)`; other graphs use a
-    dense inverse, `O(N³)`, so keep them small.
+    The blocks come from the linear solver's factorisation (its state, an
+    [`eqsmooth.solve.AbstractFactorization`][]): `BlockTridiagonal()` gives
+    them by selected inversion of the block cyclic reduction, `O(T D³)`;
+    `DenseCholesky()` by a dense inverse, `O(N³)`, so keep those graphs
+    small. Solvers without a factorisation in their state fall back to
+    `DenseCholesky()`.
 
     **Arguments:**
 
     - `lin`: the linearisation, e.g. the final state's `lin` of a solve.
-    - `solver`: `BlockTridiagonal()` forces the chain method (a `ValueError` if
-        the graph is not a chain); any other solver selects the dense method;
-        `None` picks the chain method whenever the graph is a chain.
+    - `solver`: the linear solver (`BlockTridiagonal()` on a graph that is
+        not a chain raises a `ValueError`); `None` picks `BlockTridiagonal()`
+        for chains and `DenseCholesky()` otherwise.
     - `groups`: the variable groups to return (default: all).
 
     **Returns:**
@@ -63,47 +56,7 @@ def marginal_covariances(
         raise ValueError(
             f"marginal_covariances: unknown groups {unknown}; the graph has {names}"
         )
-    plan = None
-    if isinstance(solver, BlockTridiagonal):
-        plan = chain_plan(lin)
-    elif solver is None:
-        try:
-            plan = chain_plan(lin)
-        except ValueError:
-            plan = None
-    if plan is not None:
-        return _chain_marginals(lin, plan, groups)
-    return _dense_marginals(lin, groups)
-
-
-def _chain_marginals(lin, plan, groups):
-    diag, upper, _ = assemble_chain(lin, plan, None)
-    state = cyclic_reduction_factor(diag, upper)
-    cov, _ = cyclic_reduction_inverse_blocks(state, plan.length)
-    cov = eqx.error_if(cov, ~state.ok, _SINGULAR)
-    out = {}
-    for g, off in zip(lin.layout, plan.offsets):
-        if g.name in groups:
-            out[g.name] = cov[:, off : off + g.dim, off : off + g.dim]
-    return out
-
-
-def _dense_marginals(lin, groups):
-    H = dense_normal_matrix(lin)
-    chol = jnp.linalg.cholesky(H)
-    ok = dense_cholesky_ok(H, chol.T)
-    eye = jnp.eye(H.shape[0], dtype=H.dtype)
-    inv = jax.scipy.linalg.cho_solve((chol, True), eye)
-    inv = eqx.error_if(inv, ~ok, _SINGULAR)
-    offsets = group_offsets(lin)
-    out = {}
-    for g in lin.layout:
-        if g.name in groups:
-            start = offsets[g.name]
-            block = inv[
-                start : start + g.count * g.dim, start : start + g.count * g.dim
-            ]
-            block = block.reshape(g.count, g.dim, g.count, g.dim)
-            i = np.arange(g.count)
-            out[g.name] = block[i, :, i, :]
-    return out
+    factor = factorize(lin, solver)
+    cov = factor.inverse_block_diagonal()
+    cov = eqx.error_if(cov, ~factor.ok, _SINGULAR)
+    return {k: v for k, v in cov.items() if k in groups}

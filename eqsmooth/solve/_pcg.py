@@ -1,20 +1,24 @@
 """Matrix-free preconditioned conjugate gradients for general sparse graphs.
 
-The iteration is our own (not `lineax.CG`) because lineax stops CG per
-component (`|r_i| ≤ atol + rtol·|b_i|`): on pose graphs the smallest entries
-of `b` then decide, and CG runs thousands of iterations past the point where
+The iteration (`_misc.preconditioned_cg`, shared with the implicit adjoint)
+is our own, not `lineax.CG`'s, because lineax stops CG per component
+(`|r_i| ≤ atol + rtol·|b_i|`): on pose graphs the smallest entries of `b`
+then decide, and CG runs thousands of iterations past the point where
 the Gauss-Newton step is accurate. Here CG stops on the Euclidean norm,
 `‖b − Hδ‖ ≤ max(rtol·‖b‖, atol)`, the usual inexact-Newton criterion. It
-still runs inside `lineax.linear_solve` (as a custom lineax solver), so
-forward and reverse mode and `vmap` come from lineax's rules.
+is a lineax solver of the [`eqsmooth.solve.NormalOperator`][], so forward and
+reverse mode and `vmap` come from lineax's rules. `lx.CG` works on the same
+operator too, with a preconditioner from
+[`eqsmooth.solve.AbstractPreconditioner.as_operator`][] passed as
+`options={"preconditioner": ...}`.
 """
 
 import abc
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
-import jax.lax as lax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -27,37 +31,15 @@ from ._block_tridiagonal import (
     cyclic_reduction_factor,
     cyclic_reduction_solve,
 )
-from ._linear_solver import AbstractLinearSolver, all_finite
+from ._linear_solver import AbstractNormalSolver, all_finite, NormalOperator
 from ._linearization import (
     block_diagonal,
     FactorLinearization,
-    gradient,
     Linearization,
-    normal_matvec as _normal_matvec,
     Tangent,
 )
+from ._misc import preconditioned_cg
 from ._small_blocks import block_cho_solve, block_cholesky
-from ._solution import RESULTS
-
-
-def _structure(lin: Linearization):
-    return {
-        g.name: jax.ShapeDtypeStruct((g.count, g.dim), lin.dtype) for g in lin.layout
-    }
-
-
-def _damped(lin: Linearization, damping: Tangent | None) -> Tangent | None:
-    if damping is None:
-        return None
-    return {g.name: damping[g.name].astype(lin.dtype) for g in lin.layout}
-
-
-def _dot(a: Tangent, b: Tangent) -> Float[Array, ""]:
-    return sum(jnp.sum(a[k] * b[k]) for k in a)  # pyright: ignore[reportReturnType]
-
-
-def _axpy(alpha, x: Tangent, y: Tangent) -> Tangent:
-    return {k: y[k] + alpha * x[k] for k in y}
 
 
 # ---------------------------------------------------------------------------
@@ -85,6 +67,19 @@ class AbstractPreconditioner(eqx.Module):
         - `lin`: the Gauss-Newton model.
         - `damping`: the diagonal added to `JᵀJ`, or `None`.
         """
+
+    def as_operator(self, operator: NormalOperator) -> lx.AbstractLinearOperator:
+        """`M⁻¹` as a lineax operator tagged positive semidefinite.
+
+        What lineax's `options={"preconditioner": ...}` convention takes, for
+        `lx.CG` or [`eqsmooth.solve.PCG`][] solving `operator`. Built from
+        the stopped operator: preconditioners are not differentiated.
+        """
+        op = jax.lax.stop_gradient(operator)
+        apply = self.build(op.lin, op.damping)
+        return lx.FunctionLinearOperator(
+            apply, operator.in_structure(), lx.positive_semidefinite_tag
+        )
 
 
 def block_jacobi_inverse(
@@ -221,55 +216,8 @@ class ChainPreconditioner(AbstractPreconditioner):
 
 
 # ---------------------------------------------------------------------------
-# The CG iteration as a lineax solver
+# The solver
 # ---------------------------------------------------------------------------
-
-
-def preconditioned_cg(
-    matvec: Callable[[Tangent], Tangent],
-    precondition: Callable[[Tangent], Tangent],
-    b: Tangent,
-    rtol: float,
-    atol: float,
-    max_steps: int,
-):
-    """Solve `A x = b` for symmetric positive (semi)definite `A` by PCG.
-
-    Stops when `‖b − A x‖₂ ≤ max(rtol‖b‖₂, atol)`, after `max_steps`
-    iterations, or on breakdown (a search direction of non-positive or
-    non-finite curvature, i.e. `A` singular or indefinite along it), keeping
-    the last iterate. Returns `(x, converged, breakdown, num_steps)`.
-    """
-    x0 = jax.tree_util.tree_map(jnp.zeros_like, b)
-    bnorm = jnp.sqrt(_dot(b, b))
-    dtype = bnorm.dtype
-    tol = jnp.maximum(jnp.asarray(rtol, dtype) * bnorm, jnp.asarray(atol, dtype))
-    z0 = precondition(b)
-    rz0 = _dot(b, z0)
-
-    def cond(carry):
-        _, r, _, _, k, breakdown = carry
-        rnorm = jnp.sqrt(_dot(r, r))
-        return (rnorm > tol) & (k < max_steps) & ~breakdown
-
-    def body(carry):
-        x, r, p, rz, k, _ = carry
-        ap = matvec(p)
-        pap = _dot(p, ap)
-        breakdown = ~(jnp.isfinite(pap) & (pap > 0) & jnp.isfinite(rz))
-        alpha = jnp.where(breakdown, 0.0, rz / jnp.where(breakdown, 1.0, pap))
-        x = _axpy(alpha, p, x)
-        r = _axpy(-alpha, ap, r)
-        z = precondition(r)
-        rz_new = _dot(r, z)
-        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
-        p = _axpy(beta, p, z)
-        return x, r, p, rz_new, k + 1, breakdown
-
-    init = (x0, b, z0, rz0, jnp.asarray(0), jnp.asarray(False))
-    x, r, _, _, k, breakdown = lax.while_loop(cond, body, init)
-    converged = jnp.sqrt(_dot(r, r)) <= tol
-    return x, converged, breakdown, k
 
 
 class _PCGState(eqx.Module):
@@ -277,65 +225,15 @@ class _PCGState(eqx.Module):
     precondition: Callable
 
 
-class _LineaxPCG(lx.AbstractLinearSolver):
-    """`preconditioned_cg` as a lineax solver (symmetric operators only).
-
-    The preconditioner travels in the state, built by the caller and never
-    differentiated; lineax's rules supply derivatives and batching.
-    """
-
-    rtol: float = eqx.field(static=True)
-    atol: float = eqx.field(static=True)
-    max_steps: int = eqx.field(static=True)
-    accept_inexact: bool = eqx.field(static=True)
-
-    def init(self, operator, options):
-        return _PCGState(operator, options["precondition"])
-
-    def compute(self, state: _PCGState, vector, options):
-        del options
-        x, converged, breakdown, k = preconditioned_cg(
-            state.operator.mv,
-            state.precondition,
-            vector,
-            self.rtol,
-            self.atol,
-            self.max_steps,
-        )
-        finite = all_finite(jax.tree_util.tree_leaves(x))
-        x = jax.tree_util.tree_map(lambda v: jnp.where(finite, v, jnp.zeros_like(v)), x)
-        out_of_steps = (
-            lx.RESULTS.successful
-            if self.accept_inexact
-            else lx.RESULTS.max_steps_reached
-        )
-        result = lx.RESULTS.where(
-            converged,
-            lx.RESULTS.successful,
-            lx.RESULTS.where(breakdown, lx.RESULTS.singular, out_of_steps),
-        )
-        result = lx.RESULTS.where(finite, result, lx.RESULTS.singular)
-        return x, result, {"num_steps": k, "converged": converged}
-
-    def transpose(self, state: _PCGState, options):
-        # The normal matrix and the preconditioner are symmetric.
-        return state, options
-
-    def conj(self, state: _PCGState, options):
-        return state, options
-
-    def assume_full_rank(self):
-        return True
-
-
-class PCG(AbstractLinearSolver):
+class PCG(AbstractNormalSolver):
     """Preconditioned conjugate gradients on `JᵀJ + diag(damping)`, matrix-free.
 
-    Applies the normal matrix through the Jacobian blocks (never forming it),
+    A lineax solver of the [`eqsmooth.solve.NormalOperator`][]: applies the
+    normal matrix through the Jacobian blocks (never forming it),
     `O(nnz(J))` per iteration, for any graph structure, in particular graphs
-    with loop closures. Runs inside `lineax.linear_solve`, so it `vmap`s and
-    its solution can be differentiated (forward and reverse mode; the
-    derivative is that of the exact solve, computed by more CG solves).
+    with loop closures. Through `lineax.linear_solve` it `vmap`s and its
+    solution can be differentiated (forward and reverse mode; the derivative
+    is that of the exact solve, computed by more CG solves).
 
     CG stops when the residual norm `‖b − Hδ‖₂ ≤ max(rtol·‖b‖₂, atol)` (an
     inexact Newton step). If it runs out of `max_steps`, the last iterate is
@@ -345,6 +243,13 @@ class PCG(AbstractLinearSolver):
     A breakdown (non-positive curvature: the system is singular or
     indefinite along a search direction) returns a non-successful code with
     the last finite iterate.
+
+    The preconditioner is the `preconditioner` field, applied to the
+    operator being solved; lineax's convention
+    `options={"preconditioner": M}` (a positive semidefinite lineax
+    operator approximating the inverse) overrides it. Any symmetric
+    positive semidefinite lineax operator can be solved; one that is not a
+    `NormalOperator` is preconditioned only through `options`.
 
     **Arguments:**
 
@@ -378,37 +283,45 @@ class PCG(AbstractLinearSolver):
                 f"BlockJacobi()), got {type(self.preconditioner).__name__}"
             )
 
-    def solve(
-        self,
-        lin: Linearization,
-        damping: Tangent | None,
-        rhs: Tangent | None = None,
-    ) -> tuple[Tangent, RESULTS]:
-        damping = _damped(lin, damping)
-        structure = _structure(lin)
+    def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
+        if not lx.is_positive_semidefinite(operator):
+            raise ValueError(
+                "PCG needs a positive semidefinite operator (tag it with "
+                "lineax.positive_semidefinite_tag)"
+            )
+        M = options.get("preconditioner")
+        if M is None:
+            if isinstance(operator, NormalOperator):
+                M = self.preconditioner.as_operator(operator)
+            else:
+                M = lx.IdentityLinearOperator(operator.in_structure())
+        elif not lx.is_positive_semidefinite(M):
+            raise ValueError(
+                "PCG: options['preconditioner'] must be tagged positive semidefinite"
+            )
+        return _PCGState(operator, M.mv)
 
-        def matvec(delta):
-            out = _normal_matvec(lin, delta)
-            if damping is not None:
-                out = {k: out[k] + damping[k] * delta[k] for k in out}
-            return out
-
-        precondition = self.preconditioner.build(
-            lax.stop_gradient(lin), lax.stop_gradient(damping)
+    def compute(self, state: _PCGState, vector, options: dict[str, Any]):
+        del options
+        x, converged, breakdown, k = preconditioned_cg(
+            state.operator.mv,
+            state.precondition,
+            vector,
+            self.rtol,
+            self.atol,
+            self.max_steps,
         )
-        operator = lx.FunctionLinearOperator(
-            matvec, structure, lx.positive_semidefinite_tag
+        finite = all_finite(jax.tree_util.tree_leaves(x))
+        x = jax.tree_util.tree_map(lambda v: jnp.where(finite, v, jnp.zeros_like(v)), x)
+        out_of_steps = (
+            lx.RESULTS.successful
+            if self.accept_inexact
+            else lx.RESULTS.max_steps_reached
         )
-        if rhs is None:
-            rhs = {k: -v for k, v in gradient(lin).items()}
-        else:
-            rhs = {g.name: rhs[g.name].astype(lin.dtype) for g in lin.layout}
-        solver = _LineaxPCG(self.rtol, self.atol, self.max_steps, self.accept_inexact)
-        sol = lx.linear_solve(
-            operator,
-            rhs,
-            solver,
-            options={"precondition": precondition},
-            throw=False,
+        result = lx.RESULTS.where(
+            converged,
+            lx.RESULTS.successful,
+            lx.RESULTS.where(breakdown, lx.RESULTS.singular, out_of_steps),
         )
-        return sol.value, RESULTS.promote(sol.result)
+        result = lx.RESULTS.where(finite, result, lx.RESULTS.singular)
+        return x, result, {"num_steps": k, "converged": converged}

@@ -4,11 +4,8 @@ The chain solver and the block-Jacobi preconditioner work on thousands of
 `D × D` blocks with `D` about 2 to 8. jaxlib's batched LAPACK kernels are a
 poor fit for that on CPU:
 
-- they pay a per-matrix call overhead: for 32,000 blocks, a Cholesky
-  factorisation plus a triangular solve with `2D` right-hand sides took
-  11.6 ms (`D = 4`), 16.3 ms (`D = 5`) and 35.3 ms (`D = 8`) through LAPACK
-  and 1.9, 3.9 and 16.6 ms as the unrolled element-wise operations below
-  (`benchmarks/small_blocks.py`, 2 cores, `OPENBLAS_NUM_THREADS=1`);
+- they pay a per-matrix call overhead, which dominates for blocks this
+  small (`benchmarks/small_blocks.py` measures both forms);
 - they split their batch over XLA's intra-op thread pool and block until the
   pieces are done. Two such kernels running at once can take every thread of
   the pool and wait on each other forever: the hang described in

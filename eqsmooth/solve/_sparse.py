@@ -1,7 +1,7 @@
 """Sparse direct solves of the normal equations on the host (SuperLU or CHOLMOD)."""
 
 import functools as ft
-from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -10,16 +10,14 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._linear_solver import AbstractLinearSolver
-from ._linearization import (
-    flatten_tangent,
-    gradient,
-    Linearization,
-    normal_matvec,
-    Tangent,
-    unflatten_tangent,
+from ..factors import GroupLayout
+from ._linear_solver import (
+    AbstractNormalSolver,
+    flat_damping,
+    normal_operator_of,
+    NormalOperator,
 )
-from ._solution import RESULTS
+from ._linearization import flatten_layout, unflatten_layout
 
 
 class _Pattern:
@@ -136,53 +134,18 @@ def _cholmod_solve(pattern: _Pattern, data, b):
     return x.astype(b.dtype), np.asarray(ok)
 
 
-class _State(eqx.Module):
+class SparseNormalState(eqx.Module):
+    """The assembled normal matrix (CSC values) and its static pattern."""
+
     data: Float[Array, " nnz"]
     pattern: _Pattern = eqx.field(static=True)
+    layout: tuple[GroupLayout, ...] = eqx.field(static=True)
 
 
-class _LineaxHostSparse(lx.AbstractLinearSolver):
-    """A host sparse factorisation as a lineax solver (symmetric normal matrix)."""
-
-    host_solve: Callable = eqx.field(static=True)
-
-    def init(self, operator, options):
-        return _State(options["data"], options["pattern"])
-
-    def compute(self, state: _State, vector, options):
-        del options
-        out = (
-            jax.ShapeDtypeStruct(vector.shape, vector.dtype),
-            jax.ShapeDtypeStruct((), jnp.bool_),
-        )
-        x, ok = jax.pure_callback(
-            ft.partial(self.host_solve, state.pattern),
-            out,
-            state.data,
-            vector,
-            vmap_method="sequential",
-        )
-        x = jnp.where(ok, x, jnp.zeros_like(x))
-        result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.singular)
-        return x, result, {}
-
-    def transpose(self, state, options):
-        return state, options
-
-    def conj(self, state, options):
-        return state, options
-
-    def assume_full_rank(self):
-        return True
-
-
-def _solve_normal_sparse(
-    lin: Linearization,
-    damping: Tangent | None,
-    rhs: Tangent | None,
-    host_solve: Callable,
-) -> tuple[Tangent, RESULTS]:
-    """Assemble `JᵀJ + diag(damping)` in CSC form and solve it with `host_solve`."""
+def assemble_sparse(op: NormalOperator) -> SparseNormalState:
+    """`JᵀJ + diag(damping)` in CSC form: the pattern is computed once per graph
+    structure, the values with one segment sum."""
+    lin = op.lin
     pattern = _pattern(lin.layout, tuple(fl.variables for fl in lin.factors))
     values = []
     for fl in lin.factors:
@@ -190,80 +153,65 @@ def _solve_normal_sparse(
             continue
         jac = jnp.concatenate(fl.jacobians, axis=2)
         values.append(jnp.einsum("nmi,nmj->nij", jac, jac).reshape(-1))
-    if damping is None:
-        values.append(jnp.zeros((pattern.size,), lin.dtype))
-    else:
-        values.append(
-            flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in damping.items()})
-        )
+    damp = flat_damping(lin, op.damping)
+    values.append(jnp.zeros((pattern.size,), lin.dtype) if damp is None else damp)
     data = jax.ops.segment_sum(
         jnp.concatenate(values), pattern.slot, num_segments=pattern.nnz
     )
-    damp = (
-        None
-        if damping is None
-        else {g.name: damping[g.name].astype(lin.dtype) for g in lin.layout}
-    )
+    return SparseNormalState(data, pattern, lin.layout)
 
-    def matvec(flat):
-        delta = unflatten_tangent(lin, flat)
-        out = normal_matvec(lin, delta)
-        if damp is not None:
-            out = {k: out[k] + damp[k] * delta[k] for k in out}
-        return flatten_tangent(lin, out)
 
-    operator = lx.FunctionLinearOperator(
-        matvec,
-        jax.ShapeDtypeStruct((pattern.size,), lin.dtype),
-        lx.positive_semidefinite_tag,
+def _host_compute(host_solve, state: SparseNormalState, vector):
+    b = flatten_layout(state.layout, vector)
+    out = (
+        jax.ShapeDtypeStruct(b.shape, b.dtype),
+        jax.ShapeDtypeStruct((), jnp.bool_),
     )
-    if rhs is None:
-        b = -flatten_tangent(lin, gradient(lin))
-    else:
-        b = flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in rhs.items()})
-    sol = lx.linear_solve(
-        operator,
+    x, ok = jax.pure_callback(
+        ft.partial(host_solve, state.pattern),
+        out,
+        state.data,
         b,
-        _LineaxHostSparse(host_solve),
-        options={"data": jax.lax.stop_gradient(data), "pattern": pattern},
-        throw=False,
+        vmap_method="sequential",
     )
-    return unflatten_tangent(lin, sol.value), RESULTS.promote(sol.result)
+    x = jnp.where(ok, x, jnp.zeros_like(x))
+    result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.singular)
+    return unflatten_layout(state.layout, x), result, {}
 
 
-class SparseLU(AbstractLinearSolver):
+class SparseLU(AbstractNormalSolver):
     """Sparse direct solve of `JᵀJ + diag(damping)` on the host CPU (SciPy).
 
-    Assembles the normal matrix in compressed-column form (the sparsity
-    pattern is computed once per graph structure, the values with one
-    segment sum in JAX) and factorises it with SciPy's SuperLU through
-    `jax.pure_callback`, with a minimum-degree ordering of `Aᵀ + A` and
-    diagonal pivoting (symmetric mode). Exact for any graph shape; for large
-    graphs with many loop closures it is far faster than
-    [`eqsmooth.solve.PCG`][] on CPU.
+    A lineax solver of the [`eqsmooth.solve.NormalOperator`][]. Assembles
+    the normal matrix in compressed-column form (the sparsity pattern is
+    computed once per graph structure, the values with one segment sum in
+    JAX) and factorises it with SciPy's SuperLU through `jax.pure_callback`,
+    with a minimum-degree ordering of `Aᵀ + A` and diagonal pivoting
+    (symmetric mode). Exact for any graph shape; for large graphs with many
+    loop closures it is far faster than [`eqsmooth.solve.PCG`][] on CPU.
 
-    It runs inside `lineax.linear_solve`, so it can be differentiated (the
-    backward pass is one more host solve) and `vmap`ped (the batch is
-    solved one graph after another). It needs SciPy, always runs on the host
-    CPU (data on an accelerator is copied), and cannot be used under
-    `jax.jit` on backends without host callbacks. A singular or indefinite
-    system gives `RESULTS.singular` and a zero step.
+    Through `lineax.linear_solve` it can be differentiated (the backward pass
+    is one more host solve) and `vmap`ped (the batch is solved one graph
+    after another). It needs SciPy, always runs on the host CPU (data on an
+    accelerator is copied), and cannot be used under `jax.jit` on backends
+    without host callbacks. A singular or indefinite system gives
+    `RESULTS.singular` and a zero step.
     """
 
-    def solve(
-        self,
-        lin: Linearization,
-        damping: Tangent | None,
-        rhs: Tangent | None = None,
-    ) -> tuple[Tangent, RESULTS]:
+    def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
+        del options
         try:
             import scipy.sparse  # noqa: F401
         except ImportError as e:  # pragma: no cover
             raise ImportError("SparseLU needs SciPy: pip install scipy") from e
-        return _solve_normal_sparse(lin, damping, rhs, _superlu_solve)
+        return assemble_sparse(normal_operator_of(operator, "SparseLU"))
+
+    def compute(self, state: SparseNormalState, vector, options: dict[str, Any]):
+        del options
+        return _host_compute(_superlu_solve, state, vector)
 
 
-class SparseCholesky(AbstractLinearSolver):
+class SparseCholesky(AbstractNormalSolver):
     """Sparse supernodal Cholesky of `JᵀJ + diag(damping)` on the host (CHOLMOD).
 
     The same assembly and host callback as [`eqsmooth.solve.SparseLU`][], but
@@ -271,11 +219,9 @@ class SparseCholesky(AbstractLinearSolver):
     `scikit-sparse` package): the fill-reducing ordering and symbolic
     analysis are computed once per graph structure and reused by every
     later solve, and the numeric factorisation is supernodal (dense BLAS
-    blocks), so its speed is that of the BLAS SuiteSparse is linked against:
-    on the g2o benchmarks it is within 1.4x of GTSAM with OpenBLAS and up to
-    3.2x slower with the reference BLAS
-    (`benchmarks/results/pgo_cholmod_openblas.md`). A matrix that is not
-    positive definite (or singular to working precision) gives
+    blocks), so its speed is that of the BLAS SuiteSparse is linked against
+    (measurements: `benchmarks/results/pgo_cholmod_openblas.md`). A matrix
+    that is not positive definite (or singular to working precision) gives
     `RESULTS.singular` and a zero step.
 
     Needs `scikit-sparse`, which builds against the system SuiteSparse
@@ -295,10 +241,10 @@ class SparseCholesky(AbstractLinearSolver):
                 "--no-build-isolation scikit-sparse. Or use SparseLU() (SciPy only)."
             ) from e
 
-    def solve(
-        self,
-        lin: Linearization,
-        damping: Tangent | None,
-        rhs: Tangent | None = None,
-    ) -> tuple[Tangent, RESULTS]:
-        return _solve_normal_sparse(lin, damping, rhs, _cholmod_solve)
+    def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
+        del options
+        return assemble_sparse(normal_operator_of(operator, "SparseCholesky"))
+
+    def compute(self, state: SparseNormalState, vector, options: dict[str, Any]):
+        del options
+        return _host_compute(_cholmod_solve, state, vector)

@@ -1,0 +1,108 @@
+"""Small helpers shared by the solvers: tangent-dict arithmetic and one PCG."""
+
+from collections.abc import Callable
+
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._linearization import gradient, Linearization, Tangent
+
+
+def tree_where(pred, a, b):
+    """`jnp.where(pred, a, b)` leaf by leaf."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def max_abs(tree) -> Float[Array, ""]:
+    leaves = jax.tree_util.tree_leaves(tree)
+    return jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in leaves]))
+
+
+def sq_norm(tree) -> Float[Array, ""]:
+    return sum(jnp.sum(x * x) for x in jax.tree_util.tree_leaves(tree))  # pyright: ignore[reportReturnType]
+
+
+def dot(a: Tangent, b: Tangent) -> Float[Array, ""]:
+    return sum(jnp.sum(a[k] * b[k]) for k in a)  # pyright: ignore[reportReturnType]
+
+
+def axpy(alpha, x: Tangent, y: Tangent) -> Tangent:
+    """`alpha x + y`."""
+    return {k: y[k] + alpha * x[k] for k in y}
+
+
+def finite_lin(lin: Linearization) -> Bool[Array, ""]:
+    """Whether the cost, every residual and every Jacobian block are finite."""
+    ok = jnp.isfinite(lin.cost)
+    for fl in lin.factors:
+        ok = ok & jnp.all(jnp.isfinite(fl.residual))
+        for j in fl.jacobians:
+            ok = ok & jnp.all(jnp.isfinite(j))
+    return ok
+
+
+def preconditioned_cg(
+    matvec: Callable[[Tangent], Tangent],
+    precondition: Callable[[Tangent], Tangent],
+    b: Tangent,
+    rtol,
+    atol,
+    max_steps: int,
+    flexible: bool = False,
+):
+    """Solve `A x = b` for symmetric positive (semi)definite `A` by PCG.
+
+    Stops when `‖b − A x‖₂ ≤ max(rtol‖b‖₂, atol)` (the Euclidean norm, the
+    usual inexact-Newton criterion, rather than lineax's per-component test),
+    after `max_steps` iterations, or on breakdown (a search direction of
+    non-positive or non-finite curvature: `A` singular or indefinite along
+    it), keeping the last iterate. `flexible=True` uses the Polak-Ribière
+    form of `β`, which tolerates a preconditioner that varies slightly from
+    call to call (an inner iterative solve).
+
+    Returns `(x, converged, breakdown, num_steps)`.
+    """
+    x0 = jax.tree_util.tree_map(jnp.zeros_like, b)
+    bnorm = jnp.sqrt(dot(b, b))
+    dtype = bnorm.dtype
+    tol = jnp.maximum(jnp.asarray(rtol, dtype) * bnorm, jnp.asarray(atol, dtype))
+    z0 = precondition(b)
+    rz0 = dot(b, z0)
+
+    def cond(carry):
+        _, r, _, _, _, k, breakdown = carry
+        rnorm = jnp.sqrt(dot(r, r))
+        return (rnorm > tol) & (k < max_steps) & ~breakdown
+
+    def body(carry):
+        x, r, z, p, rz, k, _ = carry
+        ap = matvec(p)
+        pap = dot(p, ap)
+        breakdown = ~(jnp.isfinite(pap) & (pap > 0) & jnp.isfinite(rz))
+        alpha = jnp.where(breakdown, 0.0, rz / jnp.where(breakdown, 1.0, pap))
+        x = axpy(alpha, p, x)
+        r_new = axpy(-alpha, ap, r)
+        z_new = precondition(r_new)
+        rz_new = dot(r_new, z_new)
+        num = dot(z_new, {k: r_new[k] - r[k] for k in r}) if flexible else rz_new
+        beta = num / jnp.where(rz == 0, 1.0, rz)
+        p = axpy(beta, p, z_new)
+        return x, r_new, z_new, p, rz_new, k + 1, breakdown
+
+    init = (x0, b, z0, z0, rz0, jnp.asarray(0), jnp.asarray(False))
+    x, r, _, _, _, k, breakdown = lax.while_loop(cond, body, init)
+    converged = jnp.sqrt(dot(r, r)) <= tol
+    return x, converged, breakdown, k
+
+
+def converged_test(old_cost, new_lin: Linearization, delta: Tangent, ftol, gtol, xtol):
+    """Ceres-like convergence: relative cost change, largest gradient or step entry."""
+    finfo = jnp.finfo(new_lin.dtype)
+    rel = jnp.abs(old_cost - new_lin.cost) / jnp.maximum(old_cost, finfo.tiny)
+    # A relative change below a few ulps is rounding: never ask for less.
+    ftol = jnp.where(ftol > 0, jnp.maximum(ftol, 4 * finfo.eps), ftol)
+    gnorm = max_abs(gradient(new_lin))
+    xnorm = max_abs(delta)
+    return (rel <= ftol) | (gnorm <= gtol) | (xnorm <= xtol)
