@@ -11,6 +11,13 @@ from ._factor import (
     shared_field as shared_field,
     with_rows as with_rows,
 )
+from ._landmark import (
+    BearingFactor as BearingFactor,
+    BearingRangeFactor as BearingRangeFactor,
+    PoseToPointFactor as PoseToPointFactor,
+    RangeFactor as RangeFactor,
+    TranslationPriorFactor as TranslationPriorFactor,
+)
 from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
@@ -20,5 +27,14 @@ from ._noise import (
     HuberNoise as HuberNoise,
     IsotropicNoise as IsotropicNoise,
     SqrtInformationNoise as SqrtInformationNoise,
+)
+from ._robust_kernels import (
+    DCSNoise as DCSNoise,
+    FairNoise as FairNoise,
+    GemanMcClureNoise as GemanMcClureNoise,
+    L2WithDeadZoneNoise as L2WithDeadZoneNoise,
+    TruncatedQuadraticNoise as TruncatedQuadraticNoise,
+    TukeyNoise as TukeyNoise,
+    WelschNoise as WelschNoise,
 )
 from ._variables import Var as Var
