@@ -60,6 +60,7 @@ from .solve import (
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
     ImplicitAdjoint as ImplicitAdjoint,
+    joint_marginal_covariance as joint_marginal_covariance,
     least_squares as least_squares,
     LevenbergMarquardt as LevenbergMarquardt,
     linearize as linearize,

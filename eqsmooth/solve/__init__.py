@@ -44,6 +44,7 @@ from ._linearization import (
     Linearization as Linearization,
     linearize as linearize,
 )
+from ._joint_marginals import joint_marginal_covariance as joint_marginal_covariance
 from ._logdet import normal_log_det as normal_log_det
 from ._marginals import marginal_covariances as marginal_covariances
 from ._pcg import (
