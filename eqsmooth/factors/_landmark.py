@@ -1,7 +1,7 @@
 """Measurement factors between poses and points: range, bearing, bearing-range,
 translation (GPS) priors and pose-to-point offsets, in 2-D and 3-D.
 
-Poses are [`eqsmooth.SE2`][] or [`eqsmooth.SE3`][] values; points are plain
+Poses are [`eqsmooth.lie.SE2`][] or [`eqsmooth.lie.SE3`][] values; points are plain
 arrays of shape `(2,)` or `(3,)` per variable. Residuals follow the
 "prediction minus measurement" convention, with angles wrapped to `(-π, π]`.
 
@@ -136,7 +136,7 @@ def _as_rows(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
 class RangeFactor(AbstractFactor):
     """Distance between two positions: residual `‖p_b − p_a‖ − range`.
 
-    Each variable may hold poses ([`eqsmooth.SE2`][]/[`eqsmooth.SE3`][], their
+    Each variable may hold poses ([`eqsmooth.lie.SE2`][]/[`eqsmooth.lie.SE3`][], their
     translation is used) or points (arrays of shape `(2,)` or `(3,)`), so this
     covers pose-to-landmark, pose-to-pose and point-to-point ranges. The
     derivative of the norm is analytic and finite at zero distance (the zero
@@ -168,10 +168,10 @@ class RangeFactor(AbstractFactor):
 class BearingFactor(AbstractFactor):
     """Direction from a pose to a point, in the pose's frame.
 
-    - On [`eqsmooth.SE2`][] poses the measurement is an angle `β` (radians)
+    - On [`eqsmooth.lie.SE2`][] poses the measurement is an angle `β` (radians)
         and the residual is `wrap(atan2(l_y, l_x) − β)` (1-D), with
         `l = pose⁻¹ · point`.
-    - On [`eqsmooth.SE3`][] poses the measurement is a unit vector `u` (3,)
+    - On [`eqsmooth.lie.SE3`][] poses the measurement is a unit vector `u` (3,)
         and the residual (2-D) holds the tangent coordinates on the sphere of
         the predicted direction `l/‖l‖` at `u`: its norm is the angle between
         the two directions.
