@@ -10,8 +10,9 @@ prints the pose and landmark errors before and after, the marginal
 covariance of the first landmark and its cross-covariance with the last
 pose (`joint_marginal_covariance`), and saves a plot and a JSON summary.
 
-Runtime on 2 CPU cores: about 30 s with `--quick` (mostly compilation),
-about 1 minute by default.
+Runtime: with `--quick`, 80 s measured for the first solve (nearly all of
+it compilation) on 2 CPU cores shared with another heavy job; expect less
+on an idle machine. The default size is not timed yet.
 
     python examples/08_landmark_slam.py --quick --out results/08
 """
