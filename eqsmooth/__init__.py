@@ -15,6 +15,7 @@ from . import (
     manifold as manifold,
     solve as solve,
 )
+from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 from .factors import (
     AbstractFactor as AbstractFactor,
     AbstractNoiseModel as AbstractNoiseModel,
@@ -35,13 +36,13 @@ from .factors import (
     PoseToPointFactor as PoseToPointFactor,
     PriorFactor as PriorFactor,
     RangeFactor as RangeFactor,
+    shared_field as shared_field,
+    SqrtInformationNoise as SqrtInformationNoise,
     TranslationPriorFactor as TranslationPriorFactor,
     TruncatedQuadraticNoise as TruncatedQuadraticNoise,
     TukeyNoise as TukeyNoise,
-    WelschNoise as WelschNoise,
-    shared_field as shared_field,
-    SqrtInformationNoise as SqrtInformationNoise,
     Var as Var,
+    WelschNoise as WelschNoise,
 )
 from .filters import ekf as ekf, rts_smoother as rts_smoother
 from .learn import (
@@ -73,7 +74,6 @@ from .solve import (
     TruncatedAdjoint as TruncatedAdjoint,
     UnrolledAdjoint as UnrolledAdjoint,
 )
-from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 
 
 __version__ = "0.1.0"

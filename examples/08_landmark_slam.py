@@ -46,7 +46,9 @@ def make_problem(num_poses: int, num_landmarks: int, seed: int):
 
     odo_sigma = np.array([0.05, 0.05, 0.01])
     rel = truth[:-1].inverse() @ truth[1:]
-    odo = rel @ eqs.SE2.exp(jnp.asarray(odo_sigma * rng.standard_normal((num_poses - 1, 3))))
+    odo = rel @ eqs.SE2.exp(
+        jnp.asarray(odo_sigma * rng.standard_normal((num_poses - 1, 3)))
+    )
 
     # Every landmark within 8 m of a pose is observed from it.
     pose_ids, lm_ids = [], []
@@ -57,15 +59,25 @@ def make_problem(num_poses: int, num_landmarks: int, seed: int):
             lm_ids.append(j)
     pose_ids, lm_ids = np.array(pose_ids), np.array(lm_ids)
     local = np.asarray(
-        jax.vmap(lambda p, q: p.inverse().apply(q))(truth[pose_ids], jnp.asarray(landmarks[lm_ids]))
+        jax.vmap(lambda p, q: p.inverse().apply(q))(
+            truth[pose_ids], jnp.asarray(landmarks[lm_ids])
+        )
     )
     br_sigma = np.array([0.02, 0.1])
-    bearing = np.arctan2(local[:, 1], local[:, 0]) + br_sigma[0] * rng.standard_normal(len(lm_ids))
-    rng_m = np.linalg.norm(local, axis=1) + br_sigma[1] * rng.standard_normal(len(lm_ids))
+    bearing = np.arctan2(local[:, 1], local[:, 0]) + br_sigma[0] * rng.standard_normal(
+        len(lm_ids)
+    )
+    rng_m = np.linalg.norm(local, axis=1) + br_sigma[1] * rng.standard_normal(
+        len(lm_ids)
+    )
 
     graph = eqs.FactorGraph(
         [
-            eqs.PriorFactor(eqs.Var("x", [0]), truth[:1], eqs.DiagonalNoise.from_sigmas(jnp.array([0.01, 0.01, 0.01]))),
+            eqs.PriorFactor(
+                eqs.Var("x", [0]),
+                truth[:1],
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.01, 0.01, 0.01])),
+            ),
             eqs.BetweenFactor(
                 eqs.Var("x", np.arange(num_poses - 1)),
                 eqs.Var("x", np.arange(1, num_poses)),
@@ -97,10 +109,19 @@ def make_problem(num_poses: int, num_landmarks: int, seed: int):
             init_l[j] = landmarks[j] + 1.0  # unseen: anything (kept by no factor)
             continue
         b, r = bearing[n], rng_m[n]
-        init_l[j] = np.asarray(dead[int(pose_ids[n])].apply(jnp.array([r * np.cos(b), r * np.sin(b)])))
+        init_l[j] = np.asarray(
+            dead[int(pose_ids[n])].apply(jnp.array([r * np.cos(b), r * np.sin(b)]))
+        )
     seen = np.zeros(num_landmarks, bool)
     seen[lm_ids] = True
-    return graph, truth, landmarks, {"x": dead, "l": jnp.asarray(init_l)}, seen, len(lm_ids)
+    return (
+        graph,
+        truth,
+        landmarks,
+        {"x": dead, "l": jnp.asarray(init_l)},
+        seen,
+        len(lm_ids),
+    )
 
 
 def main(argv=None):
@@ -111,14 +132,20 @@ def main(argv=None):
     args = parser.parse_args(argv)
     num_poses, num_landmarks = (24, 8) if args.quick else (100, 30)
 
-    graph, truth, landmarks, init, seen, n_obs = make_problem(num_poses, num_landmarks, args.seed)
+    graph, truth, landmarks, init, seen, n_obs = make_problem(
+        num_poses, num_landmarks, args.seed
+    )
     if not seen.all():
         # A landmark nobody sees has no factor: drop it from the problem.
         raise SystemExit("some landmark is never observed; try another --seed")
-    print(f"{num_poses} poses, {num_landmarks} landmarks, {n_obs} bearing-range measurements")
+    print(
+        f"{num_poses} poses, {num_landmarks} landmarks, {n_obs} bearing-range measurements"
+    )
 
     def errors(values):
-        pos = np.linalg.norm(np.asarray(values["x"].translation() - truth.translation()), axis=1)
+        pos = np.linalg.norm(
+            np.asarray(values["x"].translation() - truth.translation()), axis=1
+        )
         lm = np.linalg.norm(np.asarray(values["l"]) - landmarks, axis=1)
         return float(np.sqrt(np.mean(pos**2))), float(np.sqrt(np.mean(lm**2)))
 
@@ -126,15 +153,19 @@ def main(argv=None):
     sol = eqs.least_squares(graph, init, eqs.LevenbergMarquardt(), max_steps=50)
     jax.block_until_ready(sol.value)
     t1 = time.perf_counter()
-    print(f"solve (with compilation): {t1 - t0:.1f} s, {int(sol.stats['num_steps'])} steps, "
-          f"result: {sol.result}")
+    print(
+        f"solve (with compilation): {t1 - t0:.1f} s, {int(sol.stats['num_steps'])} steps, "
+        f"result: {sol.result}"
+    )
     before, after = errors(init), errors(sol.value)
     print(f"pose RMSE      {before[0]:8.3f} m -> {after[0]:.3f} m")
     print(f"landmark RMSE  {before[1]:8.3f} m -> {after[1]:.3f} m")
 
     # Uncertainty: landmark 0 and the last pose, jointly (the stored
     # linearisation of the solve is reused; no relinearisation).
-    joint = np.asarray(eqs.joint_marginal_covariance(sol, [("l", 0), ("x", num_poses - 1)]))
+    joint = np.asarray(
+        eqs.joint_marginal_covariance(sol, [("l", 0), ("x", num_poses - 1)])
+    )
     print("landmark 0 marginal std (m):", np.sqrt(np.diag(joint[:2, :2])).round(4))
     print("cross-covariance landmark 0 / last pose (x, y):\n", joint[:2, 2:4].round(5))
 
@@ -160,10 +191,16 @@ def main(argv=None):
         print(f"saved {args.out / 'landmark_slam.json'} (no matplotlib: no plot)")
         return
     fig, ax = plt.subplots(figsize=(6, 6))
-    for name, v, style in (("truth", {"x": truth, "l": landmarks}, "k-"), ("initial", init, "r:"), ("solved", sol.value, "b-")):
+    for name, v, style in (
+        ("truth", {"x": truth, "l": landmarks}, "k-"),
+        ("initial", init, "r:"),
+        ("solved", sol.value, "b-"),
+    ):
         xy = np.asarray(v["x"].translation())
         ax.plot(xy[:, 0], xy[:, 1], style, label=f"{name} poses")
-    ax.scatter(landmarks[:, 0], landmarks[:, 1], marker="*", c="k", label="true landmarks")
+    ax.scatter(
+        landmarks[:, 0], landmarks[:, 1], marker="*", c="k", label="true landmarks"
+    )
     est = np.asarray(sol.value["l"])
     ax.scatter(est[:, 0], est[:, 1], marker="x", c="b", label="estimated landmarks")
     ax.set_aspect("equal")

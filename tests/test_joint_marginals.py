@@ -36,14 +36,18 @@ def test_joint_marginals_match_dense_inverse():
     chosen = [("x", 3), ("l", 0), ("x", 0)]
     got = eqs.joint_marginal_covariance(lin, chosen)
     idx = _index(offsets, chosen)
-    np.testing.assert_allclose(np.asarray(got), cov[np.ix_(idx, idx)], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(got), cov[np.ix_(idx, idx)], rtol=0, atol=1e-9
+    )
     # Cross-covariances are really there (not a block-diagonal answer).
     dx = offsets["x"][1]
     assert np.max(np.abs(np.asarray(got)[:dx, dx:])) > 1e-6
     # A Var selects all its rows, in order.
     got_var = eqs.joint_marginal_covariance(lin, [eqs.Var("x", [3, 0])])
     idx = _index(offsets, [("x", 3), ("x", 0)])
-    np.testing.assert_allclose(np.asarray(got_var), cov[np.ix_(idx, idx)], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(got_var), cov[np.ix_(idx, idx)], rtol=0, atol=1e-9
+    )
     with pytest.raises(ValueError, match="out of range"):
         eqs.joint_marginal_covariance(lin, [("x", 10**6)])
     with pytest.raises(ValueError, match="unknown group"):
@@ -59,20 +63,36 @@ def test_marginals_from_a_solution():
     poses = eqs.SE2.from_xy_theta(*(jnp.asarray(xyt[:, i]) for i in range(3)))
     graph = eqs.FactorGraph(
         [
-            eqs.PriorFactor(eqs.Var("x", [0]), poses[:1], eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05]))),
+            eqs.PriorFactor(
+                eqs.Var("x", [0]),
+                poses[:1],
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05])),
+            ),
             eqs.BetweenFactor(
-                eqs.Var("x", [0, 1]), eqs.Var("x", [1, 2]), poses[:2].inverse() @ poses[1:],
+                eqs.Var("x", [0, 1]),
+                eqs.Var("x", [1, 2]),
+                poses[:2].inverse() @ poses[1:],
                 eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1])),
             ),
-            eqs.TranslationPriorFactor(eqs.Var("x", [2]), jnp.array([[2.1, 0.2]]), eqs.IsotropicNoise.from_sigma(0.3)),
+            eqs.TranslationPriorFactor(
+                eqs.Var("x", [2]),
+                jnp.array([[2.1, 0.2]]),
+                eqs.IsotropicNoise.from_sigma(0.3),
+            ),
         ]
     )
     sol = eqs.least_squares(graph, {"x": poses}, eqs.GaussNewton())
     lin = eqs.linearize(graph, sol.value)
     fast = eqs.marginal_covariances(sol)
     slow = eqs.marginal_covariances(lin)
-    np.testing.assert_allclose(np.asarray(fast["x"]), np.asarray(slow["x"]), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(fast["x"]), np.asarray(slow["x"]), rtol=1e-9, atol=1e-12
+    )
     joint = eqs.joint_marginal_covariance(sol, [("x", 0), ("x", 2)])
-    np.testing.assert_allclose(np.asarray(joint[:3, :3]), np.asarray(slow["x"][0]), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(joint[3:, 3:]), np.asarray(slow["x"][2]), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(joint[:3, :3]), np.asarray(slow["x"][0]), rtol=1e-9, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(joint[3:, 3:]), np.asarray(slow["x"][2]), rtol=1e-9, atol=1e-12
+    )
     assert str(sol.result).endswith("<successful>")

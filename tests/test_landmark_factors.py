@@ -38,8 +38,12 @@ def _fd_jacobians(factor, states, h=1e-6):
             minus = list(states)
             plus[k] = retract(x, e)
             minus[k] = retract(x, -e)
-            rp = factor.residual(*[jax.tree_util.tree_map(lambda a: a[0], s) for s in plus])
-            rm = factor.residual(*[jax.tree_util.tree_map(lambda a: a[0], s) for s in minus])
+            rp = factor.residual(
+                *[jax.tree_util.tree_map(lambda a: a[0], s) for s in plus]
+            )
+            rm = factor.residual(
+                *[jax.tree_util.tree_map(lambda a: a[0], s) for s in minus]
+            )
             cols.append((rp - rm) / (2 * h))
         out.append(np.stack([np.asarray(c) for c in cols], axis=-1))
     return out
@@ -72,13 +76,15 @@ def test_bearing_range_2d_values_and_jacobians():
     c, s = np.cos(0.3), np.sin(0.3)
     local = np.array([c * local[0] + s * local[1], -s * local[0] + c * local[1]])
     bearing = np.arctan2(local[1], local[0])
-    p, l = eqs.Var("x", [0]), eqs.Var("l", [0])
-    f = eqs.BearingRangeFactor(p, l, jnp.array([bearing - 0.1]), jnp.array([4.5]), _noise(2))
+    p, lv = eqs.Var("x", [0]), eqs.Var("l", [0])
+    f = eqs.BearingRangeFactor(
+        p, lv, jnp.array([bearing - 0.1]), jnp.array([4.5]), _noise(2)
+    )
     r = _check_jacobians(f, [pose, point])
     np.testing.assert_allclose(r, [0.1, 0.5], atol=1e-12)
-    fb = eqs.BearingFactor(p, l, jnp.array([bearing + 0.2]), _noise(1))
+    fb = eqs.BearingFactor(p, lv, jnp.array([bearing + 0.2]), _noise(1))
     np.testing.assert_allclose(_check_jacobians(fb, [pose, point]), [-0.2], atol=1e-12)
-    fr = eqs.RangeFactor(p, l, jnp.array([5.5]), _noise(1))
+    fr = eqs.RangeFactor(p, lv, jnp.array([5.5]), _noise(1))
     np.testing.assert_allclose(_check_jacobians(fr, [pose, point]), [-0.5], atol=1e-12)
 
 
@@ -91,7 +97,9 @@ def test_bearing_wraps_across_pi(theta):
     pose = _se2(0.0, 0.0, 0.0)
     point = jnp.array([[np.cos(theta), np.sin(theta)]]) * 3.0
     measured = -theta if abs(theta) < np.pi else np.pi - 1e-4
-    f = eqs.BearingFactor(eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.array([measured]), _noise(1))
+    f = eqs.BearingFactor(
+        eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.array([measured]), _noise(1)
+    )
     r = _check_jacobians(f, [pose, point])
     assert abs(r[0]) < 3e-3
 
@@ -102,7 +110,9 @@ def test_range_at_zero_distance_is_finite():
 
     pose = _se2(1.0, 2.0, 0.3)
     point = jnp.array([[1.0, 2.0]])
-    f = eqs.RangeFactor(eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.array([1.0]), _noise(1))
+    f = eqs.RangeFactor(
+        eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.array([1.0]), _noise(1)
+    )
     r, (jx, jl) = linearize_rows(f, (pose, point))
     np.testing.assert_allclose(np.asarray(r), [[-1.0]])
     assert np.all(np.isfinite(np.asarray(jx))) and np.all(np.isfinite(np.asarray(jl)))
@@ -121,15 +131,15 @@ def test_3d_factors_jacobians(getkey):
     # A measured direction a little off the predicted one.
     m = u + np.array([0.05, -0.03, 0.02])
     m = m / np.linalg.norm(m)
-    x, l = eqs.Var("x", [0]), eqs.Var("l", [0])
-    fb = eqs.BearingFactor(x, l, jnp.array([m]), _noise(2))
+    x, lv = eqs.Var("x", [0]), eqs.Var("l", [0])
+    fb = eqs.BearingFactor(x, lv, jnp.array([m]), _noise(2))
     r = _check_jacobians(fb, [pose, point])
     angle = np.arccos(np.clip(np.dot(m, u), -1, 1))
     np.testing.assert_allclose(np.linalg.norm(r), angle, rtol=1e-9)
-    fbr = eqs.BearingRangeFactor(x, l, jnp.array([m]), jnp.array([2.0]), _noise(3))
+    fbr = eqs.BearingRangeFactor(x, lv, jnp.array([m]), jnp.array([2.0]), _noise(3))
     r = _check_jacobians(fbr, [pose, point])
     np.testing.assert_allclose(r[2], np.linalg.norm(local) - 2.0, atol=1e-12)
-    fp = eqs.PoseToPointFactor(x, l, jnp.array([local + 0.1]), _noise(3))
+    fp = eqs.PoseToPointFactor(x, lv, jnp.array([local + 0.1]), _noise(3))
     np.testing.assert_allclose(_check_jacobians(fp, [pose, point]), -0.1, atol=1e-12)
     fg = eqs.TranslationPriorFactor(x, jnp.array([[0.1, 0.2, 0.3]]), _noise(3))
     t = np.asarray(pose.translation()[0])
@@ -169,10 +179,16 @@ def test_shape_errors_name_the_factor():
 
     # The jaxtyping hook (a TypeError) or our own check (a ValueError).
     with pytest.raises((ValueError, TypeError), match="range"):
-        eqs.RangeFactor(eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.zeros((1, 2)), _noise(1))
+        eqs.RangeFactor(
+            eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.zeros((1, 2)), _noise(1)
+        )
     with pytest.raises(ValueError, match="BearingFactor.bearing"):
-        eqs.BearingFactor(eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.zeros((1, 2)), _noise(1))
-    f = eqs.PoseToPointFactor(eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.zeros((1, 3)), _noise(3))
+        eqs.BearingFactor(
+            eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.zeros((1, 2)), _noise(1)
+        )
+    f = eqs.PoseToPointFactor(
+        eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.zeros((1, 3)), _noise(3)
+    )
     with pytest.raises(ValueError, match="PoseToPointFactor"):
         f.residual(_se2(0.0, 0.0, 0.0)[0], jnp.zeros(3))
 
@@ -183,7 +199,9 @@ def test_planar_slam_recovers_truth():
     import eqsmooth as eqs
 
     truth = eqs.SE2.from_xy_theta(
-        jnp.array([0.0, 2.0, 4.0]), jnp.array([0.0, 0.0, 0.0]), jnp.array([0.0, 0.0, 0.0])
+        jnp.array([0.0, 2.0, 4.0]),
+        jnp.array([0.0, 0.0, 0.0]),
+        jnp.array([0.0, 0.0, 0.0]),
     )
     lms = jnp.array([[2.0, 2.0], [4.0, 2.0]])
     pairs = [(0, 0), (1, 0), (2, 1)]
@@ -196,21 +214,32 @@ def test_planar_slam_recovers_truth():
         [
             eqs.PriorFactor(eqs.Var("x", [0]), truth[:1], _noise(3)),
             eqs.BetweenFactor(
-                eqs.Var("x", [0, 1]), eqs.Var("x", [1, 2]), truth[:2].inverse() @ truth[1:], _noise(3)
+                eqs.Var("x", [0, 1]),
+                eqs.Var("x", [1, 2]),
+                truth[:2].inverse() @ truth[1:],
+                _noise(3),
             ),
             eqs.BearingRangeFactor(
-                eqs.Var("x", xi), eqs.Var("l", li), bearing, rng, eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.2]))
+                eqs.Var("x", xi),
+                eqs.Var("l", li),
+                bearing,
+                rng,
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.2])),
             ),
         ]
     )
     start = {
         "x": eqs.SE2.from_xy_theta(
-            jnp.array([0.3, 2.2, 3.9]), jnp.array([-0.2, 0.1, 0.2]), jnp.array([0.1, -0.1, 0.05])
+            jnp.array([0.3, 2.2, 3.9]),
+            jnp.array([-0.2, 0.1, 0.2]),
+            jnp.array([0.1, -0.1, 0.05]),
         ),
         "l": lms + jnp.array([[0.3, -0.2], [-0.1, 0.3]]),
     }
     sol = eqs.least_squares(graph, start, eqs.LevenbergMarquardt())
     np.testing.assert_allclose(np.asarray(sol.value["l"]), np.asarray(lms), atol=1e-8)
     np.testing.assert_allclose(
-        np.asarray(sol.value["x"].parameters()), np.asarray(truth.parameters()), atol=1e-8
+        np.asarray(sol.value["x"].parameters()),
+        np.asarray(truth.parameters()),
+        atol=1e-8,
     )

@@ -71,7 +71,9 @@ def test_rho_and_weight_closed_forms(name):
     # w.r.t. s and the scale is finite, zero residuals included.
     smooth = jnp.asarray([0.09, 0.81, 4.0, 56.25])
     d_auto = jax.vmap(jax.grad(lambda t: noise.rho(t)[0]))(smooth)
-    np.testing.assert_allclose(np.asarray(d_auto), np.asarray(noise.rho(smooth)[1]), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(d_auto), np.asarray(noise.rho(smooth)[1]), rtol=1e-10, atol=1e-14
+    )
 
     def total(k):
         n = _kernels()[name](eqs.IsotropicNoise(1.0), k)
@@ -100,8 +102,12 @@ def test_matches_gtsam_mestimators(name):
     ref = cls.Create(SCALE)
     noise = _kernels()[name](eqs.IsotropicNoise(1.0), SCALE)
     rho, drho = noise.rho(jnp.asarray(ERRORS**2))
-    np.testing.assert_allclose(0.5 * np.asarray(rho), [ref.loss(e) for e in ERRORS], rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(np.asarray(drho), [ref.weight(e) for e in ERRORS], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        0.5 * np.asarray(rho), [ref.loss(e) for e in ERRORS], rtol=1e-12, atol=1e-15
+    )
+    np.testing.assert_allclose(
+        np.asarray(drho), [ref.weight(e) for e in ERRORS], rtol=1e-12, atol=1e-15
+    )
 
 
 def test_per_row_scale_and_bad_scale():
@@ -109,7 +115,9 @@ def test_per_row_scale_and_bad_scale():
 
     noise = eqs.WelschNoise(eqs.IsotropicNoise(1.0), jnp.array([1.0, 2.0]))
     rho, _ = noise.rho(jnp.array([1.0, 1.0]))
-    np.testing.assert_allclose(np.asarray(rho), [1 - np.exp(-1.0), 4 * (1 - np.exp(-0.25))])
+    np.testing.assert_allclose(
+        np.asarray(rho), [1 - np.exp(-1.0), 4 * (1 - np.exp(-0.25))]
+    )
     with pytest.raises(ValueError, match="scale"):
         eqs.TukeyNoise(eqs.IsotropicNoise(1.0), -1.0)
 
@@ -131,7 +139,9 @@ def _robust_mean(noise_cls, k):
         ]
     )
     solver = eqs.GaussNewton(eqs.DenseCholesky(), ftol=1e-16, gtol=1e-14, xtol=1e-14)
-    return eqs.least_squares(graph, {"p": jnp.zeros((1, 2))}, solver, max_steps=200).value["p"][0]
+    return eqs.least_squares(
+        graph, {"p": jnp.zeros((1, 2))}, solver, max_steps=200
+    ).value["p"][0]
 
 
 @pytest.mark.parametrize(
@@ -194,7 +204,9 @@ def test_outlier_graph_matches_gtsam(name):
 
     rng = np.random.default_rng(1)
     T = 6
-    truth = np.stack([np.arange(T) * 1.0, 0.2 * np.arange(T), 0.1 * np.arange(T)], axis=1)
+    truth = np.stack(
+        [np.arange(T) * 1.0, 0.2 * np.arange(T), 0.1 * np.arange(T)], axis=1
+    )
     odo = []
     for i in range(T - 1):
         a = gtsam.Pose2(*truth[i])
@@ -220,10 +232,20 @@ def test_outlier_graph_matches_gtsam(name):
     }[name].Create(scale)
 
     g = gtsam.NonlinearFactorGraph()
-    g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*truth[0]), gtsam.noiseModel.Diagonal.Sigmas(odo_s)))
+    g.add(
+        gtsam.PriorFactorPose2(
+            0, gtsam.Pose2(*truth[0]), gtsam.noiseModel.Diagonal.Sigmas(odo_s)
+        )
+    )
     for i in range(T - 1):
-        g.add(gtsam.BetweenFactorPose2(i, i + 1, gtsam.Pose2(*odo[i]), gtsam.noiseModel.Diagonal.Sigmas(odo_s)))
-    robust = gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Isotropic.Sigma(2, gps_s))
+        g.add(
+            gtsam.BetweenFactorPose2(
+                i, i + 1, gtsam.Pose2(*odo[i]), gtsam.noiseModel.Diagonal.Sigmas(odo_s)
+            )
+        )
+    robust = gtsam.noiseModel.Robust.Create(
+        est, gtsam.noiseModel.Isotropic.Sigma(2, gps_s)
+    )
     for i in range(T):
         g.add(gtsam.PoseTranslationPrior2D(i, gps[i], robust))
     values = gtsam.Values()
@@ -241,24 +263,39 @@ def test_outlier_graph_matches_gtsam(name):
         ref = gtsam.LevenbergMarquardtOptimizer(g, ref, params).optimize()
 
     def se2(a):
-        return eqs.SE2.from_xy_theta(jnp.asarray(a[:, 0]), jnp.asarray(a[:, 1]), jnp.asarray(a[:, 2]))
+        return eqs.SE2.from_xy_theta(
+            jnp.asarray(a[:, 0]), jnp.asarray(a[:, 1]), jnp.asarray(a[:, 2])
+        )
 
     ids = np.arange(T)
     graph = eqs.FactorGraph(
         [
-            eqs.PriorFactor(eqs.Var("x", [0]), se2(truth[:1]), eqs.DiagonalNoise.from_sigmas(odo_s)),
-            eqs.BetweenFactor(eqs.Var("x", ids[:-1]), eqs.Var("x", ids[1:]), se2(odo), eqs.DiagonalNoise.from_sigmas(odo_s)),
+            eqs.PriorFactor(
+                eqs.Var("x", [0]), se2(truth[:1]), eqs.DiagonalNoise.from_sigmas(odo_s)
+            ),
+            eqs.BetweenFactor(
+                eqs.Var("x", ids[:-1]),
+                eqs.Var("x", ids[1:]),
+                se2(odo),
+                eqs.DiagonalNoise.from_sigmas(odo_s),
+            ),
             eqs.TranslationPriorFactor(
-                eqs.Var("x", ids), jnp.asarray(gps), _kernels()[name](eqs.IsotropicNoise.from_sigma(gps_s), scale)
+                eqs.Var("x", ids),
+                jnp.asarray(gps),
+                _kernels()[name](eqs.IsotropicNoise.from_sigma(gps_s), scale),
             ),
         ]
     )
     # No cost-based stop (ftol=0): iterate until the step or gradient vanishes.
     solver = eqs.LevenbergMarquardt(ftol=0.0, gtol=1e-14, xtol=1e-15)
-    sol = eqs.least_squares(graph, {"x": se2(init)}, solver, max_steps=500, throw=False).value["x"]
+    sol = eqs.least_squares(
+        graph, {"x": se2(init)}, solver, max_steps=500, throw=False
+    ).value["x"]
     for i in range(T):
         p = ref.atPose2(i)
-        np.testing.assert_allclose([float(sol.x()[i]), float(sol.y()[i])], [p.x(), p.y()], atol=1e-9)
+        np.testing.assert_allclose(
+            [float(sol.x()[i]), float(sol.y()[i])], [p.x(), p.y()], atol=1e-9
+        )
         d = float(sol.theta()[i]) - p.theta()
         assert abs(np.arctan2(np.sin(d), np.cos(d))) < 1e-9
     np.testing.assert_allclose(float(graph.cost({"x": sol})), g.error(ref), rtol=1e-9)

@@ -11,6 +11,7 @@ from ._factor import (
     shared_field as shared_field,
     with_rows as with_rows,
 )
+from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
 from ._landmark import (
     BearingFactor as BearingFactor,
     BearingRangeFactor as BearingRangeFactor,
@@ -18,7 +19,6 @@ from ._landmark import (
     RangeFactor as RangeFactor,
     TranslationPriorFactor as TranslationPriorFactor,
 )
-from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
     AbstractRobustNoise as AbstractRobustNoise,

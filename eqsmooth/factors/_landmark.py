@@ -185,14 +185,14 @@ class BearingFactor(AbstractFactor):
     """
 
     variables: tuple[Var, ...]
-    bearing: Float[Array, "n *u"]
+    bearing: Float[Array, "n ..."]
     noise: AbstractNoiseModel
 
     def __init__(
         self,
         pose: Var,
         point: Var,
-        bearing: Float[ArrayLike, "n *u"],
+        bearing: Float[ArrayLike, "n ..."],
         noise: AbstractNoiseModel,
     ):
         self.variables = (pose, point)
@@ -238,7 +238,7 @@ class BearingRangeFactor(AbstractFactor):
     """
 
     variables: tuple[Var, ...]
-    bearing: Float[Array, "n *u"]
+    bearing: Float[Array, "n ..."]
     range: Float[Array, " n"]
     noise: AbstractNoiseModel
 
@@ -246,7 +246,7 @@ class BearingRangeFactor(AbstractFactor):
         self,
         pose: Var,
         point: Var,
-        bearing: Float[ArrayLike, "n *u"],
+        bearing: Float[ArrayLike, "n ..."],
         range: Float[ArrayLike, " n"],
         noise: AbstractNoiseModel,
     ):
@@ -342,4 +342,3 @@ class PoseToPointFactor(AbstractFactor):
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " s"]:
         return _local_point("PoseToPointFactor", pose, point) - self.measured
-

@@ -17,12 +17,16 @@ from ._default_solver import (
     default_linear_solver as default_linear_solver,
     factorize as factorize,
 )
-from ._dense import DenseCholesky as DenseCholesky, DenseFactorization as DenseFactorization
+from ._dense import (
+    DenseCholesky as DenseCholesky,
+    DenseFactorization as DenseFactorization,
+)
 from ._gauss_newton import (
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
     GaussNewtonState as GaussNewtonState,
 )
+from ._joint_marginals import joint_marginal_covariance as joint_marginal_covariance
 from ._least_squares import (
     AbstractFixedStepSolver as AbstractFixedStepSolver,
     AbstractGraphSolver as AbstractGraphSolver,
@@ -44,7 +48,6 @@ from ._linearization import (
     Linearization as Linearization,
     linearize as linearize,
 )
-from ._joint_marginals import joint_marginal_covariance as joint_marginal_covariance
 from ._logdet import normal_log_det as normal_log_det
 from ._marginals import marginal_covariances as marginal_covariances
 from ._pcg import (

@@ -16,7 +16,9 @@ from ._linearization import Linearization
 from ._solution import RESULTS, Solution
 
 
-def as_linearization(lin_or_solution: Linearization | Solution, who: str) -> Linearization:
+def as_linearization(
+    lin_or_solution: Linearization | Solution, who: str
+) -> Linearization:
     """The linearisation held by a solve's final state, or `lin` itself."""
     if isinstance(lin_or_solution, Linearization):
         return lin_or_solution
