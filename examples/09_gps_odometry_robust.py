@@ -11,8 +11,11 @@ training trajectory, differentiating through the solve (implicit adjoint),
 and reports the error on a separate test trajectory before and after. A
 JSON summary is saved in `--out`.
 
-Runtime on 2 CPU cores: about 40 s with `--quick` (mostly compilation),
-about 1.5 minutes by default.
+Runtime: with `--quick`, measured on 2 CPU cores shared with another heavy
+job, 214 s for the three first solves and 79 s for the learning steps,
+nearly all of it compilation (three noise types and one gradient each
+compile once); expect much less on an idle machine. The default size is not
+timed yet.
 
     python examples/09_gps_odometry_robust.py --quick --out results/09
 """
