@@ -9,7 +9,6 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 import pytest
-
 from helpers import random_chain, se2_loop
 
 
@@ -145,7 +144,9 @@ def test_normal_operator_rules():
     assert lx.is_symmetric(op) and lx.is_positive_semidefinite(op)
     assert not lx.is_diagonal(op) and not lx.is_tridiagonal(op)
     assert op.transpose() is op
-    assert isinstance(lx.AutoLinearSolver(well_posed=None).select_solver(op), lx.Cholesky)
+    assert isinstance(
+        lx.AutoLinearSolver(well_posed=None).select_solver(op), lx.Cholesky
+    )
     with pytest.raises(ValueError, match="damping has groups"):
         eqs.solve.NormalOperator(op.lin, {"nope": jnp.zeros((1, 1))})
     with pytest.raises(ValueError, match="NormalOperator"):
@@ -263,9 +264,7 @@ def test_tangent_adapter_gradient_matches_implicit_adjoint():
     w = jnp.asarray(np.random.default_rng(0).normal(size=(8, 3)))
 
     def loss(scale, which):
-        first = eqx.tree_at(
-            lambda f: f.noise.sqrt_precision, graph.factors[0], scale
-        )
+        first = eqx.tree_at(lambda f: f.noise.sqrt_precision, graph.factors[0], scale)
         g = eqs.FactorGraph((first,) + graph.factors[1:])
         if which == "ours":
             x = eqs.least_squares(

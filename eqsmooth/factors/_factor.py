@@ -125,7 +125,8 @@ def with_rows(factor: AbstractFactor, rows: dict[str, PyTree]) -> AbstractFactor
     unknown = set(rows) - {f.name for f in dataclasses.fields(factor) if _is_per_row(f)}
     if unknown:
         raise ValueError(
-            f"with_rows: {type(factor).__name__} has no per-row fields {sorted(unknown)}"
+            f"with_rows: {type(factor).__name__} has no per-row fields "
+            f"{sorted(unknown)}"
         )
     new = object.__new__(type(factor))
     for f in dataclasses.fields(factor):

@@ -7,7 +7,6 @@ over), rebuild a one-row factor inside the scan, and turn the stack's noise
 model into one square-root information matrix per row.
 """
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

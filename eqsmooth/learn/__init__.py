@@ -1,5 +1,9 @@
 """Learning through the solver: losses, training loop, data parallelism."""
 
+from ..manifold import (
+    manifold_errors as manifold_errors,
+    manifold_mse as manifold_mse,
+)
 from ._batch import stack_trees as stack_trees
 from ._checkpoint import (
     atomic_write as atomic_write,
@@ -7,10 +11,6 @@ from ._checkpoint import (
     read_checkpoint_header as read_checkpoint_header,
     save_checkpoint as save_checkpoint,
     TrainState as TrainState,
-)
-from ..manifold import (
-    manifold_errors as manifold_errors,
-    manifold_mse as manifold_mse,
 )
 from ._losses import joint_nll as joint_nll, surrogate_loss as surrogate_loss
 from ._optim import (

@@ -1,6 +1,5 @@
 """Training losses: the surrogate loss, the joint NLL and a manifold MSE."""
 
-import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph

@@ -747,7 +747,8 @@ class BlockTridiagonal(AbstractNormalSolver):
     def __check_init__(self):
         if not isinstance(self.tail_size, int) or self.tail_size < 1:
             raise ValueError(
-                f"BlockTridiagonal.tail_size must be an int >= 1, got {self.tail_size!r}"
+                "BlockTridiagonal.tail_size must be an int >= 1, got "
+                f"{self.tail_size!r}"
             )
 
     def init(

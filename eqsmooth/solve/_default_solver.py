@@ -41,9 +41,7 @@ def linear_solver_for(
     """`linear_solver`, or the default for the structure of `lin` if `None`."""
     if linear_solver is not None:
         return linear_solver
-    return default_linear_solver(
-        lin.layout, tuple(fl.variables for fl in lin.factors)
-    )
+    return default_linear_solver(lin.layout, tuple(fl.variables for fl in lin.factors))
 
 
 def factorize(
@@ -67,5 +65,3 @@ def factorize(
     if not isinstance(state, AbstractFactorization):
         state = DenseCholesky().init(operator, {})
     return state
-
-

@@ -88,7 +88,7 @@ class DenseFactorization(AbstractFactorization):
     def log_det(self) -> Float[Array, ""]:
         return 2.0 * jnp.sum(jnp.log(jnp.diagonal(self.lower)))
 
-    def solve(self, b: Float[Array, "N *K"]) -> Float[Array, "N *K"]:
+    def solve(self, b: Float[Array, "N ..."]) -> Float[Array, "N ..."]:
         return jax.scipy.linalg.cho_solve((self.lower, True), b)
 
     def inverse_block_diagonal(self) -> dict[str, Float[Array, "_N _d _d"]]:

@@ -172,6 +172,4 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
         self, fn, y, args, options, state: GaussNewtonState, tags
     ) -> tuple[Bool[Array, ""], optx.RESULTS]:
         del fn, y, args, options, tags
-        return state.done | (state.step >= self.num_steps), to_optx_result(
-            state.result
-        )
+        return state.done | (state.step >= self.num_steps), to_optx_result(state.result)

@@ -67,7 +67,9 @@ class NormalOperator(lx.AbstractLinearOperator):
         return self.damping[name].astype(self.lin.dtype)
 
     def mv(self, vector: Tangent) -> Tangent:
-        vector = {g.name: vector[g.name].astype(self.lin.dtype) for g in self.lin.layout}
+        vector = {
+            g.name: vector[g.name].astype(self.lin.dtype) for g in self.lin.layout
+        }
         out = normal_matvec(self.lin, vector)
         if self.damping is not None:
             out = {k: out[k] + self.damping_of(k) * vector[k] for k in out}
@@ -92,14 +94,16 @@ class NormalOperator(lx.AbstractLinearOperator):
         return self.in_structure()
 
     def block_diagonal(self) -> dict[str, Float[Array, "_N _d _d"]]:
-        """The diagonal `d_g × d_g` blocks, damping included: `{group: (N_g, d_g, d_g)}`."""
+        """The diagonal blocks with damping: `{group: (N_g, d_g, d_g)}`."""
         blocks = block_diagonal(self.lin)
         if self.damping is None:
             return blocks
         out = {}
         for g in self.lin.layout:
             eye = jnp.eye(g.dim, dtype=self.lin.dtype)
-            out[g.name] = blocks[g.name] + self.damping_of(g.name)[:, :, None] * eye[None]
+            out[g.name] = (
+                blocks[g.name] + self.damping_of(g.name)[:, :, None] * eye[None]
+            )
         return out
 
 

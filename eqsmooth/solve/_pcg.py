@@ -1,8 +1,9 @@
 """Matrix-free preconditioned conjugate gradients for general sparse graphs.
 
 The iteration (`_misc.preconditioned_cg`, shared with the implicit adjoint)
-is our own, not `lineax.CG`'s, because lineax stops CG per component (`|r_i| ≤ atol + rtol·|b_i|`): on pose graphs the smallest entries
-of `b` then decide, and CG runs thousands of iterations past the point where
+is our own, not `lineax.CG`'s, because lineax stops CG per component
+(`|r_i| ≤ atol + rtol·|b_i|`): on pose graphs the smallest entries of `b`
+then decide, and CG runs thousands of iterations past the point where
 the Gauss-Newton step is accurate. Here CG stops on the Euclidean norm,
 `‖b − Hδ‖ ≤ max(rtol·‖b‖, atol)`, the usual inexact-Newton criterion. It
 is a lineax solver of the [`eqsmooth.solve.NormalOperator`][], so forward and

@@ -80,7 +80,9 @@ def tangent_least_squares(
     """
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
-    if not isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
+    if not isinstance(
+        solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)
+    ):
         raise TypeError(
             "solver must be an optimistix least-squares solver or minimiser, got "
             f"{type(solver).__name__}"
