@@ -12,6 +12,13 @@ from ._factor import (
     with_rows as with_rows,
 )
 from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
+from ._landmark import (
+    BearingFactor as BearingFactor,
+    BearingRangeFactor as BearingRangeFactor,
+    PoseToPointFactor as PoseToPointFactor,
+    RangeFactor as RangeFactor,
+    TranslationPriorFactor as TranslationPriorFactor,
+)
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
     AbstractRobustNoise as AbstractRobustNoise,
@@ -20,6 +27,15 @@ from ._noise import (
     HuberNoise as HuberNoise,
     IsotropicNoise as IsotropicNoise,
     SqrtInformationNoise as SqrtInformationNoise,
+)
+from ._robust_kernels import (
+    DCSNoise as DCSNoise,
+    FairNoise as FairNoise,
+    GemanMcClureNoise as GemanMcClureNoise,
+    L2WithDeadZoneNoise as L2WithDeadZoneNoise,
+    TruncatedQuadraticNoise as TruncatedQuadraticNoise,
+    TukeyNoise as TukeyNoise,
+    WelschNoise as WelschNoise,
 )
 from ._variables import Var as Var
 from ._vehicle import (

@@ -1,3 +1,5 @@
+import warnings
+import weakref
 from collections.abc import Callable
 
 import equinox as eqx
@@ -67,6 +69,41 @@ class BetweenFactor(AbstractFactor):
         return local(self.measurement, _between(a, b))
 
 
+# code object -> [weak reference to the last function seen with it, count of
+# distinct function objects seen]; see `_note_function`.
+_FUNCTIONS_SEEN: dict = {}
+_NEW_FUNCTION_WARNING = (
+    "FunctionFactor received a new function object {name!r} for the {count}th time "
+    "(the same code, e.g. a lambda or closure re-created before every solve). "
+    "The function is part of the compiled graph's static structure, so each new "
+    "object compiles the solve again (seconds). Define it once, at module level, "
+    "and pass data through `data=` / `params=` instead."
+)
+
+
+def _note_function(fn: Callable) -> None:
+    """Warn once per code object when new function objects with the same code
+    keep arriving: the pattern of a lambda written inside a training or
+    solving loop, which recompiles on every call."""
+    code = getattr(fn, "__code__", None)
+    if code is None:
+        return
+    entry = _FUNCTIONS_SEEN.get(code)
+    if entry is None:
+        _FUNCTIONS_SEEN[code] = [weakref.ref(fn), 1]
+        return
+    if entry[0]() is fn:
+        return
+    entry[0] = weakref.ref(fn)
+    entry[1] += 1
+    if entry[1] == 3:
+        warnings.warn(
+            _NEW_FUNCTION_WARNING.format(name=getattr(fn, "__qualname__", fn), count=3),
+            UserWarning,
+            stacklevel=4,
+        )
+
+
 class FunctionFactor(AbstractFactor):
     """A factor made from a user function `fn(*states, data, params) -> residual`.
 
@@ -96,6 +133,7 @@ class FunctionFactor(AbstractFactor):
         data: PyTree = None,
         params: PyTree = None,
     ):
+        _note_function(fn)
         self.fn = fn
         self.variables = tuple(variables)
         self.noise = noise

@@ -213,6 +213,18 @@ class SE2(AbstractLieGroup):
         """The translation part, shape `(*batch, 2)`."""
         return self.unit_complex_xy[..., 2:]
 
+    def x(self) -> Float[Array, "*batch"]:
+        """The `x` coordinate of the translation, shape `(*batch,)`."""
+        return self.unit_complex_xy[..., 2]
+
+    def y(self) -> Float[Array, "*batch"]:
+        """The `y` coordinate of the translation, shape `(*batch,)`."""
+        return self.unit_complex_xy[..., 3]
+
+    def theta(self) -> Float[Array, "*batch"]:
+        """The heading angle in `(-π, π]`, shape `(*batch,)`."""
+        return jnp.arctan2(self.unit_complex_xy[..., 1], self.unit_complex_xy[..., 0])
+
     def log(self) -> Float[Array, "*batch 3"]:
         c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
         theta = jnp.arctan2(s, c)

@@ -26,6 +26,7 @@ from ._gauss_newton import (
     GaussNewton as GaussNewton,
     GaussNewtonState as GaussNewtonState,
 )
+from ._joint_marginals import joint_marginal_covariance as joint_marginal_covariance
 from ._least_squares import (
     AbstractFixedStepSolver as AbstractFixedStepSolver,
     AbstractGraphSolver as AbstractGraphSolver,

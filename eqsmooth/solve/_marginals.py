@@ -7,7 +7,9 @@ import lineax as lx
 from jaxtyping import Array, Float
 
 from ._default_solver import factorize
+from ._joint_marginals import as_linearization
 from ._linearization import Linearization
+from ._solution import Solution
 
 
 _SINGULAR = (
@@ -18,7 +20,7 @@ _SINGULAR = (
 
 @eqx.filter_jit
 def marginal_covariances(
-    lin: Linearization,
+    lin: Linearization | Solution,
     solver: lx.AbstractLinearSolver | None = None,
     groups: Sequence[str] | None = None,
 ) -> dict[str, Float[Array, "_N _d _d"]]:
@@ -37,7 +39,11 @@ def marginal_covariances(
 
     **Arguments:**
 
-    - `lin`: the linearisation, e.g. the final state's `lin` of a solve.
+    - `lin`: the [`eqsmooth.solve.Solution`][] of a solve (its final state
+        keeps the linearisation at the solution: `eqs.marginal_covariances(sol)`
+        costs no new linearisation), or any
+        [`eqsmooth.solve.Linearization`][], e.g.
+        `eqs.linearize(graph, values)`.
     - `solver`: the linear solver (`BlockTridiagonal()` on a graph that is
         not a chain raises a `ValueError`); `None` picks `BlockTridiagonal()`
         for chains and `DenseCholesky()` otherwise.
@@ -48,6 +54,7 @@ def marginal_covariances(
     A dict `{group: (N_g, d_g, d_g)}` of covariance blocks. A singular normal
     matrix raises an `EquinoxRuntimeError` (`eqx.error_if`).
     """
+    lin = as_linearization(lin, "marginal_covariances")
     names = [g.name for g in lin.layout]
     if groups is None:
         groups = names

@@ -1,3 +1,4 @@
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -5,17 +6,26 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int, PyTree
 
 
-class RESULTS(optx.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
-    """Result codes of eqsmooth solves (extends `optimistix.RESULTS`)."""
+with warnings.catch_warnings():
+    # Giving `successful` a message (optimistix leaves it empty, so a good
+    # result printed as `RESULTS<>`) makes equinox warn that the inherited
+    # entry is redefined; the index, and so promotion from optimistix's
+    # codes, is unchanged.
+    warnings.simplefilter("ignore", UserWarning)
 
-    nonfinite_problem = (
-        "A factor produced a non-finite residual or Jacobian at the initial values "
-        "(check the measurements and initial values for NaN/inf)."
-    )
-    linear_solve_failed = (
-        "The linear system was singular or not positive definite (is every gauge "
-        "freedom fixed by a prior?)."
-    )
+    class RESULTS(optx.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+        """Result codes of eqsmooth solves (extends `optimistix.RESULTS`)."""
+
+        successful = "successful"
+
+        nonfinite_problem = (
+            "A factor produced a non-finite residual or Jacobian at the initial values "
+            "(check the measurements and initial values for NaN/inf)."
+        )
+        linear_solve_failed = (
+            "The linear system was singular or not positive definite (is every gauge "
+            "freedom fixed by a prior?)."
+        )
 
 
 class Solution(eqx.Module):

@@ -1,0 +1,344 @@
+"""Measurement factors between poses and points: range, bearing, bearing-range,
+translation (GPS) priors and pose-to-point offsets, in 2-D and 3-D.
+
+Poses are [`eqsmooth.lie.SE2`][] or [`eqsmooth.lie.SE3`][] values; points are plain
+arrays of shape `(2,)` or `(3,)` per variable. Residuals follow the
+"prediction minus measurement" convention, with angles wrapped to `(-π, π]`.
+
+The two nonlinearities that plain autodiff gets wrong are given analytic
+derivatives with `jax.custom_jvp`: the Euclidean norm (whose autodiff
+derivative at zero is `nan`) and the planar angle `atan2(y, x)` (whose
+derivative is defined everywhere but at the origin). Everything else is
+smooth and is differentiated by the solver's forward-mode linearisation.
+"""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, PyTree
+
+from ..lie import SE2, SE3
+from ..lie._base import AbstractLieGroup
+from ._factor import AbstractFactor
+from ._noise import AbstractNoiseModel
+from ._variables import Var
+
+
+# ------------------------------------------------------------------ primitives
+
+
+@jax.custom_jvp
+def _norm(v: Array) -> Array:
+    return jnp.sqrt(jnp.sum(v * v, axis=-1))
+
+
+@_norm.defjvp
+def _norm_jvp(primals, tangents):
+    (v,), (dv,) = primals, tangents
+    n = _norm(v)
+    # d‖v‖ = vᵀdv / ‖v‖; at v = 0 the norm has no derivative and we take the
+    # zero subgradient rather than autodiff's nan.
+    safe = jnp.where(n > 0, n, jnp.ones_like(n))
+    dn = jnp.where(n > 0, jnp.sum(v * dv, axis=-1) / safe, jnp.zeros_like(n))
+    return n, dn
+
+
+@jax.custom_jvp
+def _angle(v: Array) -> Array:
+    return jnp.arctan2(v[..., 1], v[..., 0])
+
+
+@_angle.defjvp
+def _angle_jvp(primals, tangents):
+    (v,), (dv,) = primals, tangents
+    a = _angle(v)
+    # dθ = (x dy − y dx) / (x² + y²); zero at the origin where θ is undefined.
+    n2 = jnp.sum(v * v, axis=-1)
+    safe = jnp.where(n2 > 0, n2, jnp.ones_like(n2))
+    cross = v[..., 0] * dv[..., 1] - v[..., 1] * dv[..., 0]
+    return a, jnp.where(n2 > 0, cross / safe, jnp.zeros_like(n2))
+
+
+def _wrapped_difference(v: Array, measured: Array) -> Array:
+    """`wrap(angle(v) − measured)` in `(-π, π]`: the angle of `v` rotated by
+    `−measured`, one `atan2` and no branch (so no jump in the derivative)."""
+    c, s = jnp.cos(measured), jnp.sin(measured)
+    rotated = jnp.stack([c * v[0] + s * v[1], c * v[1] - s * v[0]])
+    return _angle(rotated)
+
+
+def _position(x: PyTree) -> Array:
+    if isinstance(x, AbstractLieGroup):
+        return x.translation()
+    return jnp.asarray(x)
+
+
+def _check_pose(name: str, pose: PyTree) -> None:
+    if not isinstance(pose, (SE2, SE3)):
+        raise TypeError(
+            f"{name}: the pose variable must hold SE2 or SE3 values, got "
+            f"{type(pose).__name__}"
+        )
+
+
+def _local_point(name: str, pose: PyTree, point: PyTree) -> Array:
+    _check_pose(name, pose)
+    p = _position(point)
+    if p.shape != (pose.space_dim,):
+        raise ValueError(
+            f"{name}: a {type(pose).__name__} pose needs points of shape "
+            f"({pose.space_dim},), got {p.shape}"
+        )
+    return pose.inverse().apply(p)
+
+
+def _sphere_basis(m: Array) -> Array:
+    """An orthonormal basis `(3, 2)` of the plane orthogonal to the unit `m`,
+    built from the coordinate axis least aligned with `m`."""
+    axis = jax.nn.one_hot(jnp.argmin(jnp.abs(m)), 3, dtype=m.dtype)
+    b1 = jnp.cross(m, axis)
+    b1 = b1 / jnp.sqrt(jnp.sum(b1 * b1))
+    b2 = jnp.cross(m, b1)
+    return jnp.stack([b1, b2], axis=-1)
+
+
+def _sphere_log(measured: Array, direction: Array) -> Array:
+    """Tangent coordinates (in `_sphere_basis(measured)`) of the unit vector
+    `direction` seen from the unit vector `measured`: the geodesic angle times
+    the unit tangent direction, so the residual's norm is the angle between
+    the two directions."""
+    basis = jax.lax.stop_gradient(_sphere_basis(measured))
+    w = basis.T @ direction  # sin(angle) · unit tangent
+    s = _norm(w)
+    c = jnp.dot(measured, direction)
+    angle = _angle(jnp.stack([c, s]))
+    small = s < 1e-8
+    # angle / sin(angle) → 1 + s²/6 as s → 0 (with c > 0); the double `where`
+    # keeps the untaken branch finite for reverse mode.
+    ratio = jnp.where(small, 1.0 + s * s / 6.0, angle / jnp.where(small, 1.0, s))
+    return w * ratio
+
+
+def _as_rows(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
+    x = jnp.asarray(x)
+    if x.ndim != 1 + len(trailing) or x.shape[1:] != trailing:
+        raise ValueError(
+            f"{name} must have shape (n, {', '.join(map(str, trailing))}) "
+            f"(one row per factor), got {x.shape}"
+            if trailing
+            else f"{name} must have shape (n,) (one entry per factor), got {x.shape}"
+        )
+    return x
+
+
+# ------------------------------------------------------------------ factors
+
+
+class RangeFactor(AbstractFactor):
+    """Distance between two positions: residual `‖p_b − p_a‖ − range`.
+
+    Each variable may hold poses ([`eqsmooth.lie.SE2`][]/[`eqsmooth.lie.SE3`][], their
+    translation is used) or points (arrays of shape `(2,)` or `(3,)`), so this
+    covers pose-to-landmark, pose-to-pose and point-to-point ranges. The
+    derivative of the norm is analytic and finite at zero distance (the zero
+    subgradient there).
+
+    **Arguments:**
+
+    - `a`, `b`: [`eqsmooth.factors.Var`][]s with `n` rows each.
+    - `range`: measured distances, shape `(n,)`.
+    - `noise`: noise model on the 1-D residual.
+    """
+
+    variables: tuple[Var, ...]
+    range: Float[Array, " n"]
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self, a: Var, b: Var, range: Float[ArrayLike, " n"], noise: AbstractNoiseModel
+    ):
+        self.variables = (a, b)
+        self.range = _as_rows(range, "RangeFactor.range", ())
+        self.noise = noise
+
+    def residual(self, a: PyTree, b: PyTree) -> Float[Array, " 1"]:
+        d = _norm(_position(b) - _position(a))
+        return jnp.reshape(d - self.range, (1,))
+
+
+class BearingFactor(AbstractFactor):
+    """Direction from a pose to a point, in the pose's frame.
+
+    - On [`eqsmooth.lie.SE2`][] poses the measurement is an angle `β` (radians)
+        and the residual is `wrap(atan2(l_y, l_x) − β)` (1-D), with
+        `l = pose⁻¹ · point`.
+    - On [`eqsmooth.lie.SE3`][] poses the measurement is a unit vector `u` (3,)
+        and the residual (2-D) holds the tangent coordinates on the sphere of
+        the predicted direction `l/‖l‖` at `u`: its norm is the angle between
+        the two directions.
+
+    **Arguments:**
+
+    - `pose`: a [`eqsmooth.factors.Var`][] of SE2 or SE3 poses, `n` rows.
+    - `point`: a `Var` of points (or poses, whose translation is used).
+    - `bearing`: `(n,)` angles (2-D) or `(n, 3)` unit vectors (3-D).
+    - `noise`: noise model on the residual.
+    """
+
+    variables: tuple[Var, ...]
+    bearing: Float[Array, "n ..."]
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self,
+        pose: Var,
+        point: Var,
+        bearing: Float[ArrayLike, "n ..."],
+        noise: AbstractNoiseModel,
+    ):
+        self.variables = (pose, point)
+        bearing = jnp.asarray(bearing)
+        if bearing.ndim not in (1, 2) or (bearing.ndim == 2 and bearing.shape[1] != 3):
+            raise ValueError(
+                "BearingFactor.bearing must have shape (n,) (angles, 2-D) or (n, 3) "
+                f"(unit vectors, 3-D), got {bearing.shape}"
+            )
+        self.bearing = bearing
+        self.noise = noise
+
+    def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " k"]:
+        local = _local_point("BearingFactor", pose, point)
+        return _bearing_residual("BearingFactor", pose, local, self.bearing)
+
+
+def _bearing_residual(name: str, pose, local: Array, bearing: Array) -> Array:
+    if isinstance(pose, SE2):
+        if bearing.ndim != 0:
+            raise ValueError(f"{name}: SE2 poses need bearings of shape (n,)")
+        return jnp.reshape(_wrapped_difference(local, bearing), (1,))
+    if bearing.shape != (3,):
+        raise ValueError(f"{name}: SE3 poses need unit-vector bearings of shape (n, 3)")
+    n = _norm(local)
+    direction = local / jnp.where(n > 0, n, jnp.ones_like(n))
+    return _sphere_log(bearing, direction)
+
+
+class BearingRangeFactor(AbstractFactor):
+    """Bearing and range from a pose to a point: the residuals of
+    [`eqsmooth.factors.BearingFactor`][] followed by that of
+    [`eqsmooth.factors.RangeFactor`][] (2-D for SE2 poses, 3-D for SE3).
+
+    **Arguments:**
+
+    - `pose`: a [`eqsmooth.factors.Var`][] of SE2 or SE3 poses, `n` rows.
+    - `point`: a `Var` of points.
+    - `bearing`: `(n,)` angles (SE2) or `(n, 3)` unit vectors (SE3).
+    - `range`: `(n,)` distances.
+    - `noise`: noise model on the stacked `(bearing, range)` residual, e.g.
+        `DiagonalNoise.from_sigmas([σ_bearing, σ_range])` in 2-D.
+    """
+
+    variables: tuple[Var, ...]
+    bearing: Float[Array, "n ..."]
+    range: Float[Array, " n"]
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self,
+        pose: Var,
+        point: Var,
+        bearing: Float[ArrayLike, "n ..."],
+        range: Float[ArrayLike, " n"],
+        noise: AbstractNoiseModel,
+    ):
+        self.variables = (pose, point)
+        bearing = jnp.asarray(bearing)
+        if bearing.ndim not in (1, 2) or (bearing.ndim == 2 and bearing.shape[1] != 3):
+            raise ValueError(
+                "BearingRangeFactor.bearing must have shape (n,) or (n, 3), got "
+                f"{bearing.shape}"
+            )
+        self.bearing = bearing
+        self.range = _as_rows(range, "BearingRangeFactor.range", ())
+        self.noise = noise
+
+    def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " k"]:
+        local = _local_point("BearingRangeFactor", pose, point)
+        b = _bearing_residual("BearingRangeFactor", pose, local, self.bearing)
+        r = jnp.reshape(_norm(local) - self.range, (1,))
+        return jnp.concatenate([b, r])
+
+
+class TranslationPriorFactor(AbstractFactor):
+    """A position-only (GPS) measurement of a pose: residual `t(pose) − position`.
+
+    The rotation is unconstrained by this factor; works on SE2 and SE3
+    poses (and on point variables).
+
+    **Arguments:**
+
+    - `pose`: a [`eqsmooth.factors.Var`][] with `n` rows.
+    - `position`: measured positions, `(n, 2)` or `(n, 3)`, in the world frame.
+    - `noise`: noise model on the position residual.
+    """
+
+    variables: tuple[Var, ...]
+    position: Float[Array, "n s"]
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self, pose: Var, position: Float[ArrayLike, "n s"], noise: AbstractNoiseModel
+    ):
+        self.variables = (pose,)
+        position = jnp.asarray(position)
+        if position.ndim != 2 or position.shape[1] not in (2, 3):
+            raise ValueError(
+                "TranslationPriorFactor.position must have shape (n, 2) or (n, 3), "
+                f"got {position.shape}"
+            )
+        self.position = position
+        self.noise = noise
+
+    def residual(self, pose: PyTree) -> Float[Array, " s"]:
+        p = _position(pose)
+        if p.shape != self.position.shape:
+            raise ValueError(
+                f"TranslationPriorFactor: positions of shape {p.shape} measured by "
+                f"rows of shape {self.position.shape}"
+            )
+        return p - self.position
+
+
+class PoseToPointFactor(AbstractFactor):
+    """A point measured in a pose's frame: residual `pose⁻¹ · point − measured`.
+
+    **Arguments:**
+
+    - `pose`: a [`eqsmooth.factors.Var`][] of SE2 or SE3 poses, `n` rows.
+    - `point`: a `Var` of points (or poses, whose translation is used).
+    - `measured`: the point in the pose's frame, `(n, 2)` or `(n, 3)`.
+    - `noise`: noise model on the residual.
+    """
+
+    variables: tuple[Var, ...]
+    measured: Float[Array, "n s"]
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self,
+        pose: Var,
+        point: Var,
+        measured: Float[ArrayLike, "n s"],
+        noise: AbstractNoiseModel,
+    ):
+        self.variables = (pose, point)
+        measured = jnp.asarray(measured)
+        if measured.ndim != 2 or measured.shape[1] not in (2, 3):
+            raise ValueError(
+                "PoseToPointFactor.measured must have shape (n, 2) or (n, 3), got "
+                f"{measured.shape}"
+            )
+        self.measured = measured
+        self.noise = noise
+
+    def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " s"]:
+        return _local_point("PoseToPointFactor", pose, point) - self.measured
