@@ -88,6 +88,7 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
     """Run (or resume) every stage for one test fold; return its results."""
     fold_dir = Path(work) / f"fold_{test_fold}"
     fold_dir.mkdir(parents=True, exist_ok=True)
+    code_version = report.git_hash()  # the code this process runs
     timer = StageTimer(fold_dir / "timings.json")
     with timer("data"):
         train, val, test = T.make_splits(cfg, test_fold, cache_dir)
@@ -185,6 +186,7 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
     timings["total_s"] = sum(timer.seconds.values())
     return dict(
         fold=test_fold,
+        git_hash=code_version,
         records=records,
         timings=timings,
         sensor=sensor,
@@ -204,7 +206,7 @@ def write_fold(out: Path, cfg_dict: dict, result: dict) -> Path:
         fold=k,
         quick=cfg_dict["quick"],
         config=cfg_dict,
-        git_hash=report.git_hash(),
+        git_hash=result["git_hash"],
         machine=report.machine(),
         load_average=os.getloadavg(),
         timings=result["timings"],
