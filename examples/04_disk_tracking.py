@@ -52,7 +52,11 @@ def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
         help="checkpoints and caches (default: runs/disk, or OUT/work with --quick)",
     )
     p.add_argument("--folds", type=int, nargs="+", help="test folds to run")
-    p.add_argument("--methods", nargs="+", choices=list(train.Config().methods))
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        choices=[*train.Config().methods, *train.EXTRA_METHODS],
+    )
     p.add_argument("--sensor", choices=["heatmap", "paper"])
     p.add_argument(
         "--docs", type=Path, help="also write the summary table into this page"

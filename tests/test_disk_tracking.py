@@ -181,6 +181,37 @@ def test_smoother_beats_its_measurements():
     assert smoothed < 0.75 * raw, (smoothed, raw)
 
 
+def test_out_of_view_factor():
+    import jax.numpy as jnp
+    from disk_tracking import models as M
+
+    L = M.VIEW_HALF_WIDTH
+    assert L == 67.0  # 60 px half image + radius 7: no target pixel beyond
+    x = lambda px, py: jnp.array([px, py, 0.0, 0.0])  # noqa: E731
+    r = lambda px, py, hidden: float(M.out_of_view_residual(x(px, py), hidden, None)[0])  # noqa: E731
+    assert r(L + 20, 0.0, 1.0) < 1e-3 and r(0.0, -L - 20, 1.0) < 1e-3
+    assert abs(r(0.0, 0.0, 1.0) - L) < 1e-3  # the depth inside the window
+    assert abs(r(10.0, -30.0, 1.0) - (L - 30)) < 1e-3
+    assert r(0.0, 0.0, 0.0) == 0.0  # frames with a visible pixel: inactive
+    # In the graph: one factor per frame, weighted by the learned precision.
+    T = 5
+    meas = jnp.zeros((T, 2))
+    hidden = jnp.array([0.0, 0.0, 1.0, 1.0, 0.0])
+    graph = M.build_smoother_graph(
+        meas,
+        jnp.ones(T),
+        jnp.asarray(1.0 / M.DYNAMICS_SIGMAS),
+        out_of_view=(jnp.asarray(0.5), hidden),
+    )
+    assert len(graph.factors) == 3
+    values = {"x": jnp.zeros((T, 4))}
+    plain = M.build_smoother_graph(
+        meas, jnp.ones(T), jnp.asarray(1.0 / M.DYNAMICS_SIGMAS)
+    )
+    extra = float(graph.cost(values)) - float(plain.cost(values))
+    np.testing.assert_allclose(extra, 0.5 * 2 * (0.5 * L) ** 2, rtol=1e-4)
+
+
 def test_splits_keep_the_test_fold_out():
     from disk_tracking import train
 
@@ -249,7 +280,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
         fg_lr=1e-2,
         # One of each kind keeps the compile time (most of this test) small.
         methods=(
-            "smoother_hetero_surrogate_learndyn",
+            "smoother_hetero_surrogate_learndyn_view",
             "ekf_hetero_nll",
             "lstm_uni",
             "smoother_hetero_finetune",
@@ -272,7 +303,8 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     meas = jax.numpy.asarray(test.sensor[0], "float32")
     counts = jax.numpy.asarray(test.fold.visible_pixels[0], "float32")
     truth = jax.numpy.asarray(test.fold.states[0], "float32")
-    learned = res["models"]["smoother_hetero_surrogate_learndyn"]
+    learned = res["models"]["smoother_hetero_surrogate_learndyn_view"]
+    assert learned.log_view_sqrt_precision is not None
     g = eqx.filter_grad(lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3))(
         learned
     )

@@ -143,7 +143,8 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
                     k_noise,
                     fold_dir,
                     method,
-                    learn_dynamics=parts[-1] == "learndyn",
+                    learn_dynamics="learndyn" in parts[3:],
+                    out_of_view="view" in parts[3:],
                 )
                 pred = T.predict_split(
                     lambda m, b: T.smoothed_positions(m, b, steps),

@@ -20,6 +20,7 @@ PAPER = {
     "smoother_hetero_nll": "2.606 ± 0.114",
     "smoother_hetero_implicit": "—",
     "smoother_hetero_surrogate_learndyn": "—",
+    "smoother_hetero_surrogate_learndyn_view": "—",
     "smoother_hetero_finetune": "—",
     "smoother_const_surrogate": "8.104 ± 0.167",
     "smoother_const_nll": "8.182 ± 0.175",
@@ -38,6 +39,10 @@ LABELS = {
     "smoother_hetero_implicit": "smoother, heteroscedastic, implicit adjoint (ours)",
     "smoother_hetero_surrogate_learndyn": (
         "smoother, heteroscedastic, surrogate, learned dynamics noise (ours)"
+    ),
+    "smoother_hetero_surrogate_learndyn_view": (
+        "smoother, heteroscedastic, surrogate, learned dynamics noise,"
+        " out-of-view factor (ours)"
     ),
     "smoother_hetero_finetune": (
         "smoother, heteroscedastic, CNN fine-tuned through the smoother (ours)"

@@ -111,6 +111,11 @@ class Config:
     dtype: str = "float32"
 
 
+# Methods that run only when asked for (`--methods`): tried, not in the protocol.
+# "..._view" adds the out-of-view factor (see `models.out_of_view_residual`).
+EXTRA_METHODS = ("smoother_hetero_surrogate_learndyn_view",)
+
+
 def quick_config(**overrides) -> Config:
     """A small configuration that runs end to end in a few minutes on 2 CPU cores.
 
@@ -346,31 +351,51 @@ def sensor_outputs(sensor, split: Split, cfg: Config) -> tuple[np.ndarray, np.nd
 # ---------------------------------------------------------------------------
 
 
+# Initial square-root precision (1/px) of the out-of-view factor.
+OUT_OF_VIEW_SQRT_PRECISION = 0.3
+
+
 class SmootherModel(eqx.Module):
-    """A noise head plus the (fixed or learned) dynamics square-root precision."""
+    """A noise head plus the (fixed or learned) dynamics square-root precision,
+    and optionally the learned weight of an out-of-view factor (ours)."""
 
     noise: M.AbstractNoiseHead
     log_dynamics_sqrt_precision: jax.Array
     learn_dynamics: bool = eqx.field(static=True, default=False)
+    log_view_sqrt_precision: jax.Array | None = None
 
     def graph(self, measurements, visible_pixels, x0=None) -> eqs.FactorGraph:
         # A learned dynamics noise stays within a factor e³ ≈ 20 of the true
         # one, so the normal equations stay well conditioned in float32.
         nominal = jnp.asarray(-np.log(M.DYNAMICS_SIGMAS), measurements.dtype)
         log_dyn = jnp.clip(self.log_dynamics_sqrt_precision, nominal - 3, nominal + 3)
+        view = None
+        if self.log_view_sqrt_precision is not None:
+            dtype = measurements.dtype
+            hidden = (visible_pixels == 0).astype(dtype)
+            view = (jnp.exp(self.log_view_sqrt_precision).astype(dtype), hidden)
         return M.build_smoother_graph(
-            measurements, self.noise(visible_pixels), jnp.exp(log_dyn), x0
+            measurements, self.noise(visible_pixels), jnp.exp(log_dyn), x0, view
         )
 
 
-def make_smoother_model(kind: str, sigma: float, key, dtype) -> SmootherModel:
+def make_smoother_model(
+    kind: str, sigma: float, key, dtype, out_of_view: bool = False
+) -> SmootherModel:
     if kind == "const":
         noise = M.ConstantNoise(sigma, dtype=dtype)
     elif kind == "hetero":
         noise = M.HeteroscedasticNoise(sigma, key, dtype=dtype)
     else:
         raise ValueError(f"unknown noise kind {kind!r}")
-    return SmootherModel(noise, jnp.asarray(-np.log(M.DYNAMICS_SIGMAS), dtype=dtype))
+    view = None
+    if out_of_view:
+        view = jnp.asarray(np.log(OUT_OF_VIEW_SQRT_PRECISION), dtype=dtype)
+    return SmootherModel(
+        noise,
+        jnp.asarray(-np.log(M.DYNAMICS_SIGMAS), dtype=dtype),
+        log_view_sqrt_precision=view,
+    )
 
 
 def _fixed_dynamics(model: SmootherModel) -> SmootherModel:
@@ -494,8 +519,9 @@ def train_smoother(
     work: Path,
     name: str,
     learn_dynamics: bool = False,
+    out_of_view: bool = False,
 ):
-    model = make_smoother_model(kind, sigma, key, cfg.dtype)
+    model = make_smoother_model(kind, sigma, key, cfg.dtype, out_of_view)
     if learn_dynamics:
         model = dataclasses.replace(model, learn_dynamics=True)
     if loss == "surrogate":
@@ -548,7 +574,7 @@ def ekf_one(model: SmootherModel, meas, counts, x0):
     starts at the ground-truth first state with a tiny covariance.
     """
     graph = _fixed_dynamics(model).graph(meas, counts)
-    dyn, obs = graph.factors
+    dyn, obs = graph.factors[:2]
     P0 = 1e-4 * jnp.eye(4, dtype=meas.dtype)
     sol = eqs.filters.ekf(dyn, [obs], x0, P0, throw=False)
     return sol.mean, sol.covariance
