@@ -382,3 +382,43 @@ def test_adjoint_validation():
     graph, truth, _, _ = euclid_problem()
     with pytest.raises(TypeError, match="adjoint"):
         eqs.least_squares(graph, truth, _solvers()["k3"], adjoint="unrolled")  # pyright: ignore
+
+
+def _between(a, b, data, params):
+    return b - a - data
+
+
+@pytest.mark.parametrize("linear_solver", ["dense", "block_tridiagonal"])
+def test_gradient_of_a_failed_unrolled_solve_is_nan(linear_solver):
+    # No prior: the chain's normal matrix is singular (a gauge freedom). The
+    # solve reports it, takes no step, and its gradient is NaN: neither an
+    # exception from inside lineax's derivative rules nor a plausible zero.
+    import eqsmooth as eqs
+
+    T = 4
+    t = np.arange(T)
+    solver = {
+        "dense": eqs.DenseCholesky(),
+        "block_tridiagonal": eqs.BlockTridiagonal(),
+    }[linear_solver]
+
+    def loss(scale):
+        factor = eqs.FunctionFactor(
+            _between,
+            (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+            eqs.IsotropicNoise(scale * jnp.ones(T - 1)),
+            data=jnp.ones((T - 1, 2)),
+        )
+        sol = eqs.least_squares(
+            eqs.FactorGraph([factor]),
+            {"x": jnp.zeros((T, 2))},
+            eqs.FixedStepGaussNewton(solver, num_steps=2),
+            adjoint=eqs.UnrolledAdjoint(),
+            throw=False,
+        )
+        return jnp.sum(sol.value["x"] ** 2), sol.result
+
+    (value, result), grad = jax.value_and_grad(loss, has_aux=True)(1.0)
+    assert result == eqs.RESULTS.linear_solve_failed
+    assert np.isfinite(value)
+    assert np.isnan(grad)

@@ -17,7 +17,7 @@ from ._least_squares import (
 )
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize, retract_values
-from ._misc import converged_test, finite_lin, sq_norm, tree_where
+from ._misc import converged_test, finite_lin, nan_derivative_if, sq_norm, tree_where
 from ._solution import RESULTS
 
 
@@ -77,7 +77,8 @@ def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
             lin.cost, new_lin, delta, solver.ftol, solver.gtol, solver.xtol
         )
         done = done | (ok & converged)
-    values = tree_where(ok, new_values, values)
+    # A failed step is not taken, and nothing is differentiable through it.
+    values = nan_derivative_if(~ok, tree_where(ok, new_values, values), lin.cost)
     new_state = GaussNewtonState(
         lin=tree_where(ok, new_lin, lin),
         step=state.step + 1,

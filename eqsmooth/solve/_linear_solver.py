@@ -27,6 +27,7 @@ from ._linearization import (
     normal_matvec,
     Tangent,
 )
+from ._misc import nan_derivative_if
 from ._solution import RESULTS
 
 
@@ -188,6 +189,31 @@ class AbstractFactorization(eqx.Module):
         """The diagonal blocks of the inverse, `{group: (N_g, d_g, d_g)}`."""
 
 
+def _linear_solve(operator, b, linear_solver, options):
+    """`lx.linear_solve(..., throw=False)` whose derivatives never throw.
+
+    lineax differentiates and transposes a solve by solving again with
+    `throw=True`, so the gradient of a failed solve (a singular or indefinite
+    normal matrix in float32, say) stops the program with an error inside
+    lineax. Here `jax.lax.custom_linear_solve` differentiates it implicitly
+    (through `operator.mv`) and every solve, primal, tangent or transposed,
+    keeps `throw=False`: the derivative of a failed solve is NaN, which a
+    caller (e.g. [`eqsmooth.learn.train`][] with `on_nonfinite="skip"`) can
+    detect. Returns the solution and lineax's result code as an integer.
+    """
+
+    def solve(_, rhs):
+        sol = lx.linear_solve(
+            operator, rhs, linear_solver, options=options, throw=False
+        )
+        (code,) = jax.tree_util.tree_leaves(sol.result)  # the enumeration's integer
+        return sol.value, code
+
+    return jax.lax.custom_linear_solve(
+        operator.mv, b, solve, symmetric=True, has_aux=True
+    )
+
+
 def solve_normal(
     linear_solver: lx.AbstractLinearSolver,
     lin: Linearization,
@@ -209,9 +235,10 @@ def solve_normal(
 
     **Returns:**
 
-    The step `δ` as a tangent dict and a [`eqsmooth.solve.RESULTS`][] code;
-    `δ` is finite (zero for the direct solvers) when the code is not
-    `successful`.
+    The step `δ` as a tangent dict and a [`eqsmooth.solve.RESULTS`][] code.
+    When the solution is not finite, `δ` is zero and the code is
+    `linear_solve_failed`; the derivatives of `δ` (forward or reverse) are
+    then NaN, never zero or an exception, so that training notices.
     """
     if not isinstance(linear_solver, lx.AbstractLinearSolver):
         raise TypeError(
@@ -223,11 +250,18 @@ def solve_normal(
         b = {k: -v for k, v in gradient(lin).items()}
     else:
         b = {g.name: rhs[g.name].astype(lin.dtype) for g in lin.layout}
-    sol = lx.linear_solve(operator, b, linear_solver, options=options, throw=False)
-    value = {g.name: sol.value[g.name] for g in lin.layout}
+    solution, code = _linear_solve(operator, b, linear_solver, options)
+    lx_result = jax.tree_util.tree_unflatten(
+        jax.tree_util.tree_structure(lx.RESULTS.successful), [code]
+    )
+    value = {g.name: solution[g.name] for g in lin.layout}
     finite = all_finite(jax.tree_util.tree_leaves(value))
-    value = {k: jnp.where(finite, v, jnp.zeros_like(v)) for k, v in value.items()}
-    result = lx.RESULTS.where(finite, sol.result, lx.RESULTS.singular)
+    failed = jnp.logical_not(finite)
+    value = {
+        k: nan_derivative_if(failed, jnp.where(finite, v, jnp.zeros_like(v)), lin.cost)
+        for k, v in value.items()
+    }
+    result = lx.RESULTS.where(finite, lx_result, lx.RESULTS.singular)
     return value, RESULTS.promote(result)
 
 

@@ -15,6 +15,36 @@ def tree_where(pred, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
+@jax.custom_jvp
+def _nan_derivative_leaf(failed, x, witness):
+    return x
+
+
+@_nan_derivative_leaf.defjvp
+def _nan_derivative_leaf_jvp(primals, tangents):
+    failed, x, witness = primals
+    _, t_x, t_witness = tangents
+    # Linear in the tangents: NaN times each of them where `failed`.
+    scale = jnp.where(failed, jnp.nan, 1.0).astype(x.dtype)
+    poison = jnp.where(failed, jnp.nan, 0.0).astype(x.dtype)
+    return x, scale * t_x + poison * t_witness.astype(x.dtype)
+
+
+def nan_derivative_if(failed, tree, witness):
+    """`tree` unchanged, with NaN derivatives (forward and reverse) where
+    `failed` is true: a step that was rejected because a solve failed has no
+    meaningful derivative, and a zero or stale one would look plausible.
+
+    `witness` is a scalar that depends on whatever is being differentiated
+    (e.g. the cost of the linearisation), so that the derivative is NaN even
+    where `tree` itself does not depend on it (a rejected first step leaves
+    the initial values, which are constants).
+    """
+    return jax.tree_util.tree_map(
+        lambda x: _nan_derivative_leaf(failed, x, witness), tree
+    )
+
+
 def max_abs(tree) -> Float[Array, ""]:
     leaves = jax.tree_util.tree_leaves(tree)
     return jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in leaves]))
