@@ -739,6 +739,12 @@ def main(argv=None):
     parser.add_argument("--null", type=int, default=None, help="null data sets")
     parser.add_argument("--effects", nargs="*", default=None, choices=list(EFFECTS))
     parser.add_argument(
+        "--null-other",
+        type=int,
+        default=None,
+        help="null data sets per non-Gaussian noise (default: --null)",
+    )
+    parser.add_argument(
         "--noises",
         nargs="*",
         default=None,
@@ -828,7 +834,10 @@ def main(argv=None):
 
     for noise in noises if num_null else ():
         t0 = time.perf_counter()
-        null = null_cell(num_null, log, noise)
+        count = num_null
+        if noise != "gauss" and args.null_other is not None:
+            count = args.null_other
+        null = null_cell(count, log, noise)
         nulls.append(null)
         fd = null["false_discovery"]
         log(
