@@ -25,7 +25,14 @@ simulated nominal trajectories; the realised ratio under the effect (lower
 for dissipative effects, which slow the system down) is reported too.
 
 Null data: the same simulation with no effect; the false-discovery rate is
-the fraction of null data sets in which anything is named.
+the fraction of null data sets in which anything is named, and every alarm
+the workflow can raise ("detected", "unnamed structure", "ambiguous",
+"leftover structure") gets its own false-alarm rate. Null data also come
+with measurement noise twice the assumed std and with Student-t(3) noise
+(`--noises`). The leftover-structure alarm is also counted where the truth
+was named alone (nothing is left there). Exceptions out of find / name /
+add are counted as crashes (the target is 0); runs that end with a result
+flag (a fit that did not converge) are counted as flagged.
 
 Per data set the outcome is one of: the truth named alone; the truth inside
 a reported ambiguous or equivalence set ("correct, as a set" — e.g.
@@ -37,6 +44,9 @@ term; a wrong name only; nothing named. Rates carry Wilson 95% intervals.
     python benchmarks/discover.py --seeds 50 --null 200 \
         --json benchmarks/results/discover.json \
         --markdown benchmarks/results/discover.md
+    python benchmarks/discover.py --seeds 10 --levels 0.4 --null 200 \
+        --null-other 60 --json benchmarks/results/discover_alarms.json \
+        --markdown benchmarks/results/discover_alarms.md  # alarms, noise
     python benchmarks/discover.py --render benchmarks/results/discover.json \
         --markdown benchmarks/results/discover.md  # report text only
 """

@@ -73,6 +73,17 @@ def innovation_tests(
         out["whiteness"].append(
             {"channel": j, "ljung_box_q": q, "lags": lags, "p_value": p}
         )
+        # Excess kurtosis of the whitened innovations: 0 for Gaussian noise,
+        # standard error √(24/N) (a check for heavy tails, not an alarm).
+        c = ej - mean
+        kurt = float(np.mean(c**4) / max(np.mean(c**2) ** 2, 1e-300) - 3.0)
+        out.setdefault("kurtosis", []).append(
+            {
+                "channel": j,
+                "excess_kurtosis": kurt,
+                "p_value": normal_two_sided(kurt / np.sqrt(24.0 / ej.size)),
+            }
+        )
     out["whitened_innovations"] = e
     return out
 
@@ -463,6 +474,7 @@ def find(
         },
         "bias": innov["bias"],
         "whiteness": innov["whiteness"],
+        "noise_check": _noise_check(innov, ev.z[K : K + NUM_SCALES], alpha),
         "score_test": decision,
         "detected": bool(decision["p_value"] < alpha),
         "candidates": per_candidate,
@@ -490,6 +502,27 @@ def _diagnostics_significant(innov: dict, alpha: float) -> bool:
     pvals += [b["p_value"] for b in innov["bias"]]
     pvals = [p for p in pvals if np.isfinite(p)]
     return bool(pvals) and min(pvals) < alpha / len(pvals)
+
+
+def _noise_check(innov: dict, log_scales: np.ndarray, alpha: float) -> dict:
+    """Is the measurement noise heavy-tailed, or far from its assumed size?
+
+    Heavy tails: the excess kurtosis of any channel's whitened innovations
+    is significant (Bonferroni over channels). Size: the refitted noise
+    multipliers (1 = as assumed); a factor beyond 2 either way is reported.
+    Both are reported with the verdict, not used to name effects.
+    """
+    kurt = innov.get("kurtosis", [])
+    pvals = [k["p_value"] for k in kurt if np.isfinite(k["p_value"])]
+    heavy = bool(pvals) and min(pvals) < alpha / len(pvals)
+    scales = np.exp(np.asarray(log_scales, float))
+    return {
+        "heavy_tails": heavy,
+        "excess_kurtosis": [k["excess_kurtosis"] for k in kurt],
+        "process_scale": float(scales[0]),
+        "measurement_scale": float(scales[1]),
+        "scale_off_by_2": bool(np.any((scales[:2] > 2.0) | (scales[:2] < 0.5))),
+    }
 
 
 def _short(e: BaseException) -> str:
