@@ -386,8 +386,8 @@ def _diagnostic_filter_one(model: ChainModel, y, u, x0, xhat):
     # signed as −R r = R (ŷ − y); turn them back into y − ŷ and S into
     # measurement units.
     r = model.measurement_sigma
-    nu = -sol.innovations[0] * r
-    S = sol.innovation_covariances[0] * jnp.outer(r, r)
+    nu = -sol.innovations[0] * r[None, :]
+    S = sol.innovation_covariances[0] * jnp.outer(r, r)[None]
     return nu, S, sol.mean
 
 
