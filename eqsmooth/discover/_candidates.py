@@ -1,7 +1,7 @@
 """Named candidate effects: the library the discrepancy workflow searches."""
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -68,7 +68,7 @@ class Candidate(eqx.Module):
         sign: int = 0,
         unit: str = "",
         description: str = "",
-        **constants: float,
+        **constants: Hashable,
     ) -> "Candidate":
         """A user-defined candidate from a plain function and its constants.
 
@@ -106,7 +106,7 @@ class _BoundFeature:
     """`fn(x, u, **constants)` as a hashable feature (see `from_function`)."""
 
     fn: Callable
-    constants: tuple[tuple[str, float], ...]
+    constants: tuple[tuple[str, Hashable], ...]
 
     def __call__(self, x: Float[Array, " n"], u: Float[Array, " k"]) -> Array:
         return self.fn(x, u, **dict(self.constants))
