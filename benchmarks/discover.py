@@ -25,7 +25,14 @@ simulated nominal trajectories; the realised ratio under the effect (lower
 for dissipative effects, which slow the system down) is reported too.
 
 Null data: the same simulation with no effect; the false-discovery rate is
-the fraction of null data sets in which anything is named.
+the fraction of null data sets in which anything is named, and every alarm
+the workflow can raise ("detected", "unnamed structure", "ambiguous",
+"leftover structure") gets its own false-alarm rate. Null data also come
+with measurement noise twice the assumed std and with Student-t(3) noise
+(`--noises`). The leftover-structure alarm is also counted where the truth
+was named alone (nothing is left there). Exceptions out of find / name /
+add are counted as crashes (the target is 0); runs that end with a result
+flag (a fit that did not converge) are counted as flagged.
 
 Per data set the outcome is one of: the truth named alone; the truth inside
 a reported ambiguous or equivalence set ("correct, as a set" — e.g.
@@ -37,6 +44,9 @@ term; a wrong name only; nothing named. Rates carry Wilson 95% intervals.
     python benchmarks/discover.py --seeds 50 --null 200 \
         --json benchmarks/results/discover.json \
         --markdown benchmarks/results/discover.md
+    python benchmarks/discover.py --seeds 10 --levels 0.4 --null 200 \
+        --null-other 60 --json benchmarks/results/discover_alarms.json \
+        --markdown benchmarks/results/discover_alarms.md  # alarms, noise
     python benchmarks/discover.py --render benchmarks/results/discover.json \
         --markdown benchmarks/results/discover.md  # report text only
 """
@@ -99,7 +109,30 @@ def _effect_term(effect: str, v: np.ndarray) -> np.ndarray:
     raise ValueError(effect)
 
 
-def simulate(rng: np.random.Generator, effect: str, coef: float, num: int = B):
+NOISES = {
+    "gauss": "Gaussian measurement noise of the assumed std",
+    "gauss2x": "Gaussian measurement noise of twice the assumed std",
+    "student3": "Student-t(3) measurement noise scaled to the assumed std",
+}
+
+
+def _measurement_noise(rng, shape, noise: str) -> np.ndarray:
+    if noise == "gauss":
+        return R * rng.normal(size=shape)
+    if noise == "gauss2x":
+        return 2.0 * R * rng.normal(size=shape)
+    if noise == "student3":
+        return R * rng.standard_t(3, size=shape) / np.sqrt(3.0)
+    raise ValueError(noise)
+
+
+def simulate(
+    rng: np.random.Generator,
+    effect: str,
+    coef: float,
+    num: int = B,
+    noise: str = "gauss",
+):
     """States `(num, T, 2)` and measurements `(num, T, 1)`; effect RMS per step."""
     x = np.stack([rng.normal(0, PRIOR[0], num), rng.normal(0, PRIOR[1], num)], 1)
     xs, contrib = [], []
@@ -113,7 +146,7 @@ def simulate(rng: np.random.Generator, effect: str, coef: float, num: int = B):
             a = a + d
         x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q
     xs = np.stack(xs, 1)
-    y = xs[..., :1] + R * rng.normal(size=(num, T, 1))
+    y = xs[..., :1] + _measurement_noise(rng, (num, T, 1), noise)
     if effect == "bias":
         y = y + coef
         snr = SPRING * abs(coef) / Q[1]  # as the equivalent constant force
@@ -183,9 +216,16 @@ def run_workflow(data: dc.Sequences) -> dict:
     st = found["_state"]
     # The same score test with the outer-product covariance (what "auto"
     # picks with >= 10 sequences per parameter): reported, not used.
-    ident = np.flatnonzero(st["identifiable"])
-    opg = score_test(st["evaluation"], ident, st["nuisance"], "opg")
+    if found["status"] == "ok":
+        ident = np.flatnonzero(st["identifiable"])
+        opg = score_test(st["evaluation"], ident, st["nuisance"], "opg")
+    else:
+        opg = {"p_value": float("nan")}
     return {
+        "status": found["status"],
+        "flags": list(found["flags"]) + list(named["flags"]) + list(added["flags"]),
+        "alarms": dict(named["alarms"]),
+        "tentative": bool(named["tentative"]),
         "detected": bool(found["detected"]),
         "p_value": float(found["score_test"]["p_value"]),
         "df": int(found["score_test"]["df"]),
@@ -260,7 +300,8 @@ def effect_cell(effect, level, coef, seeds, log) -> dict:
     truth = EFFECTS[effect]
     tag = list(EFFECTS).index(effect) + 1
     outcomes = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
-    detected = unnamed = failures = 0
+    detected = unnamed = failures = flagged = failed_status = 0
+    truth_named = leftover_after_truth = tentative = 0
     rel, covered, snrs, times, wrong_names = [], 0, [], [], {}
     for s in range(seeds):
         _, y, snr = simulate(rng_for(tag, level, s), effect, coef)
@@ -269,13 +310,23 @@ def effect_cell(effect, level, coef, seeds, log) -> dict:
             out = run_workflow(sequences(y))
         except Exception as e:  # reported, never hidden
             failures += 1
-            log(f"  {effect} level {level} seed {s}: FAILED {type(e).__name__}: {e}")
+            log(f"  {effect} level {level} seed {s}: CRASH {type(e).__name__}: {e}")
             continue
         times.append(out["seconds"])
+        flagged += bool(out["flags"])
+        failed_status += out["status"] != "ok"
+        if out["flags"]:
+            log(f"  {effect} level {level} seed {s}: flags {out['flags']}")
         detected += out["detected"]
         unnamed += out["unnamed"]
+        tentative += out["tentative"]
         cls = classify(out, truth)
         outcomes[cls] += 1
+        if cls == "exact":
+            # The truth named alone: nothing is left, so the leftover-
+            # structure alarm is a false alarm here.
+            truth_named += 1
+            leftover_after_truth += out["alarms"]["leftover_structure"]
         if cls in ("wrong", "extra"):
             for nm in out["named"]:
                 if nm != truth:
@@ -304,6 +355,11 @@ def effect_cell(effect, level, coef, seeds, log) -> dict:
         },
         "n": n,
         "failures": failures,
+        "crashes": failures,
+        "flagged": flagged,
+        "status_failed": failed_status,
+        "tentative": rate(tentative, n),
+        "leftover_after_truth_alone": rate(leftover_after_truth, truth_named),
         "snr_realised_median": float(np.median(snrs)),
         "median_s": statistics.median(times) if times else float("nan"),
         "p90_s": _q(times, 0.9),
@@ -326,35 +382,66 @@ def effect_cell(effect, level, coef, seeds, log) -> dict:
     return rec
 
 
-def null_cell(num, log) -> dict:
-    rejected = named_any = unnamed = alarm = opg_rej = failures = 0
+def null_cell(num, log, noise="gauss") -> dict:
+    counts = dict.fromkeys(
+        (
+            "rejected",
+            "named_any",
+            "named_confident",
+            "unnamed",
+            "alarm",
+            "opg_rej",
+            "failures",
+            "flagged",
+            "status_failed",
+        ),
+        0,
+    )
+    alarm_counts = {}
     names, pvals, opg_p, times, dfs = {}, [], [], [], {}
+    tag = list(NOISES).index(noise)
     for s in range(num):
-        _, y, _ = simulate(rng_for(0, 0, s), "none", 0.0)
+        # Gaussian null data keep their historical stream (tag 0).
+        rng = rng_for(0, 0, s) if tag == 0 else rng_for(100 + tag, 0, s)
+        _, y, _ = simulate(rng, "none", 0.0, noise=noise)
         try:
             out = run_workflow(sequences(y))
         except Exception as e:
-            failures += 1
-            log(f"  null seed {s}: FAILED {type(e).__name__}: {e}")
+            counts["failures"] += 1
+            log(f"  null ({noise}) seed {s}: CRASH {type(e).__name__}: {e}")
             continue
         times.append(out["seconds"])
-        pvals.append(out["p_value"])
-        opg_p.append(out["opg_p_value"])
+        counts["flagged"] += bool(out["flags"])
+        counts["status_failed"] += out["status"] != "ok"
+        if out["flags"]:
+            log(f"  null ({noise}) seed {s}: flags {out['flags']}")
+        if np.isfinite(out["p_value"]):
+            pvals.append(out["p_value"])
+        if np.isfinite(out["opg_p_value"]):
+            opg_p.append(out["opg_p_value"])
+            counts["opg_rej"] += out["opg_p_value"] < 0.05
         dfs[out["df"]] = dfs.get(out["df"], 0) + 1
-        rejected += out["detected"]
-        opg_rej += out["opg_p_value"] < 0.05
-        unnamed += out["unnamed"]
-        named_any += bool(out["named"])
-        alarm += bool(out["named"]) or out["unnamed"]
+        counts["rejected"] += out["detected"]
+        counts["unnamed"] += out["unnamed"]
+        counts["named_any"] += bool(out["named"])
+        counts["named_confident"] += bool(out["named"]) and not out["tentative"]
+        counts["alarm"] += any(out["alarms"].values())
+        for k, v in out["alarms"].items():
+            alarm_counts[k] = alarm_counts.get(k, 0) + bool(v)
         for nm in out["named"]:
             names[nm] = names.get(nm, 0) + 1
-        if out["named"] or out["detected"]:
-            log(f"  null seed {s}: p={out['p_value']:.3g} verdict: {out['verdict']}")
-    n = num - failures
+        if out["named"] or out["detected"] or any(out["alarms"].values()):
+            log(
+                f"  null ({noise}) seed {s}: p={out['p_value']:.3g} verdict: "
+                f"{out['verdict']}"
+            )
+    n = num - counts["failures"]
     return {
         "benchmark": "discover",
         "config": {
             "effect": "none",
+            "noise": noise,
+            "noise_description": NOISES[noise],
             "truth": None,
             "B": B,
             "T": T,
@@ -366,14 +453,27 @@ def null_cell(num, log) -> dict:
             "alpha": 0.05,
         },
         "n": n,
-        "failures": failures,
+        "failures": counts["failures"],
+        "crashes": counts["failures"],
+        "flagged": counts["flagged"],
+        "status_failed": counts["status_failed"],
         "median_s": statistics.median(times) if times else float("nan"),
         "p90_s": _q(times, 0.9),
-        "false_discovery": rate(named_any, n),
-        "score_test_rejects": rate(rejected, n),
-        "unnamed_structure": rate(unnamed, n),
-        "any_alarm": rate(alarm, n),
-        "opg_score_test_rejects": rate(opg_rej, n),
+        "false_discovery": rate(counts["named_any"], n),
+        "confident_false_discovery": rate(counts["named_confident"], n),
+        "score_test_rejects": rate(counts["rejected"], n),
+        "unnamed_structure": rate(counts["unnamed"], n),
+        "alarm_rates": {
+            k: rate(alarm_counts.get(k, 0), n)
+            for k in (
+                "detected",
+                "unnamed_structure",
+                "ambiguous",
+                "leftover_structure",
+            )
+        },
+        "any_alarm": rate(counts["alarm"], n),
+        "opg_score_test_rejects": rate(counts["opg_rej"], len(opg_p)),
         "score_test_df_counts": {str(k): v for k, v in sorted(dfs.items())},
         "p_value_quantiles": {
             str(q): _q(pvals, q) for q in (0.01, 0.05, 0.1, 0.25, 0.5)
@@ -405,6 +505,8 @@ def effect_table(records) -> str:
         "abs. rel. err. p90",
         "signed rel. err. median",
         "CI coverage",
+        "leftover alarm after truth alone",
+        "crashes / flagged",
         "median s",
     ]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -431,37 +533,52 @@ def effect_table(records) -> str:
             ]
         else:
             cells += ["–", "–", "–", "–"]
+        left = r.get("leftover_after_truth_alone")
+        cells.append(fmt_rate(left) if left else "–")
+        cells.append(f"{r.get('crashes', r['failures'])} / {r.get('flagged', '–')}")
         cells.append(f"{r['median_s']:.2f}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def null_table(r) -> str:
+def null_table(nulls) -> str:
     cols = [
+        "noise",
         "n",
-        "false discovery (anything named)",
-        "score test rejects",
+        "crashes",
+        "flagged",
+        "detected (score test)",
         "unnamed structure",
+        "ambiguous",
+        "leftover structure",
         "any alarm",
+        "anything named",
+        "named confidently",
         "OPG score test rejects",
         "median s",
     ]
-    cells = [
-        str(r["n"]),
-        fmt_rate(r["false_discovery"]),
-        fmt_rate(r["score_test_rejects"]),
-        fmt_rate(r["unnamed_structure"]),
-        fmt_rate(r["any_alarm"]),
-        fmt_rate(r["opg_score_test_rejects"]),
-        f"{r['median_s']:.2f}",
-    ]
-    return "\n".join(
-        [
-            "| " + " | ".join(cols) + " |",
-            "|" + "---|" * len(cols),
-            "| " + " | ".join(cells) + " |",
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in nulls:
+        a = r.get("alarm_rates", {})
+        cells = [
+            r["config"].get("noise", "gauss"),
+            str(r["n"]),
+            str(r.get("crashes", r["failures"])),
+            str(r.get("flagged", "–")),
+            fmt_rate(r["score_test_rejects"]),
+            fmt_rate(a["unnamed_structure"]) if a else fmt_rate(r["unnamed_structure"]),
+            fmt_rate(a["ambiguous"]) if a else "–",
+            fmt_rate(a["leftover_structure"]) if a else "–",
+            fmt_rate(r["any_alarm"]),
+            fmt_rate(r["false_discovery"]),
+            fmt_rate(r["confident_false_discovery"])
+            if "confident_false_discovery" in r
+            else "–",
+            fmt_rate(r["opg_score_test_rejects"]),
+            f"{r['median_s']:.2f}",
         ]
-    )
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def other_names_lines(records) -> list[str]:
@@ -475,7 +592,7 @@ def other_names_lines(records) -> list[str]:
     return out
 
 
-def report(records, null, info, quick) -> str:
+def report(records, nulls, info, quick) -> str:
     m = info["machine"]
     lines = ["# discover benchmark: Monte Carlo of find / name / add", ""]
     if quick:
@@ -529,41 +646,59 @@ def report(records, null, info, quick) -> str:
             "",
         ]
         lines += other + [""]
-    if null is not None:
-        fd = null["false_discovery"]
+    if nulls:
         lines += [
-            "## Null data (no missing effect)",
+            "## Null data (no missing effect): every alarm's false-alarm rate",
             "",
-            "False-discovery rate = fraction of null data sets in which any "
-            "candidate is named (target ≤ 5%). `unnamed structure`: the verdict "
-            'includes "unnamed residual structure"; `any alarm`: a name or that '
-            "verdict. `OPG`: the "
-            "same score test with the outer-product-of-gradients covariance, "
-            "computed for comparison only.",
+            "Each alarm a run can raise, as the fraction of null data sets that "
+            "raised it (target ≤ α = 5% each): `detected` = the score test "
+            'rejects; `unnamed structure` = the verdict says "unnamed residual '
+            'structure" with no name (diagnostics of the nominal model significant, '
+            "or detected but no candidate passes the gate); `ambiguous` = a name "
+            "given with a runner-up within ln 20; `leftover structure` = names "
+            "given but the named model's diagnostics still significant (the names "
+            "are then reported as tentative); `any alarm` = any of these. "
+            "`anything named`: a name, tentative or not; `named confidently`: a "
+            "name that is not tentative. `crashes`: exceptions out of find / name "
+            "/ add (must be 0); `flagged`: runs that finished with a result flag "
+            "(a fit that did not converge, a failed evaluation). Rows: Gaussian "
+            "measurement noise of the assumed std; twice that std (the workflow "
+            "refits the noise scales); Student-t(3) noise of the assumed std "
+            "(heavy tails, Gaussian model). `OPG`: the score test with the "
+            "outer-product-of-gradients covariance, for comparison only.",
             "",
-            null_table(null),
-            "",
-            f"False-discovery rate {fd['rate']:.3f} (95% CI {fd['ci95'][0]:.3f} – "
-            f"{fd['ci95'][1]:.3f}, n = {fd['n']}): target ≤ 0.05 "
-            + (
-                "met"
-                if fd["ci95"][1] <= 0.05
-                else ("met by the point estimate" if fd["rate"] <= 0.05 else "MISSED")
-            )
-            + ".",
-            "",
-            "Score-test p-value quantiles on null data (uniform would give q): "
-            + ", ".join(f"q{k}: {v:.3f}" for k, v in null["p_value_quantiles"].items())
-            + ". Score-test degrees of freedom (identifiable candidates): "
-            + ", ".join(f"{k}: {v}" for k, v in null["score_test_df_counts"].items()),
+            null_table(nulls),
             "",
         ]
-        if null["named_counts"]:
+        for null in nulls:
+            fd = null["false_discovery"]
+            noise = null["config"].get("noise", "gauss")
+            alarms = null.get("alarm_rates", {})
+            worst = max(
+                [a["rate"] for a in alarms.values()] + [fd["rate"]], default=0.0
+            )
             lines += [
-                "Named on null data: "
-                + ", ".join(f"{k} ×{v}" for k, v in null["named_counts"].items()),
-                "",
+                f"- {noise}: anything named {fd['rate']:.3f} (95% CI "
+                f"{fd['ci95'][0]:.3f} – {fd['ci95'][1]:.3f}, n = {fd['n']}); "
+                f"largest single alarm rate {worst:.3f}: target ≤ 0.05 "
+                + ("met" if worst <= 0.05 else "MISSED")
+                + ". Score-test p-value quantiles (uniform would give q): "
+                + ", ".join(
+                    f"q{k}: {v:.3f}" for k, v in null["p_value_quantiles"].items()
+                )
+                + "; degrees of freedom: "
+                + ", ".join(
+                    f"{k}: {v}" for k, v in null["score_test_df_counts"].items()
+                )
+                + (
+                    "; named: "
+                    + ", ".join(f"{k} ×{v}" for k, v in null["named_counts"].items())
+                    if null["named_counts"]
+                    else ""
+                )
+                + "."
             ]
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -598,9 +733,9 @@ def render(path, markdown=None) -> None:
         "compile_s": payload["compile_s"],
         "total_s": payload["total_s"],
     }
-    null = next((r for r in recs if r["config"]["effect"] == "none"), None)
+    nulls = [r for r in recs if r["config"]["effect"] == "none"]
     effects = [r for r in recs if r["config"]["effect"] != "none"]
-    text = report(effects, null, info, payload.get("quick", False))
+    text = report(effects, nulls, info, payload.get("quick", False))
     if markdown:
         Path(markdown).write_text(text + "\n")
     else:
@@ -613,6 +748,19 @@ def main(argv=None):
     parser.add_argument("--seeds", type=int, default=None, help="data sets per cell")
     parser.add_argument("--null", type=int, default=None, help="null data sets")
     parser.add_argument("--effects", nargs="*", default=None, choices=list(EFFECTS))
+    parser.add_argument(
+        "--null-other",
+        type=int,
+        default=None,
+        help="null data sets per non-Gaussian noise (default: --null)",
+    )
+    parser.add_argument(
+        "--noises",
+        nargs="*",
+        default=None,
+        choices=list(NOISES),
+        help="measurement noise of the null data sets",
+    )
     parser.add_argument("--levels", type=float, nargs="*", default=None)
     parser.add_argument("--json", default=None, help="write the records here")
     parser.add_argument("--markdown", default=None, help="write the report here")
@@ -635,6 +783,7 @@ def main(argv=None):
     num_null = args.null if args.null is not None else (10 if args.quick else 200)
     effects = args.effects or (["drag", "force"] if args.quick else list(EFFECTS))
     levels = tuple(args.levels or ((0.4,) if args.quick else LEVELS))
+    noises = args.noises or (["gauss"] if args.quick else list(NOISES))
     coefs = calibrate(levels)
     start = time.perf_counter()
 
@@ -659,7 +808,7 @@ def main(argv=None):
         f"(verdict {again['verdict']!r})"
     )
 
-    records, null = [], None
+    records, nulls = [], []
 
     def save():
         info = {
@@ -670,9 +819,9 @@ def main(argv=None):
             "compile_s": compile_s,
             "total_s": time.perf_counter() - start,
         }
-        for r in records + ([null] if null else []):
+        for r in records + nulls:
             r["compile_s"] = compile_s
-        recs = records + ([null] if null else [])
+        recs = records + nulls
         if args.json:
             write_json(
                 args.json,
@@ -687,22 +836,28 @@ def main(argv=None):
                     "warmup": {k: first[k] for k in ("seconds", "verdict")},
                 },
             )
-        text = report(records, null, info, args.quick)
+        text = report(records, nulls, info, args.quick)
         if args.markdown:
             Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
             Path(args.markdown).write_text(text + "\n")
         return text
 
-    if num_null:
+    for noise in noises if num_null else ():
         t0 = time.perf_counter()
-        null = null_cell(num_null, log)
+        count = num_null
+        if noise != "gauss" and args.null_other is not None:
+            count = args.null_other
+        null = null_cell(count, log, noise)
+        nulls.append(null)
         fd = null["false_discovery"]
         log(
-            f"null: n={null['n']} FDR {fmt_rate(fd)}, score test rejects "
-            f"{fmt_rate(null['score_test_rejects'])} ({time.perf_counter() - t0:.0f} s)"
+            f"null ({noise}): n={null['n']} crashes {null['crashes']} named "
+            f"{fmt_rate(fd)}, alarms "
+            + ", ".join(f"{k} {fmt_rate(v)}" for k, v in null["alarm_rates"].items())
+            + f" ({time.perf_counter() - t0:.0f} s)"
         )
         save()
-    for effect in effects:
+    for effect in effects if seeds else ():
         for level in levels:
             t0 = time.perf_counter()
             rec = effect_cell(effect, level, coefs[effect][level], seeds, log)

@@ -332,6 +332,7 @@ def test_bootstrap_stability_of_a_strong_effect():
 
 def test_fit_is_bounded_and_never_raises(monkeypatch):
     import equinox as eqx
+
     import eqsmooth.discover._fit as F
 
     data = _simulate(2)
@@ -357,3 +358,132 @@ def test_fit_is_bounded_and_never_raises(monkeypatch):
     ev = F.fit(model, data, free, z0, start.xhat, scales)
     assert not ev.converged
     np.testing.assert_array_equal(ev.z, z0)
+
+
+def test_failed_evaluation_is_a_result_not_an_exception(monkeypatch):
+    import equinox as eqx
+
+    import eqsmooth.discover as dc
+    import eqsmooth.discover._workflow as W
+
+    def broken(*args, **kwargs):
+        raise eqx.EquinoxRuntimeError("A linear solver received non-finite input")
+
+    monkeypatch.setattr(W, "evaluate", broken)
+    data = _simulate(2)
+    found = dc.find(_model(), data)
+    assert found["status"] == "failed" and not found["detected"]
+    assert "EquinoxRuntimeError" in found["flags"][0]
+    named = dc.name(found, data)
+    assert named["verdict"].startswith("no decision") and named["named"] == []
+    added = dc.add(found, named, data)
+    assert added["coefficients"] == [] and added["flags"]
+
+
+def test_score_test_of_non_finite_numbers_does_not_reject():
+    from types import SimpleNamespace
+
+    from eqsmooth.discover import score_test
+
+    P = 4
+    scores = np.ones((B, P))
+    scores[3, 1] = np.nan
+    ev = SimpleNamespace(scores=scores, hessian=-np.eye(P))
+    out = score_test(ev, np.arange(2), np.array([2, 3]), "hessian")
+    assert np.isnan(out["p_value"]) and out["df"] == 0
+
+
+def test_hessian_score_test_drops_near_null_directions():
+    # Two almost collinear candidates (information correlation 1 - 1e-5):
+    # the near-null direction is below the rank cut and leaves the test.
+    from types import SimpleNamespace
+
+    from eqsmooth.discover import score_test
+
+    info = np.array([[1.0, 1 - 1e-5], [1 - 1e-5, 1.0]])
+    scores = np.zeros((B, 2))
+    scores[0] = [1.0, -1.0]  # a score along the near-null direction only
+    ev = SimpleNamespace(scores=scores, hessian=-info)
+    assert score_test(ev, np.arange(2), np.array([], int), "hessian")["df"] == 1
+    loose = score_test(ev, np.arange(2), np.array([], int), "hessian", rank_cut=1e-8)
+    assert loose["df"] == 2 and loose["statistic"] > 1e4
+
+
+def test_alarm_calibration_on_a_small_null_batch():
+    # Every alarm the workflow can raise, on null data sets (no missing
+    # effect, fixed seeds). At alpha = 5% each alarm fires on a data set with
+    # probability <= 0.05, so 3 or more of 8 happen with probability < 0.6%.
+    # The benchmark measures the rates on 200+ data sets.
+    import eqsmooth.discover as dc
+
+    model = _model()
+    counts = {}
+    for seed in range(100, 108):
+        data = _simulate(seed)
+        found = dc.find(model, data)
+        named = dc.name(found, data)
+        assert found["status"] == "ok"
+        assert set(named["alarms"]) == {
+            "detected",
+            "unnamed_structure",
+            "ambiguous",
+            "leftover_structure",
+        }
+        for k, v in named["alarms"].items():
+            counts[k] = counts.get(k, 0) + bool(v)
+    assert max(counts.values()) <= 2, counts
+
+
+def _saturating_spring(x, u, limit, dt):
+    # A spring force that saturates at `limit` (non-polynomial).
+    return jnp.stack([0.0 * x[0], -dt * limit * jnp.tanh(x[0] / limit)])
+
+
+def test_user_defined_candidate_is_first_class():
+    import eqsmooth.discover as dc
+
+    user = dc.Candidate.from_function(
+        "saturating spring", _saturating_spring, limit=8.0, dt=1.0, sign=1
+    )
+    again = dc.Candidate.from_function(
+        "saturating spring", _saturating_spring, dt=1.0, limit=8.0, sign=1
+    )
+    assert user == again and hash(user.feature) == hash(again.feature)
+    with pytest.raises(TypeError, match="(?i)hashable"):
+        dc.Candidate.from_function("bad", _saturating_spring, limit=[1.0])
+    # A feature of the wrong shape is refused with the candidate's name.
+    wrong = dc.Candidate.from_function(
+        "wrong shape", _saturating_spring, target="measurement", limit=1.0, dt=1.0
+    )
+    base = dc.mechanical_library([0], [1], 2, include=["viscous damping"])
+    bad = dc.ChainModel(
+        _dyn, _meas, jnp.asarray(0.0), Q, np.array([R]), PRIOR, base + (wrong,)
+    )
+    data = _simulate(5, spring=0.0)
+    with pytest.raises(ValueError, match="wrong shape"):
+        dc.find(bad, data)
+
+    # Data from a saturating spring (no linear spring in the nominal model):
+    # the workflow checks the user's candidate for identifiability, names it
+    # and fits its coefficient.
+    rng = np.random.default_rng(6)
+    x = np.stack([rng.normal(0, PRIOR[0], B), rng.normal(0, PRIOR[1], B)], 1)
+    xs = []
+    for _ in range(T):
+        xs.append(x.copy())
+        a = -0.05 * 8.0 * np.tanh(x[:, 0] / 8.0)
+        x = np.stack([x[:, 0] + x[:, 1], x[:, 1] + a], 1)
+        x = x + rng.normal(size=(B, 2)) * Q
+    y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(B, T, 1))
+    init = np.concatenate([y, np.zeros_like(y)], -1)
+    data = dc.Sequences(y, np.zeros((B, 2)), initial_states=init)
+    model = dc.ChainModel(
+        _dyn, _meas, jnp.asarray(0.0), Q, np.array([R]), PRIOR, base + (user,)
+    )
+    found = dc.find(model, data)
+    row = next(c for c in found["candidates"] if c["name"] == "saturating spring")
+    assert row["identifiable"] and row["most_correlated_with"] == "viscous damping"
+    named = dc.name(found, data)
+    assert named["named"] == ["saturating spring"], named["verdict"]
+    (c,) = dc.add(found, named, data)["coefficients"]
+    assert abs(c["value"] - 0.05) < 0.1 * 0.05 and c["sign_ok"], c

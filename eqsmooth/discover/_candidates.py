@@ -1,7 +1,7 @@
 """Named candidate effects: the library the discrepancy workflow searches."""
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -57,6 +57,90 @@ class Candidate(eqx.Module):
             )
         if not callable(self.feature):
             raise TypeError(f"Candidate {self.name!r}: feature must be callable")
+
+    @classmethod
+    def from_function(
+        cls,
+        name: str,
+        fn: Callable,
+        *,
+        target: str = "dynamics",
+        sign: int = 0,
+        unit: str = "",
+        description: str = "",
+        **constants: Hashable,
+    ) -> "Candidate":
+        """A user-defined candidate from a plain function and its constants.
+
+        `fn(x, u, **constants)` returns the feature of ONE state `x` `(n,)`
+        and input `u` `(k,)`: `(n,)` for a dynamics candidate, `(m,)` for a
+        measurement candidate. The constants fix the shape of a
+        non-polynomial effect (a saturation level, a dead-zone width, a
+        threshold); the workflow fits the candidate's one scalar coefficient.
+        The feature compares by `fn` and the constants, so candidates built
+        twice with the same arguments share compiled code. For example, a
+        dead zone of the input acting on the velocity:
+
+            def dead_zone(x, u, width, dt):
+                push = jnp.sign(u[0]) * jnp.maximum(jnp.abs(u[0]) - width, 0.0)
+                return jnp.stack([0.0 * push, dt * push])
+
+            Candidate.from_function("dead zone", dead_zone, width=0.2, dt=0.1)
+
+        `fn` must be a module-level function (hashable, compared by identity).
+        """
+        for key, value in constants.items():
+            try:
+                hash(value)
+            except TypeError:
+                raise TypeError(
+                    f"Candidate {name!r}: constant {key!r} must be hashable (a "
+                    f"number or a tuple), got {type(value).__name__}"
+                ) from None
+        feature = _BoundFeature(fn, tuple(sorted(constants.items())))
+        return cls(name, feature, target, sign, unit, description)
+
+
+@dataclasses.dataclass(frozen=True)
+class _BoundFeature:
+    """`fn(x, u, **constants)` as a hashable feature (see `from_function`)."""
+
+    fn: Callable
+    constants: tuple[tuple[str, Hashable], ...]
+
+    def __call__(self, x: Float[Array, " n"], u: Float[Array, " k"]) -> Array:
+        return self.fn(x, u, **dict(self.constants))
+
+
+def check_features(
+    candidates: Sequence[Candidate], x: Array, u: Array, meas_dim: int
+) -> None:
+    """Raise a clear error if a candidate's feature fails or has the wrong shape.
+
+    `x` and `u` are one state `(n,)` and one input `(k,)` (only their shapes
+    and dtypes are used).
+    """
+    import jax
+
+    state_dim, input_dim = x.shape[0], u.shape[0]
+    x = jax.ShapeDtypeStruct(x.shape, x.dtype)
+    u = jax.ShapeDtypeStruct(u.shape, u.dtype)
+    for c in candidates:
+        want = (state_dim,) if c.target == "dynamics" else (meas_dim,)
+        try:
+            out = jax.eval_shape(c.feature, x, u)
+        except Exception as e:
+            raise ValueError(
+                f"Candidate {c.name!r}: its feature fails on a state of shape "
+                f"{(state_dim,)} and an input of shape {(input_dim,)}: "
+                f"{type(e).__name__}: {e}"
+            ) from e
+        shape = out.shape if isinstance(out, jax.ShapeDtypeStruct) else type(out)
+        if shape != want:
+            raise ValueError(
+                f"Candidate {c.name!r} ({c.target}): its feature must return shape "
+                f"{want}, got {shape}"
+            )
 
 
 # Features are frozen dataclasses (hash and compare by value), so two libraries

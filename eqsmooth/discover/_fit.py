@@ -119,7 +119,9 @@ def log_marginal_at(model, data, z, init) -> tuple[float, np.ndarray]:
 # breaks down.
 _MAX_LOG_SCALE_STEP = 1.0
 _TRUST_RADIUS = (1.0, 10.0)
-_EVALUATION_ERRORS = (
+# Errors that mean "this point cannot be evaluated" (a failed linear solve,
+# non-finite numbers), not a bug: caught and turned into result flags.
+EVALUATION_ERRORS = (
     eqx.EquinoxRuntimeError,
     np.linalg.LinAlgError,
     FloatingPointError,
@@ -189,7 +191,7 @@ def fit(
             z_new[free] += step
             try:
                 ll_new, _ = log_marginal_at(model, data, z_new, ev.xhat)
-            except _EVALUATION_ERRORS:
+            except EVALUATION_ERRORS:
                 ll_new = -np.inf
             if np.isfinite(ll_new) and ll_new >= ev.log_marginal - 1e-9:
                 accepted = True
@@ -206,7 +208,7 @@ def fit(
         gain = ll_new - ev.log_marginal
         try:
             new_ev = evaluate(model, data, z_new, ev.xhat, scales, free)
-        except _EVALUATION_ERRORS:
+        except EVALUATION_ERRORS:
             break
         z, ev = z_new, new_ev
         if (

@@ -1,0 +1,74 @@
+"""Cascaded Tanks benchmark: what examples/10_discover_cascaded_tanks.py
+relies on.
+
+The data (../shared/data/cascaded_tanks/dataBenchmark.csv, Schoukens et al.
+2016) is not part of the repository; the tests that read it skip when it is
+absent.
+"""
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+EXAMPLE = (
+    Path(__file__).resolve().parents[1] / "examples" / "10_discover_cascaded_tanks.py"
+)
+
+
+@pytest.fixture(scope="module")
+def ex():
+    spec = importlib.util.spec_from_file_location("discover_tanks", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def data(ex):
+    if not ex.DEFAULT_DATA.is_file():
+        pytest.skip(
+            f"Cascaded Tanks data not found at {ex.DEFAULT_DATA} (dataBenchmark.csv "
+            "of the benchmark, www.nonlinearbenchmark.org; see "
+            "shared/data/README.md)"
+        )
+    return ex.load(ex.DEFAULT_DATA)
+
+
+def test_loader(ex, data):
+    assert data["ts"] == 4.0
+    for key in ("u_est", "y_est", "u_val", "y_val"):
+        assert data[key].shape == (1024,) and np.all(np.isfinite(data[key]))
+    # The level reading stops at 10 V in both records (the hard limit).
+    assert data["y_est"].max() == ex.SENSOR_LIMIT == data["y_val"].max()
+
+
+def test_user_candidates_have_the_right_shapes(ex):
+    import jax.numpy as jnp
+
+    from eqsmooth.discover._candidates import check_features
+
+    library = ex.tank_library(4.0, (5.0,), (9.0,))
+    check_features(library, jnp.zeros(2), jnp.zeros(1), 1)
+    names = [c.name for c in library]
+    assert len(set(names)) == len(names)
+
+
+@pytest.mark.slow
+def test_quick_example_runs(data, tmp_path):
+    out = subprocess.run(
+        [sys.executable, str(EXAMPLE), "--quick", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["workflow"]["find"]["status"] == "ok"
+    assert report["workflow"]["find"]["detected"]
+    assert report["nominal"]["validation_rmse"] > 0
