@@ -37,6 +37,21 @@ def machine() -> dict:
         ).stdout.strip()
     except OSError:
         git = "unknown"
+    # The eqsmooth actually imported (PYTHONPATH may point at another checkout
+    # than the one holding this script, e.g. for a before/after comparison).
+    lib = sys.modules.get("eqsmooth")
+    lib_dir = Path(lib.__file__).parent if lib is not None else None
+    lib_git = "not imported"
+    if lib_dir is not None:
+        try:
+            lib_git = subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"],
+                capture_output=True,
+                text=True,
+                cwd=lib_dir,
+            ).stdout.strip()
+        except OSError:
+            lib_git = "unknown"
     return {
         "cores": os.cpu_count(),
         "memory": mem,
@@ -45,6 +60,8 @@ def machine() -> dict:
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "git": git,
+        "eqsmooth": str(lib_dir),
+        "eqsmooth_git": lib_git,
         "command": " ".join([Path(sys.executable).name] + sys.argv),
         # Thread settings and load change timings by large factors on a
         # shared 2-core machine (an oversubscribed OpenBLAS made a 400 x 400
