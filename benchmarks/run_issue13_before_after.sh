@@ -2,7 +2,9 @@
 # Issue 13: one run before the solver redesign (git 1ab278a) and one after,
 # interleaved benchmark by benchmark so both see the same machine load.
 #   git -C /work/main worktree add /work/wt13before 1ab278a
-#   bash benchmarks/run_issue13_before_after.sh > benchmarks/results/issue13_before_after.log 2>&1
+#   git -C /work/main worktree add --detach /work/wt13after 5b3d35b  # the branch, frozen
+#   AFTER=/work/wt13after RESULTS=$PWD/benchmarks/results bash benchmarks/run_issue13_before_after.sh \
+#     > benchmarks/results/issue13_before_after.log 2>&1
 # chain.py changed its solver call with the API, so each tree runs its own
 # chain.py; train_step.py and pgo.py are the same harness for both, and only
 # PYTHONPATH picks the library (the JSON's machine.eqsmooth_git says which).
@@ -10,7 +12,7 @@ set -u
 B=${BEFORE:-/work/wt13before}
 A=${AFTER:-$(cd "$(dirname "$0")/.." && pwd)}
 PY=${PY:-/work/main/.venv/bin/python}
-R=$A/benchmarks/results
+R=${RESULTS:-$A/benchmarks/results}
 log() { echo "== $(date -u +%FT%TZ) $1 loadavg: $(cat /proc/loadavg)"; }
 run() { nice -n 10 env OPENBLAS_NUM_THREADS=1 "$@"; }
 cd "$A/benchmarks" || exit 1
