@@ -12,6 +12,19 @@ from pathlib import Path
 import jax
 
 
+def _git_hash(where: Path) -> str:
+    """The short hash of HEAD of the checkout holding `where`."""
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=where,
+        ).stdout.strip()
+    except OSError:
+        return "unknown"
+
+
 def machine() -> dict:
     cpu = "unknown"
     try:
@@ -28,30 +41,12 @@ def machine() -> dict:
                 mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
     except OSError:
         pass
-    try:
-        git = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
-    except OSError:
-        git = "unknown"
     # The eqsmooth actually imported (PYTHONPATH may point at another checkout
     # than the one holding this script, e.g. for a before/after comparison).
     lib = sys.modules.get("eqsmooth")
     lib_dir = Path(lib.__file__).parent if lib is not None else None
-    lib_git = "not imported"
-    if lib_dir is not None:
-        try:
-            lib_git = subprocess.run(
-                ["git", "rev-parse", "--short", "HEAD"],
-                capture_output=True,
-                text=True,
-                cwd=lib_dir,
-            ).stdout.strip()
-        except OSError:
-            lib_git = "unknown"
+    git = _git_hash(Path(__file__).parent)
+    lib_git = _git_hash(lib_dir) if lib_dir is not None else "not imported"
     return {
         "cores": os.cpu_count(),
         "memory": mem,
