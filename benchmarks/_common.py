@@ -12,6 +12,19 @@ from pathlib import Path
 import jax
 
 
+def _git_hash(where: Path) -> str:
+    """The short hash of HEAD of the checkout holding `where`."""
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=where,
+        ).stdout.strip()
+    except OSError:
+        return "unknown"
+
+
 def machine() -> dict:
     cpu = "unknown"
     try:
@@ -28,15 +41,12 @@ def machine() -> dict:
                 mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
     except OSError:
         pass
-    try:
-        git = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
-    except OSError:
-        git = "unknown"
+    # The eqsmooth actually imported (PYTHONPATH may point at another checkout
+    # than the one holding this script, e.g. for a before/after comparison).
+    lib = sys.modules.get("eqsmooth")
+    lib_dir = Path(lib.__file__).parent if lib is not None else None
+    git = _git_hash(Path(__file__).parent)
+    lib_git = _git_hash(lib_dir) if lib_dir is not None else "not imported"
     return {
         "cores": os.cpu_count(),
         "memory": mem,
@@ -45,6 +55,8 @@ def machine() -> dict:
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "git": git,
+        "eqsmooth": str(lib_dir),
+        "eqsmooth_git": lib_git,
         "command": " ".join([Path(sys.executable).name] + sys.argv),
         # Thread settings and load change timings by large factors on a
         # shared 2-core machine (an oversubscribed OpenBLAS made a 400 x 400

@@ -1,10 +1,14 @@
 """Does XLA:CPU still hang on eqsmooth's block-tridiagonal solve? A/B trial.
 
 Each trial is a fresh process that factors a random `T x D` block-tridiagonal
-system and calls the jitted `cyclic_reduction_solve` `--calls` times; a
-process that has not finished after `--timeout` seconds (all threads asleep
-in `block_until_ready`, see `eqsmooth/_xla_flags.py`) counts as hung. Trials
-alternate between JAX's default XLA flags and the flag set by
+system and calls the jitted `cyclic_reduction_solve` `--calls` times. A
+process whose CPU time (all its threads, from /proc) has not advanced for
+`--stall` seconds while it is still running counts as hung (all threads
+asleep in `block_until_ready`, see `eqsmooth/_xla_flags.py`); one still
+advancing at `--timeout` seconds counts as slow, not hung. On a shared,
+oversubscribed machine a niced process can take minutes of wall time for
+seconds of CPU, so wall time alone cannot tell a hang from starvation.
+Trials alternate between JAX's default XLA flags and the flag set by
 `eqsmooth.set_xla_cpu_flags()` (opt-in), so machine load affects both arms
 alike.
 
@@ -15,7 +19,9 @@ import argparse
 import os
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 from _common import write_json
 
@@ -44,25 +50,50 @@ for i in range(calls):
 """
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (all threads), from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def trial(keep_default: bool, args) -> dict:
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
     env["HANG_TRIAL_FLAGS"] = "0" if keep_default else "1"
     cmd = [sys.executable, "-c", CHILD, str(args.T), str(args.D), str(args.calls)]
     t0 = time.perf_counter()
-    try:
-        out = subprocess.run(
-            cmd, env=env, capture_output=True, text=True, timeout=args.timeout
-        ).stdout
-        hung = False
-    except subprocess.TimeoutExpired as e:
-        out = e.stdout.decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
-        hung = True
+    with tempfile.TemporaryFile("w+") as log:
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        cpu, last_progress, outcome = 0.0, t0, "finished"
+        while proc.poll() is None:
+            time.sleep(1.0)
+            now = time.perf_counter()
+            try:
+                c = _cpu_seconds(proc.pid)
+            except (OSError, IndexError):  # exited between poll and read
+                continue
+            if c > cpu:
+                cpu, last_progress = c, now
+            if now - last_progress > args.stall:
+                outcome = "hung"
+            elif now - t0 > args.timeout:
+                outcome = "slow"
+            else:
+                continue
+            proc.kill()
+            proc.wait()
+            break
+        log.seek(0)
+        out = log.read()
     return {
         "arm": "jax default" if keep_default else "eqsmooth flags",
-        "hung": hung,
+        "hung": outcome == "hung",
+        "outcome": outcome,
+        "returncode": proc.returncode,
         "calls_done": out.count("call "),
         "wall_s": time.perf_counter() - t0,
+        "cpu_s": cpu,
+        "load_average": os.getloadavg(),
     }
 
 
@@ -72,7 +103,18 @@ def main(argv=None):
     parser.add_argument("--T", type=int, default=100_000)
     parser.add_argument("--D", type=int, default=5)
     parser.add_argument("--calls", type=int, default=20)
-    parser.add_argument("--timeout", type=float, default=60.0)
+    parser.add_argument(
+        "--stall",
+        type=float,
+        default=30.0,
+        help="seconds without CPU progress that count as a hang",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=900.0,
+        help="seconds after which a still-progressing process is stopped as slow",
+    )
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
     records = []
@@ -81,13 +123,18 @@ def main(argv=None):
             rec = trial(keep_default, args) | {"trial": i}
             records.append(rec)
             print(
-                f"trial {i} {rec['arm']:15s} hung={rec['hung']!s:5s} "
-                f"calls {rec['calls_done']}/{args.calls} {rec['wall_s']:.0f} s",
+                f"trial {i} {rec['arm']:15s} {rec['outcome']:8s} "
+                f"calls {rec['calls_done']}/{args.calls} wall {rec['wall_s']:.0f} s "
+                f"cpu {rec['cpu_s']:.1f} s load {rec['load_average'][0]:.1f}",
                 flush=True,
             )
+            if args.json:  # after every trial: a run stopped part-way keeps them
+                write_json(args.json, records, {"config": vars(args)})
     for arm in ("jax default", "eqsmooth flags"):
         rs = [r for r in records if r["arm"] == arm]
-        print(f"{arm}: {sum(r['hung'] for r in rs)}/{len(rs)} processes hung")
+        hung = sum(r["hung"] for r in rs)
+        slow = sum(r["outcome"] == "slow" for r in rs)
+        print(f"{arm}: {hung}/{len(rs)} processes hung, {slow} stopped as slow")
     if args.json:
         write_json(args.json, records, {"config": vars(args)})
 

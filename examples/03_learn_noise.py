@@ -158,26 +158,13 @@ def position_rmse(model, data):
     return jnp.sqrt(jnp.mean((est[..., 0] - data["truth"][..., 0]) ** 2))
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="small, fast run")
-    parser.add_argument("--out", type=Path, default=Path("results/learn_noise"))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-progress", action="store_true")
-    args = parser.parse_args(argv)
-    num_train, num_steps, T, iters = (
-        (48, 30, 40, 150) if args.quick else (256, 60, 100, 800)
-    )
-    args.out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(args.seed)
-    train_data = simulate(rng, num_train, T)
-    valid_data = simulate(rng, 16, T)
-    test_data = simulate(rng, 64, T)
-
+def train_models(train_data, valid_data, iters: int, args):
+    """Train the homoscedastic model (surrogate loss) and the heteroscedastic
+    one (joint NLL) from the same hand-tuned start; return both results and
+    the two training times (compilation included)."""
     key = jax.random.key(args.seed)
     hand = NoiseModel([0.5, 0.5], 0.5, heteroscedastic=False, key=key)
     hetero0 = NoiseModel([0.5, 0.5], 0.5, heteroscedastic=True, key=key)
-    oracle = NoiseModel(Q_TRUE, 1.0, heteroscedastic=False, key=key, oracle=True)
     common = dict(
         num_steps=iters,
         batch_size=8,
@@ -185,42 +172,28 @@ def main(argv=None):
         valid_data=valid_data,
         eval_every=25,
         progress=not args.no_progress,
+        optimizer=make_optimizer(3e-2, warmup_steps=20, decay_steps=iters),
     )
-    optimizer = make_optimizer(3e-2, warmup_steps=20, decay_steps=iters)
-
     t0 = time.perf_counter()
     homo = train(
         hand,
         surrogate,
         train_data,
-        optimizer=optimizer,
         log_path=args.out / "train_surrogate.jsonl",
         **common,
     )
     t1 = time.perf_counter()
     hetero = train(
-        hetero0,
-        nll,
-        train_data,
-        optimizer=optimizer,
-        log_path=args.out / "train_nll.jsonl",
-        **common,
+        hetero0, nll, train_data, log_path=args.out / "train_nll.jsonl", **common
     )
     t2 = time.perf_counter()
+    return hand, homo, hetero, (t1 - t0, t2 - t1)
 
-    models = {
-        "hand-tuned (all std 0.5)": hand,
-        "learned, surrogate loss (homoscedastic)": homo.best_model,
-        "learned, joint NLL (heteroscedastic MLP)": hetero.best_model,
-        "true noise model (reference)": oracle,
-    }
-    raw = float(np.sqrt(np.mean((test_data["meas"] - test_data["truth"][..., 0]) ** 2)))
-    print(
-        f"{num_train} training sequences x {T} steps, {iters} Adam steps each"
-        f"{' (quick)' if args.quick else ''}; training took {t1 - t0:.1f} s "
-        f"(surrogate) and {t2 - t1:.1f} s (NLL), compilation included"
-    )
-    print()
+
+def report(models: dict, homo, hetero, test_data) -> dict:
+    """Print the test RMSE of every smoother and the learned noise levels."""
+    truth = test_data["truth"][..., 0]
+    raw = float(np.sqrt(np.mean((test_data["meas"] - truth) ** 2)))
     print("| smoother | test position RMSE |")
     print("|---|---|")
     print(f"| raw measurements | {raw:.4f} |")
@@ -245,8 +218,11 @@ def main(argv=None):
         f"  surrogate (homoscedastic): "
         f"{float(np.exp(np.asarray(homo.best_model.log_r))):.3f} everywhere"
     )
-    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    return results
 
+
+def figure(path: Path, models: dict, homo, hetero, test_data) -> None:
+    """Learned sensor noise against the context, and one test sequence's errors."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -272,8 +248,8 @@ def main(argv=None):
     ax0.set_ylabel("sensor noise std")
     ax0.legend()
     ex = {k: v[0] for k, v in test_data.items()}
-    steps = np.arange(T)
     truth = ex["truth"][:, 0]
+    steps = np.arange(truth.shape[0])
     ax1.plot(steps, ex["meas"] - truth, "r.", ms=4, label="measurement error")
     ax1.fill_between(
         steps,
@@ -288,7 +264,46 @@ def main(argv=None):
     ax1.set_xlabel("time step")
     ax1.set_ylabel("position error (one test sequence)")
     ax1.legend(fontsize=8)
-    fig.savefig(args.out / "learn_noise.png", dpi=110, bbox_inches="tight")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small, fast run")
+    parser.add_argument("--out", type=Path, default=Path("results/learn_noise"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    num_train, num_steps, T, iters = (
+        (48, 30, 40, 150) if args.quick else (256, 60, 100, 800)
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+    train_data = simulate(rng, num_train, T)
+    valid_data = simulate(rng, 16, T)
+    test_data = simulate(rng, 64, T)
+
+    hand, homo, hetero, (t_surrogate, t_nll) = train_models(
+        train_data, valid_data, iters, args
+    )
+    oracle = NoiseModel(
+        Q_TRUE, 1.0, heteroscedastic=False, key=jax.random.key(args.seed), oracle=True
+    )
+    models = {
+        "hand-tuned (all std 0.5)": hand,
+        "learned, surrogate loss (homoscedastic)": homo.best_model,
+        "learned, joint NLL (heteroscedastic MLP)": hetero.best_model,
+        "true noise model (reference)": oracle,
+    }
+    print(
+        f"{num_train} training sequences x {T} steps, {iters} Adam steps each"
+        f"{' (quick)' if args.quick else ''}; training took {t_surrogate:.1f} s "
+        f"(surrogate) and {t_nll:.1f} s (NLL), compilation included"
+    )
+    print()
+    results = report(models, homo, hetero, test_data)
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    figure(args.out / "learn_noise.png", models, homo, hetero, test_data)
     print(f"saved {args.out / 'learn_noise.png'} and {args.out / 'results.json'}")
 
 

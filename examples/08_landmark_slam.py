@@ -124,6 +124,44 @@ def make_problem(num_poses: int, num_landmarks: int, seed: int):
     )
 
 
+def errors(values, truth, landmarks) -> tuple[float, float]:
+    """Position RMSE of the poses and of the landmarks (m)."""
+    pos = np.linalg.norm(
+        np.asarray(values["x"].translation() - truth.translation()), axis=1
+    )
+    lm = np.linalg.norm(np.asarray(values["l"]) - landmarks, axis=1)
+    return float(np.sqrt(np.mean(pos**2))), float(np.sqrt(np.mean(lm**2)))
+
+
+def plot(path: Path, truth, landmarks, init, solved) -> None:
+    """Poses and landmarks: truth, initial guess and solution."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print(f"saved {path.with_suffix('.json')} (no matplotlib: no plot)")
+        return
+    fig, ax = plt.subplots(figsize=(6, 6))
+    for name, v, style in (
+        ("truth", {"x": truth, "l": landmarks}, "k-"),
+        ("initial", init, "r:"),
+        ("solved", solved, "b-"),
+    ):
+        xy = np.asarray(v["x"].translation())
+        ax.plot(xy[:, 0], xy[:, 1], style, label=f"{name} poses")
+    ax.scatter(
+        landmarks[:, 0], landmarks[:, 1], marker="*", c="k", label="true landmarks"
+    )
+    est = np.asarray(solved["l"])
+    ax.scatter(est[:, 0], est[:, 1], marker="x", c="b", label="estimated landmarks")
+    ax.set_aspect("equal")
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    print(f"saved {path} and {path.with_suffix('.json').name}")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small, fast run (CI)")
@@ -139,25 +177,20 @@ def main(argv=None):
         # A landmark nobody sees has no factor: drop it from the problem.
         raise SystemExit("some landmark is never observed; try another --seed")
     print(
-        f"{num_poses} poses, {num_landmarks} landmarks, {n_obs} bearing-range measurements"
+        f"{num_poses} poses, {num_landmarks} landmarks, "
+        f"{n_obs} bearing-range measurements"
     )
-
-    def errors(values):
-        pos = np.linalg.norm(
-            np.asarray(values["x"].translation() - truth.translation()), axis=1
-        )
-        lm = np.linalg.norm(np.asarray(values["l"]) - landmarks, axis=1)
-        return float(np.sqrt(np.mean(pos**2))), float(np.sqrt(np.mean(lm**2)))
 
     t0 = time.perf_counter()
     sol = eqs.least_squares(graph, init, eqs.LevenbergMarquardt(), max_steps=50)
     jax.block_until_ready(sol.value)
     t1 = time.perf_counter()
     print(
-        f"solve (with compilation): {t1 - t0:.1f} s, {int(sol.stats['num_steps'])} steps, "
-        f"result: {sol.result}"
+        f"solve (with compilation): {t1 - t0:.1f} s, "
+        f"{int(sol.stats['num_steps'])} steps, result: {sol.result}"
     )
-    before, after = errors(init), errors(sol.value)
+    before = errors(init, truth, landmarks)
+    after = errors(sol.value, truth, landmarks)
     print(f"pose RMSE      {before[0]:8.3f} m -> {after[0]:.3f} m")
     print(f"landmark RMSE  {before[1]:8.3f} m -> {after[1]:.3f} m")
 
@@ -182,31 +215,7 @@ def main(argv=None):
         "solve_s_with_compile": t1 - t0,
     }
     (args.out / "landmark_slam.json").write_text(json.dumps(summary, indent=2))
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print(f"saved {args.out / 'landmark_slam.json'} (no matplotlib: no plot)")
-        return
-    fig, ax = plt.subplots(figsize=(6, 6))
-    for name, v, style in (
-        ("truth", {"x": truth, "l": landmarks}, "k-"),
-        ("initial", init, "r:"),
-        ("solved", sol.value, "b-"),
-    ):
-        xy = np.asarray(v["x"].translation())
-        ax.plot(xy[:, 0], xy[:, 1], style, label=f"{name} poses")
-    ax.scatter(
-        landmarks[:, 0], landmarks[:, 1], marker="*", c="k", label="true landmarks"
-    )
-    est = np.asarray(sol.value["l"])
-    ax.scatter(est[:, 0], est[:, 1], marker="x", c="b", label="estimated landmarks")
-    ax.set_aspect("equal")
-    ax.legend(fontsize=8)
-    fig.savefig(args.out / "landmark_slam.png", dpi=120, bbox_inches="tight")
-    print(f"saved {args.out / 'landmark_slam.png'} and landmark_slam.json")
+    plot(args.out / "landmark_slam.png", truth, landmarks, init, sol.value)
 
 
 if __name__ == "__main__":

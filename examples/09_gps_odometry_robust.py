@@ -79,36 +79,18 @@ def make_graph(odo, gps, gps_noise):
     )
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="small, fast run (CI)")
-    parser.add_argument(
-        "--out", type=Path, default=Path("results/09_gps_odometry_robust")
-    )
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    T, train_steps = (60, 4) if args.quick else (200, 15)
+def rmse(values, truth) -> float:
+    """Position RMSE of the poses (m)."""
+    d = values["x"].translation() - truth.translation()
+    return float(jnp.sqrt(jnp.mean(jnp.sum(d * d, axis=1))))
 
-    truth, odo, gps, init, outlier = make_data(T, args.seed)
-    print(f"{T} poses, {int(outlier.sum())} GPS outliers")
+
+def compare_kernels(truth, odo, gps, init, solver) -> dict:
+    """Solve with a Gaussian, a Huber and (from Huber's answer) a Tukey GPS
+    model; return the position RMSE of each and of the raw fixes."""
     base = eqs.IsotropicNoise.from_sigma(GPS_SIGMA)
-    solver = eqs.LevenbergMarquardt()
-
-    def rmse(values):
-        d = values["x"].translation() - truth.translation()
-        return float(jnp.sqrt(jnp.mean(jnp.sum(d * d, axis=1))))
-
-    results = {
-        "gps_rmse": float(
-            np.sqrt(
-                np.mean(
-                    np.sum(
-                        (np.asarray(gps) - np.asarray(truth.translation())) ** 2, axis=1
-                    )
-                )
-            )
-        )
-    }
+    raw = np.asarray(gps) - np.asarray(truth.translation())
+    results = {"gps_rmse": float(np.sqrt(np.mean(np.sum(raw**2, axis=1))))}
     t0 = time.perf_counter()
     gauss = eqs.least_squares(
         make_graph(odo, gps, base), {"x": init}, solver, max_steps=50
@@ -126,17 +108,15 @@ def main(argv=None):
         max_steps=50,
     )
     for name, sol in (("gaussian", gauss), ("huber", huber), ("tukey", tukey)):
-        results[f"{name}_rmse"] = rmse(sol.value)
+        results[f"{name}_rmse"] = rmse(sol.value, truth)
     print(f"solves (with compilation): {time.perf_counter() - t0:.1f} s")
-    print(
-        f"position RMSE: raw GPS {results['gps_rmse']:.3f} m, Gaussian "
-        f"{results['gaussian_rmse']:.3f} m, Huber {results['huber_rmse']:.3f} m, "
-        f"Tukey (from Huber) {results['tukey_rmse']:.3f} m"
-    )
+    return results
 
-    # Learn the Huber threshold (in log space) on one trajectory, test on another.
-    train = make_data(T, args.seed + 1)
-    test = make_data(T, args.seed + 2)
+
+def learn_threshold(train, test, solver, steps: int) -> dict:
+    """Fit the Huber threshold (in log space) on one trajectory by gradient
+    descent through the solve; report the test error before and after."""
+    base = eqs.IsotropicNoise.from_sigma(GPS_SIGMA)
 
     @jax.jit
     def loss(log_k, truth, odo, gps, init):
@@ -149,25 +129,50 @@ def main(argv=None):
     log_k = jnp.asarray(np.log(5.0))  # a deliberately loose start
     test_before = float(loss(log_k, *test[:4]))
     t0 = time.perf_counter()
-    for it in range(train_steps):
+    for it in range(steps):
         value, g = grad(log_k, *train[:4])
         # A normalised step in log k with a decaying length: the MSE's scale
         # differs between problems, its sign is what matters.
         log_k = log_k - 0.5 / (1 + it) * jnp.sign(g)
         print(
-            f"  step {it}: train MSE {float(value):.4f} m², dMSE/dlog k {float(g):+.4f}, "
-            f"k -> {float(jnp.exp(log_k)):.3f}"
+            f"  step {it}: train MSE {float(value):.4f} m², "
+            f"dMSE/dlog k {float(g):+.4f}, k -> {float(jnp.exp(log_k)):.3f}"
         )
     test_after = float(loss(log_k, *test[:4]))
     print(
-        f"learned Huber k = {float(jnp.exp(log_k)):.3f} ({time.perf_counter() - t0:.1f} s); "
+        f"learned Huber k = {float(jnp.exp(log_k)):.3f} "
+        f"({time.perf_counter() - t0:.1f} s); "
         f"test MSE {test_before:.4f} -> {test_after:.4f} m²"
     )
-    results.update(
+    return dict(
         learned_k=float(jnp.exp(log_k)),
         test_mse_before=test_before,
         test_mse_after=test_after,
     )
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small, fast run (CI)")
+    parser.add_argument(
+        "--out", type=Path, default=Path("results/09_gps_odometry_robust")
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    T, train_steps = (60, 4) if args.quick else (200, 15)
+
+    truth, odo, gps, init, outlier = make_data(T, args.seed)
+    print(f"{T} poses, {int(outlier.sum())} GPS outliers")
+    solver = eqs.LevenbergMarquardt()
+    results = compare_kernels(truth, odo, gps, init, solver)
+    print(
+        f"position RMSE: raw GPS {results['gps_rmse']:.3f} m, Gaussian "
+        f"{results['gaussian_rmse']:.3f} m, Huber {results['huber_rmse']:.3f} m, "
+        f"Tukey (from Huber) {results['tukey_rmse']:.3f} m"
+    )
+    # Learn the Huber threshold on one trajectory, test on another.
+    train, test = make_data(T, args.seed + 1), make_data(T, args.seed + 2)
+    results.update(learn_threshold(train, test, solver, train_steps))
 
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "gps_odometry_robust.json").write_text(json.dumps(results, indent=2))

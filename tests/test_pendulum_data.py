@@ -1,61 +1,56 @@
-"""Real pendulum recording: what examples/06_discover_pendulum.py relies on.
+"""Real pendulum recording: what examples/06_discover_pendulum.py relies on
+(its stages are in examples/pendulum_friction/).
 
 The data (../shared/data/pendulum, MultiArm-Pendulum benchmark, Kaheman et
 al. 2022) is not part of the repository; the tests that read it skip when it
 is absent.
 """
 
-import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "06_discover_pendulum.py"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+
+from pendulum_friction import data as D, energy as EN, model as M  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def ex():
-    spec = importlib.util.spec_from_file_location("discover_pendulum", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture(scope="module")
-def data(ex):
-    if not ex.DEFAULT_DATA.is_file():
+def data():
+    if not D.DEFAULT_DATA.is_file():
         pytest.skip(
-            f"pendulum data not found at {ex.DEFAULT_DATA} (download "
-            f"single_pendulum_freeswing_1khz.mat from {ex.SOURCE})"
+            f"pendulum data not found at {D.DEFAULT_DATA} (download "
+            f"single_pendulum_freeswing_1khz.mat from {D.SOURCE})"
         )
-    return ex.load_segments(ex.DEFAULT_DATA)
+    return D.load_segments(D.DEFAULT_DATA)
 
 
-def test_loader_and_calibration(ex, data):
+def test_loader_and_calibration(data):
     assert data["dt"] == 0.001
     assert data["identification"].shape == (4, 2, 9166)
     assert data["validation"].shape == (2, 2, 9166)
     theta = data["identification"][:, 0]
     assert np.all(np.abs(np.mean(theta, axis=1) - np.pi) < 0.05)
-    cal = ex.calibrate(data["identification"], data["dt"])
+    cal = D.calibrate(data["identification"], data["dt"])
     # The rest angle is about 1 mrad off pi; the period gives ω0² a little
     # below the published 64.2 s^-2.
     assert 0.0 < cal["offset"] < 3e-3
     assert 63.9 < cal["omega0_sq"] < 64.2 and cal["omega0_sq_spread"] < 0.05
-    assert 1e-5 < ex.angle_noise_std(theta) < 1e-4
+    assert 1e-5 < D.angle_noise_std(theta) < 1e-4
 
 
-def test_energy_balance_needs_more_than_viscous_friction(ex, data):
-    cal = ex.calibrate(data["identification"], data["dt"])
+def test_energy_balance_needs_more_than_viscous_friction(data):
+    cal = D.calibrate(data["identification"], data["dt"])
     rates = {}
     for part in ("identification", "validation"):
-        rows = ex.energy_balance(
+        rows = EN.energy_balance(
             data[part], cal["offset"], cal["omega0_sq"], data["dt"]
         )
         assert np.all(rows[:, 1] > 0)  # every swing loses energy
-        fit = ex.fit_dissipation(rows, ("viscous damping",))
+        fit = EN.fit_dissipation(rows, ("viscous damping",))
         rates[part] = fit["viscous damping"]
     # The viscous rate that explains the large swings is below the published
     # 0.067 s^-1, the one that explains the small swings above it: a single
@@ -67,7 +62,7 @@ def test_energy_balance_needs_more_than_viscous_friction(ex, data):
     )
 
 
-def test_midpoint_kick_is_a_continuous_time_rate(ex):
+def test_midpoint_kick_is_a_continuous_time_rate():
     import jax
     import jax.numpy as jnp
 
@@ -75,12 +70,12 @@ def test_midpoint_kick_is_a_continuous_time_rate(ex):
     # viscous candidate at 100 Hz loses the energy of the continuous damped
     # pendulum at rate c (reference: RK4 at 1 ms).
     w2, c, dt, amp = 64.0, 0.067, 0.01, 1.2
-    feature = ex.ContinuousAcceleration("viscous", dt, w2)
+    feature = M.ContinuousAcceleration("viscous", dt, w2)
     params = {"dt": jnp.asarray(dt), "omega0_sq": jnp.asarray(w2)}
     zero = jnp.zeros(1)
 
     def coarse(x, _):
-        return ex.pendulum_step(x, zero, params) + c * feature(x, zero), None
+        return M.pendulum_step(x, zero, params) + c * feature(x, zero), None
 
     def fine(x, _):
         h = 1e-3
@@ -102,17 +97,17 @@ def test_midpoint_kick_is_a_continuous_time_rate(ex):
     assert abs(float(lost_coarse / lost_fine) - 1) < 0.01
 
 
-def test_ideal_pendulum_disagrees_with_the_recording(ex, data):
+def test_ideal_pendulum_disagrees_with_the_recording(data):
     import eqsmooth.discover as dc
 
     # 1 s of each identification segment at 100 Hz, one candidate (viscous
     # friction) to keep compilation short: the score test must fire.
-    cal = ex.calibrate(data["identification"], data["dt"])
+    cal = D.calibrate(data["identification"], data["dt"])
     dt = 10 * data["dt"]
-    raw = ex.windows(data["identification"], 1000, 1)
-    seqs = ex.make_sequences(raw, 10, cal["offset"])
+    raw = D.windows(data["identification"], 1000, 1)
+    seqs = D.make_sequences(raw, 10, cal["offset"])
     assert seqs.measurements.shape == (4, 100, 1)
-    full = ex.build_model(dt, cal["omega0_sq"], 4e-5)
+    full = M.build_model(dt, cal["omega0_sq"], 4e-5)
     viscous = full.candidates[full.index("viscous damping")]
     model = dc.ChainModel(
         full.dynamics,

@@ -10,10 +10,18 @@ therefore what reverse-mode autodiff differentiates:
 - [`eqsmooth.solve.ImplicitAdjoint`][]: the implicit function theorem at the
     solution, in tangent coordinates.
 
-The driver hands an adjoint three functions over the loop carry
-`(values, state, cost_history)`: `init(graph, values)`, `body(graph, carry)`
-and `cond(carry)`. The adjoints rely on one invariant of the solver states:
-`state.lin` is the linearisation at `values`.
+They are `optimistix.AbstractAdjoint`s, so they also serve
+`optx.least_squares(eqs.solve.graph_residuals, solver, values, args=graph,
+adjoint=...)`. Each implements two loops:
+
+- `run`, for eqsmooth's driver, which hands it three functions over the loop
+    carry `(values, state, cost_history)`: `init(graph, values)`,
+    `body(graph, carry)` and `cond(carry)`; it relies on one invariant of the
+    solver states: `state.lin` is the linearisation at `values`;
+- `apply`, optimistix's interface: it receives optimistix's whole solve
+    (`primal_fn`) and its `inputs`, and chooses the `while_loop` the solve
+    runs with (a masked `lax.scan`, a stopped `lax.while_loop` followed by a
+    differentiated scan, or a stopped `lax.while_loop` under a custom VJP).
 """
 
 import abc
@@ -26,9 +34,11 @@ import jax.lax as lax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
+import optimistix as optx
 from jaxtyping import Array, Bool, PyTree
 
 from ..factors import FactorGraph
+from ._default_solver import linear_solver_for
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize, retract_values, Tangent
 from ._misc import preconditioned_cg, tree_where
@@ -47,14 +57,66 @@ def _stop(tree):
     )
 
 
-def _masked_scan(body: BodyFn, cond: CondFn, graph, carry: Carry, length: int):
-    """`length` iterations of `body`, each a no-op once `cond` is false."""
+def _scan_while(cond, body, carry, length: int):
+    """`length` iterations of `body(carry)`, each a no-op once `cond` is false."""
 
     def scan_body(c, _):
-        return tree_where(cond(c), body(graph, c), c), None
+        return tree_where(cond(c), body(c), c), None
 
     carry, _ = lax.scan(scan_body, carry, None, length=length)
     return carry
+
+
+def _masked_scan(body: BodyFn, cond: CondFn, graph, carry: Carry, length: int):
+    """`length` iterations of `body`, each a no-op once `cond` is false."""
+    return _scan_while(cond, lambda c: body(graph, c), carry, length)
+
+
+def _lax_while(cond, body, carry, max_steps: int | None):
+    """A `lax.while_loop` that also stops after `max_steps` iterations."""
+    if max_steps is None:
+        return lax.while_loop(cond, body, carry)
+
+    def cond2(c):
+        return cond(c[0]) & (c[1] < max_steps)
+
+    def body2(c):
+        return body(c[0]), c[1] + 1
+
+    return lax.while_loop(cond2, body2, (carry, 0))[0]
+
+
+# optimistix's `iterative_solve` calls `adjoint.apply(primal_fn, rewrite_fn,
+# inputs, tags)` with `inputs = (fn, solver, y0, args, options, max_steps,
+# f_struct, aux_struct, tags)` (its own rewrite functions unpack the same
+# tuple); `primal_fn(inputs + (while_loop,))` runs the solve with
+# `while_loop(cond, body, carry, max_steps=...)` and returns `(y, residual)`.
+_OPTX_INPUTS = 9
+
+
+def _optx_inputs(inputs, who: str) -> tuple:
+    if not (isinstance(inputs, tuple) and len(inputs) == _OPTX_INPUTS):
+        raise RuntimeError(
+            f"{who}.apply: optimistix passed inputs this version of eqsmooth does "
+            f"not know (expected a tuple of {_OPTX_INPUTS}, (fn, solver, y0, args, "
+            "options, max_steps, f_struct, aux_struct, tags))"
+        )
+    return inputs
+
+
+def _iteration_limit(inputs, who: str) -> int:
+    """The static number of iterations a scan must cover for an optimistix solve."""
+    from ._least_squares import AbstractGraphSolver  # it imports this module
+
+    _, solver, _, _, _, max_steps, *_ = _optx_inputs(inputs, who)
+    if isinstance(solver, AbstractGraphSolver):
+        return solver.iteration_limit(max_steps)
+    if max_steps is None:
+        raise ValueError(
+            f"{who} scans a fixed number of iterations: pass max_steps to "
+            "optx.least_squares"
+        )
+    return max_steps
 
 
 def _relinearize(graph: FactorGraph, carry: Carry) -> Carry:
@@ -63,16 +125,22 @@ def _relinearize(graph: FactorGraph, carry: Carry) -> Carry:
     return values, state, history
 
 
-class AbstractAdjoint(eqx.Module):
+class AbstractAdjoint(optx.AbstractAdjoint):
     """How [`eqsmooth.solve.least_squares`][] is differentiated.
 
-    Pass an instance as `least_squares(..., adjoint=...)`. Every adjoint gives
-    the same forward result; they differ in what reverse-mode autodiff
-    computes and at which memory cost.
+    Pass an instance as `least_squares(..., adjoint=...)`, or as
+    `optx.least_squares(eqs.solve.graph_residuals, solver, values,
+    args=graph, adjoint=...)`: every eqsmooth adjoint is an
+    `optimistix.AbstractAdjoint`. Every adjoint gives the same forward
+    result; they differ in what reverse-mode autodiff computes and at which
+    memory cost.
+
+    Subclasses implement `run` (eqsmooth's driver) and optimistix's
+    `apply(primal_fn, rewrite_fn, inputs, tags)`.
     """
 
     @abc.abstractmethod
-    def apply(
+    def run(
         self,
         init: InitFn,
         body: BodyFn,
@@ -110,10 +178,24 @@ class UnrolledAdjoint(AbstractAdjoint):
     `FixedStepGaussNewton(num_steps=K)` started at the ground truth this is
     the surrogate loss of Yi et al. (2021). Memory grows linearly with the
     number of iterations. Forward mode (`jax.jvp`) works too.
+
+    Through `optx.least_squares` it works with any optimistix solver; the
+    scan covers `max_steps` iterations (`num_steps` for
+    [`eqsmooth.solve.FixedStepGaussNewton`][]).
     """
 
-    def apply(self, init, body, cond, graph, values, linear_solver, max_steps):
+    def run(self, init, body, cond, graph, values, linear_solver, max_steps):
         return _masked_scan(body, cond, graph, init(graph, values), max_steps)
+
+    def apply(self, primal_fn, rewrite_fn, inputs, tags):
+        del rewrite_fn, tags
+        limit = _iteration_limit(inputs, "UnrolledAdjoint")
+
+        def while_loop(cond, body, carry, max_steps):
+            del max_steps
+            return _scan_while(cond, body, carry, limit)
+
+        return primal_fn(inputs + (while_loop,))
 
 
 class TruncatedAdjoint(AbstractAdjoint):
@@ -132,6 +214,13 @@ class TruncatedAdjoint(AbstractAdjoint):
     `num_steps=1` at a converged solution is the "one Gauss-Newton step from
     the stopped solution" approximation of the implicit gradient.
 
+    Through `optx.least_squares` it cannot relinearise the solver's state
+    (optimistix's loop carry is private), so it restarts one iteration
+    earlier instead: that iteration's step is computed from stopped
+    quantities, and the linearisation it ends with depends on the live
+    graph. For Gauss-Newton this gives the same gradient; for
+    Levenberg-Marquardt too unless that iteration's step is rejected.
+
     **Arguments:**
 
     - `num_steps`: `k >= 1`, the number of differentiated iterations.
@@ -146,7 +235,7 @@ class TruncatedAdjoint(AbstractAdjoint):
                 f"{self.num_steps!r}"
             )
 
-    def apply(self, init, body, cond, graph, values, linear_solver, max_steps):
+    def run(self, init, body, cond, graph, values, linear_solver, max_steps):
         k = self.num_steps
         carry0 = init(graph, values)
         free = max_steps - k
@@ -181,6 +270,53 @@ class TruncatedAdjoint(AbstractAdjoint):
         start = tree_where(restart == 0, carry0, _stop(resumed))
         start = _relinearize(graph, start)
         return _masked_scan(body, cond, graph, start, k)
+
+    def apply(self, primal_fn, rewrite_fn, inputs, tags):
+        del rewrite_fn, tags
+        limit = _iteration_limit(inputs, "TruncatedAdjoint")
+        k = self.num_steps
+
+        def while_loop(cond, body, carry, max_steps):
+            del max_steps
+            return _truncated_loop(cond, body, carry, limit, k)
+
+        return primal_fn(inputs + (while_loop,))
+
+
+def _truncated_loop(cond, body, carry0, limit: int, k: int):
+    """The loop of `TruncatedAdjoint.apply`: stopped iterations, then `k + 1`
+    replayed ones whose first step is computed from stopped quantities.
+
+    `body` closes over the live problem; the stopped phase stops its outputs.
+    A ring buffer of the last `k + 1` loop states lets a solve that stops
+    early restart `k + 1` iterations before its end.
+    """
+    m = k + 1
+    free = limit - m
+    if free <= 0:
+        return _scan_while(cond, body, carry0, limit)
+    start0 = _stop(carry0)
+    ring0 = jax.tree_util.tree_map(
+        lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x)), start0
+    )
+
+    def cond1(loop):
+        carry, n, _ = loop
+        return cond(carry) & (n < free)
+
+    def body1(loop):
+        carry, n, ring = loop
+        ring = jax.tree_util.tree_map(lambda r, x: r.at[n % m].set(x), ring, carry)
+        return _stop(body(carry)), n + 1, ring
+
+    carry1, n1, ring = lax.while_loop(cond1, body1, (start0, 0, ring0))
+    stopped = ~cond(carry1)
+    from_ring = jax.tree_util.tree_map(lambda r: r[(n1 - m) % m], ring)
+    resumed = tree_where(stopped & (n1 >= m), from_ring, carry1)
+    # At most k iterations in all: differentiate them all (from the live
+    # start), as `run` does.
+    start = tree_where(stopped & (n1 <= k), carry0, resumed)
+    return _scan_while(cond, body, start, m)
 
 
 _HESSIANS = ("exact", "gauss_newton")
@@ -217,6 +353,13 @@ class ImplicitAdjoint(AbstractAdjoint):
     zero, and so are those of `Solution.stats` and `Solution.state`. Only
     reverse mode is supported (`jax.grad`, `jax.vjp`), not `jax.jvp`.
 
+    Through `optx.least_squares` (with `args` the graph, any least-squares
+    solver that keeps the values' types) it is the adjoint to use for
+    Lie-group values: `optx.ImplicitAdjoint` would differentiate the
+    optimality condition in ambient coordinates, which is wrong there. It
+    linearises once more at the solution (eqsmooth's driver reuses the
+    solver's last linearisation).
+
     **Arguments:**
 
     - `hessian`: `"exact"` or `"gauss_newton"`.
@@ -247,13 +390,34 @@ class ImplicitAdjoint(AbstractAdjoint):
                 f"ImplicitAdjoint.max_steps must be >= 1, got {self.max_steps}"
             )
 
-    def apply(self, init, body, cond, graph, values, linear_solver, max_steps):
+    def run(self, init, body, cond, graph, values, linear_solver, max_steps):
         stopped_graph = _stop(graph)
         carry = init(stopped_graph, _stop(values))
         carry = lax.while_loop(cond, lambda c: body(stopped_graph, c), carry)
         x_star, state, history = _stop(carry)
         delta = _implicit_delta(graph, x_star, state.lin, self, linear_solver)
         return retract_values(x_star, delta), state, history
+
+    def apply(self, primal_fn, rewrite_fn, inputs, tags):
+        del rewrite_fn, tags
+        from ._least_squares import AbstractGraphSolver  # it imports this module
+
+        _, solver, _, graph, *_ = _optx_inputs(inputs, "ImplicitAdjoint")
+        if not isinstance(graph, FactorGraph):
+            raise TypeError(
+                "eqsmooth's ImplicitAdjoint differentiates an eqsmooth graph solve "
+                "(optx.least_squares(eqsmooth.solve.graph_residuals, solver, values, "
+                f"args=graph)); got args of type {type(graph).__name__}. For other "
+                "problems, or eqsmooth.solve.tangent_least_squares, use "
+                "optimistix.ImplicitAdjoint()"
+            )
+        x_star, residual = primal_fn(_stop(inputs) + (_lax_while,))
+        x_star, residual = _stop((x_star, residual))
+        lin = linearize(_stop(graph), x_star)
+        own = solver.linear_solver if isinstance(solver, AbstractGraphSolver) else None
+        linear_solver = linear_solver_for(own, lin)
+        delta = _implicit_delta(graph, x_star, lin, self, linear_solver)
+        return retract_values(x_star, delta), residual
 
 
 def _zeros(lin: Linearization) -> Tangent:

@@ -281,7 +281,7 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
         _, state, _ = carry
         return ~state.done & (state.step < max_steps)
 
-    values, state, history = adjoint.apply(
+    values, state, history = adjoint.run(
         init, body, cond, graph, values, linear_solver, max_steps
     )
     steps = state.step
