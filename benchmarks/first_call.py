@@ -51,6 +51,7 @@ same command.
     python benchmarks/first_call.py --cases pose2        # one case
     python benchmarks/first_call.py --trees before=/tmp/main after=. \\
         --json benchmarks/results/first_call.json
+    python benchmarks/first_call.py --parts   # pieces of the pose2 solve
 """
 
 import time
@@ -309,6 +310,70 @@ def child(case: str, cache_dir: str | None, staged: bool) -> dict:
     return rec
 
 
+def parts() -> list[dict]:
+    """Trace / lower / compile CPU seconds of pieces of the `pose2` solve, one
+    process: how much of the whole program the linearisation is."""
+    import equinox as eqx
+    import jax
+
+    import eqsmooth as eqs
+    from eqsmooth.solve._linearization import linearize
+
+    jax.config.update("jax_enable_x64", True)
+    _, (graph, values) = _pose2_case()
+    lin = jax.jit(linearize)(graph, values)
+    gn = eqs.GaussNewton()
+    pieces = {
+        "linearize alone": (linearize, (graph, values)),
+        "one dense normal solve alone": (
+            lambda lin: eqs.solve.solve_normal(eqs.DenseCholesky(), lin),
+            (lin,),
+        ),
+        "GaussNewton solve, throw=False": (
+            lambda g, v: eqs.least_squares(g, v, gn, throw=False).value,
+            (graph, values),
+        ),
+        "GaussNewton solve, throw=True (error_if under jit)": (
+            lambda g, v: eqs.least_squares(g, v, gn).value,
+            (graph, values),
+        ),
+    }
+    out = []
+    for name, (fn, args) in pieces.items():
+        dynamic, static = eqx.partition(args, eqx.is_array)
+
+        def flat(dynamic, fn=fn, static=static):
+            res = fn(*eqx.combine(dynamic, static))
+            return jax.tree_util.tree_leaves(eqx.filter(res, eqx.is_array))
+
+        c = time.process_time()
+        traced = jax.jit(flat).trace(dynamic)
+        trace = time.process_time() - c
+        c = time.process_time()
+        lowered = traced.lower()
+        lower = time.process_time() - c
+        c = time.process_time()
+        lowered.compile()
+        compile_ = time.process_time() - c
+        rec = {
+            "benchmark": "first_call_parts",
+            "config": {"case": "pose2", "piece": name},
+            "piece": name,
+            "trace_cpu_s": trace,
+            "lower_cpu_s": lower,
+            "compile_cpu_s": compile_,
+            "hlo_lines": lowered.as_text().count("\n"),
+            "median_s": float("nan"),
+        }
+        out.append(rec)
+        print(
+            f"{name:52s} trace {trace:5.2f}  lower {lower:5.2f}  compile "
+            f"{compile_:5.2f} CPU s  {rec['hlo_lines']} HLO lines",
+            flush=True,
+        )
+    return out
+
+
 # ----------------------------------------------------------------------------
 # The parent: subprocesses per case, tree and cache state.
 
@@ -360,8 +425,22 @@ def main(argv=None):
         help="time trace / lower / compile / run apart under one outer jax.jit "
         "(the default times the public call and splits it by JAX's events)",
     )
+    parser.add_argument(
+        "--parts",
+        action="store_true",
+        help="instead: trace/lower/compile CPU seconds of pieces of the pose2 "
+        "solve (linearisation, normal solve, whole solve), in this process",
+    )
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    if args.parts:
+        sys.path.insert(0, str(HERE))
+        from _common import write_json
+
+        records = parts()
+        if args.json:
+            write_json(args.json, records)
+        return
     if args.child:
         print(json.dumps(child(args.child, args.cache_dir, args.staged)))
         return
