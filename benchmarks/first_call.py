@@ -10,7 +10,8 @@ fresh Python process (a subprocess of this script):
   `eqs.least_squares(graph, values, LevenbergMarquardt())`;
 - `chain1e4`, `chain1e5`: the SE(2) + velocity chain of
   `benchmarks/chain.py` (T = 1e4, 1e5), a whole `GaussNewton()` solve with
-  the default linear solver (block-tridiagonal);
+  the default linear solver (block-tridiagonal), at most 20 steps,
+  `throw=False`;
 - `train200`: the training step of `benchmarks/train_step.py` at T = 200,
   K = 3 (a batch of 32 disk graphs, `jax.value_and_grad` of the surrogate
   loss through `FixedStepGaussNewton` with the unrolled adjoint).
@@ -140,7 +141,9 @@ def _chain_case(T: int):
     solver = eqs.GaussNewton()
 
     def fn(graph, values):
-        return eqs.least_squares(graph, values, solver, max_steps=20).value
+        # 20 steps do not always reach the tolerances from these initial
+        # values; the figure here is the time to the first answer.
+        return eqs.least_squares(graph, values, solver, max_steps=20, throw=False).value
 
     return fn, (graph, values)
 
