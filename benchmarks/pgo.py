@@ -4,7 +4,9 @@ For every file: load it with `eqsmooth.io.load_g2o` (gauge prior on the first
 pose, σ = 1e-6), solve with `LevenbergMarquardt(SparseLU())` (host sparse
 direct solves; or `--solver cholmod` for `SparseCholesky()`, CHOLMOD through
 the optional scikit-sparse; or `--solver pcg` for `PCG()` with block-Jacobi, plus
-`--preconditioner chain` for `ChainPreconditioner()`; or `--solver dense`)
+`--preconditioner chain` for `ChainPreconditioner()`; or `--solver sparsax`
+for `SparsaxCholesky()`, CHOLMOD inside jit through the optional sparsax
+wheel, `pip install "eqsmooth[sparse]"`; or `--solver dense`)
 from the file's initial values, and solve the same problem with GTSAM's
 `LevenbergMarquardtOptimizer` in the same run. GTSAM gets exactly the same
 factors (`eqsmooth.io.to_gtsam`: same measurements, same information
@@ -246,10 +248,11 @@ def main(argv=None):
     parser.add_argument("--files", nargs="*", default=None, help="subset of files")
     parser.add_argument(
         "--solver",
-        choices=["sparse", "cholmod", "pcg", "dense"],
+        choices=["sparse", "cholmod", "sparsax", "pcg", "dense"],
         default="sparse",
         help="sparse: SparseLU() (SciPy); cholmod: SparseCholesky() (needs "
-        "scikit-sparse); pcg: PCG(); dense: DenseCholesky()",
+        "scikit-sparse); sparsax: SparsaxCholesky() (needs sparsax); pcg: PCG(); "
+        "dense: DenseCholesky()",
     )
     parser.add_argument(
         "--preconditioner",
@@ -287,6 +290,9 @@ def main(argv=None):
     elif args.solver == "cholmod":
         linear = eqs.solve.SparseCholesky()
         solver_name = "LevenbergMarquardt(SparseCholesky())"
+    elif args.solver == "sparsax":
+        linear = eqs.solve.SparsaxCholesky()
+        solver_name = "LevenbergMarquardt(SparsaxCholesky())"
     else:
         linear = eqs.DenseCholesky()
         solver_name = "LevenbergMarquardt(DenseCholesky())"

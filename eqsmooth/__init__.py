@@ -69,6 +69,7 @@ from .solve import (
     PCG as PCG,
     RESULTS as RESULTS,
     Solution as Solution,
+    SparsaxCholesky as SparsaxCholesky,
     SparseCholesky as SparseCholesky,
     SparseLU as SparseLU,
     TruncatedAdjoint as TruncatedAdjoint,

@@ -198,6 +198,14 @@ CHOLMOD = pytest.param(
 )
 
 
+_HAVE_SPARSAX = importlib.util.find_spec("sparsax") is not None
+# SparsaxCholesky needs the optional sparsax (the `sparse` extra).
+SPARSAX = pytest.param(
+    "sparsax",
+    marks=pytest.mark.skipif(not _HAVE_SPARSAX, reason="sparsax is not installed"),
+)
+
+
 def _solvers():
     import eqsmooth as eqs
 
@@ -210,6 +218,7 @@ def _solvers():
         ),
         "sparse": eqs.solve.SparseLU(),
         **({"cholmod": eqs.solve.SparseCholesky()} if _HAVE_CHOLMOD else {}),
+        **({"sparsax": eqs.solve.SparsaxCholesky()} if _HAVE_SPARSAX else {}),
     }
 
 
@@ -258,6 +267,7 @@ def test_chain_matches_reference(name, damped):
         ("pcg", True),
         ("sparse", False),
         pytest.param("cholmod", False, marks=CHOLMOD.marks),
+        pytest.param("sparsax", True, marks=SPARSAX.marks),
     ],
 )
 def test_graph_matches_reference(name, damped):
@@ -273,7 +283,9 @@ def test_graph_matches_reference(name, damped):
 
 
 @pytest.mark.parametrize("damped", [False, True])
-@pytest.mark.parametrize("name", ["dense", "pcg", "pcg-chain", "sparse", CHOLMOD])
+@pytest.mark.parametrize(
+    "name", ["dense", "pcg", "pcg-chain", "sparse", CHOLMOD, SPARSAX]
+)
 def test_loop_closures_match_reference(name, damped):
     import eqsmooth as eqs
 
@@ -553,7 +565,9 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg", "pcg-chain", "sparse", CHOLMOD])
+@pytest.mark.parametrize(
+    "name", ["tridiag", "pcg", "pcg-chain", "sparse", CHOLMOD, SPARSAX]
+)
 def test_vmap_over_graphs(name):
     import eqsmooth as eqs
 
@@ -575,7 +589,7 @@ def test_vmap_over_graphs(name):
         np.testing.assert_allclose(got, ref, atol=1e-9)
 
 
-@pytest.mark.parametrize("name", ["tridiag", "pcg", "sparse", CHOLMOD])
+@pytest.mark.parametrize("name", ["tridiag", "pcg", "sparse", CHOLMOD, SPARSAX])
 def test_grad_matches_finite_differences(name):
     """Reverse mode through lineax's solve rule: w.r.t. data and values (one
     Gauss-Newton step's solve, differentiated)."""
@@ -627,3 +641,49 @@ def test_sparse_cholesky_without_scikit_sparse_says_so(monkeypatch):
     monkeypatch.setitem(sys.modules, "sksparse.cholmod", None)
     with pytest.raises(ImportError, match="scikit-sparse"):
         eqs.solve.SparseCholesky()
+
+
+@pytest.mark.skipif(not _HAVE_SPARSAX, reason="sparsax is not installed")
+def test_sparsax_factorization_matches_dense():
+    """Log-determinant and marginal blocks (selected inversion) of a loopy graph."""
+    import eqsmooth as eqs
+
+    lin = _loop_lin(0)
+    ours = eqs.solve.factorize(lin, eqs.solve.SparsaxCholesky())
+    ref = eqs.solve.factorize(lin, eqs.DenseCholesky())
+    assert isinstance(ours, eqs.solve.SparsaxFactorization)
+    np.testing.assert_allclose(float(ours.log_det()), float(ref.log_det()), rtol=1e-12)
+    got, want = ours.inverse_block_diagonal(), ref.inverse_block_diagonal()
+    for k in want:
+        np.testing.assert_allclose(got[k], want[k], rtol=0, atol=1e-12)
+
+
+@pytest.mark.skipif(not _HAVE_SPARSAX, reason="sparsax is not installed")
+def test_sparsax_not_positive_definite_raises():
+    """CHOLMOD's failure stops the program (documented): no silent result."""
+    import eqsmooth as eqs
+
+    lin = _gauge_free_chain()
+    with pytest.raises(Exception, match="not positive definite"):
+        jax.block_until_ready(eqs.solve.solve_normal(eqs.solve.SparsaxCholesky(), lin))
+
+
+def test_sparsax_missing_says_so(monkeypatch):
+    import eqsmooth as eqs
+    from eqsmooth.solve import _default_solver, _sparsax
+
+    lin = _loop_lin(0)
+    layout, variables = lin.layout, tuple(f.variables for f in lin.factors)
+    monkeypatch.setattr(_default_solver, "DENSE_LIMIT", 0)
+    if _HAVE_SPARSAX:  # installed: the default for large non-chain graphs
+        assert isinstance(
+            _default_solver.default_linear_solver(layout, variables),
+            eqs.solve.SparsaxCholesky,
+        )
+    monkeypatch.setattr(_sparsax.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ImportError, match="sparsax"):
+        eqs.solve.SparsaxCholesky()
+    # Without it, the default for large non-chain graphs is SparseLU.
+    assert isinstance(
+        _default_solver.default_linear_solver(layout, variables), eqs.solve.SparseLU
+    )

@@ -57,6 +57,10 @@ from ._pcg import (
     PCG as PCG,
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
+from ._sparsax import (
+    SparsaxCholesky as SparsaxCholesky,
+    SparsaxFactorization as SparsaxFactorization,
+)
 from ._sparse import SparseCholesky as SparseCholesky, SparseLU as SparseLU
 from ._tangent import (
     tangent_least_squares as tangent_least_squares,

@@ -7,6 +7,7 @@ from ._block_tridiagonal import _chain_plan, BlockTridiagonal
 from ._dense import DenseCholesky
 from ._linear_solver import AbstractFactorization, NormalOperator
 from ._linearization import Linearization, Tangent
+from ._sparsax import sparsax_available, SparsaxCholesky
 from ._sparse import SparseLU
 
 
@@ -23,15 +24,19 @@ def default_linear_solver(
     A chain (every group has one variable per time step and every factor row
     touches steps `t, t + 1` only) gets [`eqsmooth.solve.BlockTridiagonal`][];
     any other graph [`eqsmooth.solve.DenseCholesky`][] up to
-    `DENSE_LIMIT` tangent coordinates and [`eqsmooth.solve.SparseLU`][]
-    beyond.
+    `DENSE_LIMIT` tangent coordinates and beyond that
+    [`eqsmooth.solve.SparsaxCholesky`][] when the optional `sparsax` package
+    is installed and JAX runs in 64-bit mode, else
+    [`eqsmooth.solve.SparseLU`][].
     """
     names = tuple(f"factor stack {i}" for i in range(len(variables)))
     try:
         _chain_plan(layout, variables, names)
     except ValueError:
         size = sum(g.count * g.dim for g in layout)
-        return DenseCholesky() if size <= DENSE_LIMIT else SparseLU()
+        if size <= DENSE_LIMIT:
+            return DenseCholesky()
+        return SparsaxCholesky() if sparsax_available() else SparseLU()
     return BlockTridiagonal()
 
 
@@ -51,14 +56,16 @@ def factorize(
 ) -> AbstractFactorization:
     """The factorisation of `JᵀJ + diag(damping)` that `solver` keeps in its state.
 
-    `None` picks `BlockTridiagonal()` for chains, `DenseCholesky()` otherwise.
+    `None` picks `BlockTridiagonal()` for chains, `SparsaxCholesky()` where it
+    is the default solver (large graphs, sparsax installed), `DenseCholesky()`
+    otherwise.
     A solver whose state is not an [`eqsmooth.solve.AbstractFactorization`][]
     (iterative, host or lineax solvers) falls back to `DenseCholesky()`.
     Unlike a solve, the factorisation is differentiable by ordinary autodiff.
     """
     if solver is None:
         solver = linear_solver_for(None, lin)
-        if not isinstance(solver, BlockTridiagonal):
+        if not isinstance(solver, (BlockTridiagonal, SparsaxCholesky)):
             solver = DenseCholesky()
     operator = NormalOperator(lin, damping)
     state = solver.init(operator, {})
