@@ -69,6 +69,18 @@ def parse_args(argv=None):
     p.add_argument("--steps", type=int, help="smoother / EKF training steps")
     p.add_argument("--lstm-steps", type=int)
     p.add_argument("--no-figures", action="store_true")
+    p.add_argument(
+        "--docs",
+        type=Path,
+        help="also write the summary table into this page (between its "
+        "kitti-results markers), e.g. docs/tutorial/visual-odometry.md",
+    )
+    p.add_argument(
+        "--report-only",
+        action="store_true",
+        help="run nothing: rebuild summary.md/json (and --docs) from the fold "
+        "JSONs under --out",
+    )
     args = p.parse_args(argv)
     cfg = E.quick_config() if args.quick else E.Config()
     updates = {
@@ -90,12 +102,15 @@ def parse_args(argv=None):
 
 def main(argv=None):
     cfg, folds, args = parse_args(argv)
-    for fold in folds:
+    for fold in [] if args.report_only else folds:
         state = E.run_fold(cfg, fold, args.out)
         if not args.no_figures:
             report.figures(state, fold, args.out)
         print(report.fold_table(state["result"]))
-    report.write_summary(args.out)
+    table = report.write_summary(args.out)
+    print(table)
+    if args.docs is not None:
+        report.update_docs(args.docs, table)
 
 
 if __name__ == "__main__":

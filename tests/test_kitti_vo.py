@@ -177,6 +177,36 @@ def _tiny_windows(B=2, T=5):
     }
 
 
+def test_summary_and_docs_table_come_from_fold_json(tmp_path):
+    import json
+
+    from kitti_vo import report
+
+    def fold(k, trans, rot):
+        rows = {
+            "smoother_hetero_e2e": {"trans_m_per_m": trans, "rot_deg_per_m": rot},
+            "ekf_hetero": {"trans_m_per_m": 2 * trans, "rot_deg_per_m": 2 * rot},
+        }
+        return {"fold": k, "rows": rows, "config": {"quick": False}}
+
+    for k, (t, r) in enumerate([(0.1, 0.01), (0.3, 0.03)]):
+        (tmp_path / f"fold_{k}.json").write_text(json.dumps(fold(k, t, r)))
+    table = report.write_summary(tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    e2e = summary["methods"]["smoother_hetero_e2e"]
+    assert e2e["num_folds"] == 2
+    np.testing.assert_allclose(e2e["trans_m_per_m"], 0.2)
+    np.testing.assert_allclose(e2e["trans_m_per_m_sem"], 0.1)  # std 0.1414 / √2
+    assert "| smoother_hetero_e2e | 0.2000 ± 0.1000 |" in table
+    page = tmp_path / "page.md"
+    page.write_text(f"intro\n{report.DOCS_START}\nSTALE\n{report.DOCS_END}\ntail\n")
+    report.update_docs(page, table)
+    text = page.read_text()
+    assert "STALE" not in text and table in text and text.endswith("tail\n")
+    with pytest.raises(ValueError, match="kitti-results"):
+        report.update_docs(tmp_path / "fold_0.json", table)
+
+
 @pytest.mark.slow
 def test_losses_have_finite_gradients():
     import jax

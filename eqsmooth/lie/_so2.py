@@ -9,6 +9,7 @@ from ._utils import (
     as_float_array,
     broadcast_batch,
     default_float_dtype,
+    rotate_pairs,
     stack_matrix,
 )
 
@@ -137,9 +138,8 @@ class SO2(AbstractLieGroup):
 
     def compose(self, other: "SO2") -> "SO2":
         a, b = broadcast_batch(self.unit_complex, other.unit_complex)
-        c1, s1 = a[..., 0], a[..., 1]
-        c2, s2 = b[..., 0], b[..., 1]
-        return SO2(jnp.stack([c1 * c2 - s1 * s2, s1 * c2 + c1 * s2], axis=-1))
+        # (c₁ + i s₁)(c₂ + i s₂) = c₁ b + s₁ (b turned by 90°), on whole vectors.
+        return SO2(a[..., 0:1] * b + a[..., 1:2] * rotate_pairs(b))
 
     def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
         z, p = broadcast_batch(self.unit_complex, as_float_array(points))

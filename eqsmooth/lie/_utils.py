@@ -214,6 +214,23 @@ def broadcast_batch(*arrays: Array) -> tuple[Array, ...]:
     return tuple(jnp.broadcast_to(a, batch + a.shape[-1:]) for a in arrays)
 
 
+def rotate_pairs(v: Float[Array, "*batch n"]) -> Float[Array, "*batch n"]:
+    """Turn each consecutive pair `(p, q)` of the last axis by 90°: `(-q, p)`.
+
+    With `v = (c, s, x, y)`, `c₁ v + s₁ rotate_pairs(v)` is the rotation of
+    both the complex number `(c, s)` and the point `(x, y)` by `(c₁, s₁)`.
+    """
+    pairs = v.reshape(v.shape[:-1] + (-1, 2))[..., ::-1]
+    return (pairs * signs([-1.0, 1.0], pairs)).reshape(v.shape)
+
+
+def signs(values: Sequence[float], like: Array) -> Array:
+    """Constants for the last axis of `like`, with its rank and dtype (so the
+    product broadcasts without rank promotion)."""
+    out = jnp.asarray(values, like.dtype)
+    return out.reshape((1,) * (like.ndim - 1) + out.shape)
+
+
 def matvec(m: Array, v: Array) -> Array:
     """Batched matrix-vector product (batch axes must already agree)."""
     return (m @ v[..., None])[..., 0]

@@ -13,8 +13,12 @@ from . import data as D, experiment as E
 # The paper's KITTI-10 numbers (Yi et al. 2021, Table II) go here as
 # {method: (m/m, deg/m)} once transcribed and checked against the paper;
 # they are NOT the same experiment as the rendered data and are shown beside
-# it, never merged.
+# it, never merged. Not filled in: the search tools available when this was
+# written returned only the paper's abstract and introduction, not Table II.
 PAPER_TABLE: dict[str, tuple[float, float]] = {}
+
+DOCS_START = "<!-- kitti-results:start -->"
+DOCS_END = "<!-- kitti-results:end -->"
 
 ORDER = ("dead_reckoning",) + E.METHODS
 
@@ -38,11 +42,14 @@ def fold_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def write_summary(out: Path) -> None:
-    """summary.json / summary.md: mean ± std/√n over the committed folds."""
+def write_summary(out: Path) -> str:
+    """summary.json / summary.md: mean ± std/√n over the fold JSONs in `out`.
+
+    Returns the markdown (also the table `update_docs` puts in the tutorial).
+    """
     folds = sorted(Path(out).glob("fold_*.json"))
     if not folds:
-        return
+        return f"No fold of the KITTI-10 protocol is committed yet ({E.LABEL}).\n"
     results = [json.loads(p.read_text()) for p in folds]
     summary = {"label": E.LABEL, "folds": [r["fold"] for r in results], "methods": {}}
     for m in ORDER:
@@ -80,7 +87,19 @@ def write_summary(out: Path) -> None:
             f"| {m} | {fmt(e, 'trans_m_per_m')} | {fmt(e, 'rot_deg_per_m')} | "
             f"{p[0]} | {p[1]} |"
         )
-    (Path(out) / "summary.md").write_text("\n".join(lines) + "\n")
+    text = "\n".join(lines) + "\n"
+    (Path(out) / "summary.md").write_text(text)
+    return text
+
+
+def update_docs(path: Path, table: str) -> None:
+    """Put `table` between the KITTI result markers of the tutorial page `path`."""
+    text = Path(path).read_text()
+    if DOCS_START not in text or DOCS_END not in text:
+        raise ValueError(f"{path} has no {DOCS_START} ... {DOCS_END} block")
+    head, rest = text.split(DOCS_START, 1)
+    _, tail = rest.split(DOCS_END, 1)
+    Path(path).write_text(head + DOCS_START + "\n" + table + DOCS_END + tail)
 
 
 def figures(state: dict, fold: int, out: Path) -> None:
