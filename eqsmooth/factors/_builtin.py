@@ -56,8 +56,8 @@ def check_like_state(factor: str, field: str, given: PyTree, state: PyTree) -> N
         if is_group(g) or is_group(x):
             if type(g) is not type(x):
                 raise ValueError(
-                    f"{factor}.{field}{where} is a {type(g).__name__} but the state is "
-                    f"a {type(x).__name__}"
+                    f"{factor}.{field}{where} is {_kind(g)} but the state it is "
+                    f"compared with is {_kind(x)}"
                 )
             continue
         if jnp.shape(g) != jnp.shape(x):
@@ -67,6 +67,10 @@ def check_like_state(factor: str, field: str, given: PyTree, state: PyTree) -> N
                 f"dimension {tangent_dim(x)}); give {field} the shape (n, "
                 f"{', '.join(map(str, jnp.shape(x)))})"
             )
+
+
+def _kind(leaf) -> str:
+    return f"a {type(leaf).__name__}" if is_group(leaf) else "an array"
 
 
 def _between(a: PyTree, b: PyTree) -> PyTree:
