@@ -78,6 +78,14 @@ def test_g2o_empty_file(tmp_path):
         _eqs().io.load_g2o(path)
 
 
+@pytest.mark.parametrize("dtype", ["int32", "float16", "bfloat16"])
+def test_g2o_dtype(dtype, tmp_path):
+    path = tmp_path / "ok.g2o"
+    path.write_text(V01 + EDGE)
+    with raises(TypeError, "load_g2o", "dtype", dtype):
+        _eqs().io.load_g2o(path, dtype=jnp.dtype(dtype))
+
+
 def test_g2o_missing_file(tmp_path):
     with raises(FileNotFoundError, "nope.g2o"):
         _eqs().io.load_g2o(tmp_path / "nope.g2o")

@@ -354,6 +354,10 @@ def load_g2o(
         raise ValueError(
             f"se3_information must be 'g2o' or 'gtsam', got {se3_information!r}"
         )
+    if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
+        raise TypeError(
+            f"load_g2o: dtype must be float32 or float64, got {np.dtype(dtype)}"
+        )
     path = Path(path)
     found = _tokenize(path, skip_unsupported)
     kinds = {_TAGS[t][0]: t for t in found if _TAGS[t][0] is not None}
