@@ -26,6 +26,7 @@ from ._stats import (
     normal_quantile,
     normal_two_sided,
 )
+from ._validate import check_inputs
 
 
 _LN20 = float(np.log(20.0))
@@ -382,6 +383,7 @@ def find(
     **Returns:** a dict (JSON-serialisable except the `"_state"` entry, which
     later steps reuse).
     """
+    check_inputs("find", model, data)
     K = len(model.candidates)
     if K == 0:
         raise ValueError("find: the model has no candidate effects to test")

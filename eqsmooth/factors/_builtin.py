@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from ..manifold import is_group, local
+from ..manifold import is_group, local, tangent_dim
 from ._factor import AbstractFactor, shared_field
 from ._noise import AbstractNoiseModel
 from ._variables import Var
@@ -33,7 +33,44 @@ class PriorFactor(AbstractFactor):
         self.noise = noise
 
     def residual(self, x: PyTree) -> Float[Array, " m"]:
+        check_like_state("PriorFactor", "value", self.value, x)
         return local(self.value, x)
+
+
+def check_like_state(factor: str, field: str, given: PyTree, state: PyTree) -> None:
+    """Raise `ValueError` unless one row of `given` has the structure, group
+    types and leaf shapes of the state it is compared with.
+
+    Called at trace time (inside the row `vmap`, so shapes are per row):
+    without it a `(n, 1)` mean on `(n, 3)` states broadcasts silently.
+    """
+    gl, gdef = jax.tree_util.tree_flatten(given, is_leaf=is_group)
+    sl, sdef = jax.tree_util.tree_flatten(state, is_leaf=is_group)
+    if gdef != sdef:
+        raise ValueError(
+            f"{factor}.{field} has structure {gdef} but the state it is compared "
+            f"with has structure {sdef}"
+        )
+    for k, (g, x) in enumerate(zip(gl, sl)):
+        where = f" (leaf {k})" if len(gl) > 1 else ""
+        if is_group(g) or is_group(x):
+            if type(g) is not type(x):
+                raise ValueError(
+                    f"{factor}.{field}{where} is {_kind(g)} but the state it is "
+                    f"compared with is {_kind(x)}"
+                )
+            continue
+        if jnp.shape(g) != jnp.shape(x):
+            raise ValueError(
+                f"{factor}.{field}{where}: one row has shape {jnp.shape(g)} but the "
+                f"state it is compared with has shape {jnp.shape(x)} (tangent "
+                f"dimension {tangent_dim(x)}); give {field} the shape (n, "
+                f"{', '.join(map(str, jnp.shape(x)))})"
+            )
+
+
+def _kind(leaf) -> str:
+    return f"a {type(leaf).__name__}" if is_group(leaf) else "an array"
 
 
 def _between(a: PyTree, b: PyTree) -> PyTree:
@@ -66,6 +103,8 @@ class BetweenFactor(AbstractFactor):
         self.noise = noise
 
     def residual(self, a: PyTree, b: PyTree) -> Float[Array, " m"]:
+        check_like_state("BetweenFactor", "variables", a, b)
+        check_like_state("BetweenFactor", "measurement", self.measurement, a)
         return local(self.measurement, _between(a, b))
 
 

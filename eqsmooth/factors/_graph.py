@@ -124,9 +124,11 @@ class FactorGraph(eqx.Module):
 
     def whitened_residuals(self, values: Values) -> tuple[Float[Array, "_n _m"], ...]:
         """Whitened (not robustified) residuals of every factor stack."""
-        return tuple(
-            f.noise.whiten(r) for f, r in zip(self.factors, self.residuals(values))
-        )
+        out = []
+        for f, r in zip(self.factors, self.residuals(values)):
+            f.noise.check_shapes(type(f).__name__, *r.shape)
+            out.append(f.noise.whiten(r))
+        return tuple(out)
 
     def cost(self, values: Values) -> Float[Array, ""]:
         """Total cost `½ Σ ρ(‖R r‖²)` (Gaussian factors: half the squared norm)."""

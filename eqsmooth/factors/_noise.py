@@ -32,12 +32,81 @@ def _check_positive(name: str, field: str, value) -> None:
     if _is_concrete(value):
         arr = np.asarray(value)
         if arr.size and not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name}.{field} must be finite, got {arr}")
+            bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+            raise ValueError(
+                f"{name}.{field} must be finite, got {arr.ravel()[:8]} (first bad "
+                f"entry at index {tuple(bad)})"
+            )
         if arr.size and not np.all(arr > 0):
             raise ValueError(
                 f"{name}.{field} must be positive, got min {arr.min()} "
                 f"(shape {arr.shape})"
             )
+
+
+def _positive_under_jit(name: str, field: str, value: Array) -> Array:
+    """`value`, with a run-time check (`eqx.error_if`) when it is traced.
+
+    Concrete values are checked eagerly by `_check_positive`; a traced value
+    (noise built inside `jit`, e.g. from learned parameters) would otherwise
+    turn σ ≤ 0 into a silent inf/NaN cost.
+    """
+    if _is_concrete(value) or not jnp.issubdtype(value.dtype, jnp.inexact):
+        return value
+    return eqx.error_if(
+        value,
+        ~jnp.all(value > 0),
+        f"{name}.{field} must be positive and finite (checked under jit)",
+    )
+
+
+def _check_square(name: str, field: str, value: Array) -> None:
+    if value.ndim not in (2, 3) or value.shape[-1] != value.shape[-2]:
+        raise ValueError(
+            f"{name}: {field} must have shape (m, m) or (n, m, m), got {value.shape}"
+        )
+
+
+def _check_symmetric(name: str, field: str, value: Array) -> None:
+    """Raise if a concrete matrix is not symmetric (no silent symmetrisation)."""
+    if not _is_concrete(value):
+        return
+    arr = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: {field} has non-finite entries")
+    asym = np.max(np.abs(arr - np.swapaxes(arr, -1, -2)), initial=0.0)
+    scale = max(np.max(np.abs(arr), initial=0.0), 1e-300)
+    if asym > 1e-8 * scale + 1e-12:
+        raise ValueError(
+            f"{name}: {field} is not symmetric (largest |A - Aᵀ| entry {asym:.3g}); "
+            "eqsmooth does not symmetrise it for you"
+        )
+
+
+def _cholesky_checked(name: str, field: str, value: Array) -> Array:
+    """`cholesky(value)`, raising (concrete) or `error_if` (traced) if `value`
+    is not positive definite."""
+    L = jnp.linalg.cholesky(value)
+    ok = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L, axis1=-2, axis2=-1) > 0)
+    if _is_concrete(L):
+        if not bool(ok):
+            eig = np.linalg.eigvalsh(np.asarray(value, dtype=np.float64))
+            raise ValueError(
+                f"{name}: {field} is not positive definite (smallest eigenvalue "
+                f"{eig.min():.3g}); a covariance or information matrix must be "
+                "symmetric positive definite"
+            )
+        return L
+    return eqx.error_if(
+        L, ~ok, f"{name}: {field} is not positive definite (checked under jit)"
+    )
+
+
+def _as_float(x) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jax.dtypes.canonicalize_dtype(jnp.float64))
+    return x
 
 
 def _expand(x: Array, ndim: int) -> Array:
@@ -84,17 +153,26 @@ class IsotropicNoise(AbstractNoiseModel):
     sqrt_precision: Float[Array, "*rows"]
 
     def __init__(self, sqrt_precision: Float[ArrayLike, "*rows"]):
-        self.sqrt_precision = jnp.asarray(sqrt_precision)
+        self.sqrt_precision = _positive_under_jit(
+            "IsotropicNoise", "sqrt_precision", _as_float(sqrt_precision)
+        )
 
     def __check_init__(self):
         _check_positive("IsotropicNoise", "sqrt_precision", self.sqrt_precision)
 
     @classmethod
     def from_sigma(cls, sigma: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
-        """Build from standard deviation(s) σ."""
-        sigma = jnp.asarray(sigma)
+        """Build from standard deviation(s) σ (`sqrt_precision = 1/σ`)."""
+        sigma = _positive_under_jit("IsotropicNoise", "sigma", _as_float(sigma))
         _check_positive("IsotropicNoise", "sigma", sigma)
         return cls(1.0 / sigma)
+
+    @classmethod
+    def from_precision(cls, precision: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
+        """Build from precision(s) `1/σ²` (`sqrt_precision = √precision`)."""
+        p = _positive_under_jit("IsotropicNoise", "precision", _as_float(precision))
+        _check_positive("IsotropicNoise", "precision", p)
+        return cls(jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
         s = self.sqrt_precision.astype(r.dtype)
@@ -128,7 +206,9 @@ class DiagonalNoise(AbstractNoiseModel):
     sqrt_precision: Float[Array, "*rows m"]
 
     def __init__(self, sqrt_precision: Float[ArrayLike, "*rows m"]):
-        self.sqrt_precision = jnp.asarray(sqrt_precision)
+        self.sqrt_precision = _positive_under_jit(
+            "DiagonalNoise", "sqrt_precision", _as_float(sqrt_precision)
+        )
 
     def __check_init__(self):
         if self.sqrt_precision.ndim not in (1, 2):
@@ -140,10 +220,24 @@ class DiagonalNoise(AbstractNoiseModel):
 
     @classmethod
     def from_sigmas(cls, sigmas: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
-        """Build from per-coordinate standard deviations."""
-        sigmas = jnp.asarray(sigmas)
+        """Build from per-coordinate standard deviations σ_j (`1/σ_j`)."""
+        sigmas = _positive_under_jit("DiagonalNoise", "sigmas", _as_float(sigmas))
         _check_positive("DiagonalNoise", "sigmas", sigmas)
         return cls(1.0 / sigmas)
+
+    @classmethod
+    def from_variances(cls, variances: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
+        """Build from per-coordinate variances σ_j² (`1/σ_j`)."""
+        v = _positive_under_jit("DiagonalNoise", "variances", _as_float(variances))
+        _check_positive("DiagonalNoise", "variances", v)
+        return cls(1.0 / jnp.sqrt(v))
+
+    @classmethod
+    def from_precision(cls, precision: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
+        """Build from per-coordinate precisions `1/σ_j²` (`√precision`)."""
+        p = _positive_under_jit("DiagonalNoise", "precision", _as_float(precision))
+        _check_positive("DiagonalNoise", "precision", p)
+        return cls(jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
         s = self.sqrt_precision.astype(r.dtype)
@@ -170,9 +264,12 @@ class DiagonalNoise(AbstractNoiseModel):
 class SqrtInformationNoise(AbstractNoiseModel):
     """Full Gaussian noise given by a lower-triangular square-root information `R`.
 
-    The whitened residual is `R r` and the information matrix is `RᵀR`. Only
-    the lower triangle of `sqrt_information` is used; its diagonal must be
-    positive.
+    The whitened residual is `R r` and the information matrix is `RᵀR`.
+    `sqrt_information` must be lower triangular with a positive diagonal:
+    a concrete matrix with a nonzero entry above the diagonal raises
+    `ValueError` (it is never silently dropped); under `jit` the upper
+    triangle is ignored and the diagonal is checked with `eqx.error_if`.
+    Prefer the named constructors `from_covariance` and `from_information`.
 
     **Arguments:**
 
@@ -182,7 +279,26 @@ class SqrtInformationNoise(AbstractNoiseModel):
     sqrt_information: Float[Array, "*rows m m"]
 
     def __init__(self, sqrt_information: Float[ArrayLike, "*rows m m"]):
-        self.sqrt_information = jnp.tril(jnp.asarray(sqrt_information))
+        R = _as_float(sqrt_information)
+        _check_square("SqrtInformationNoise", "sqrt_information", R)
+        if _is_concrete(R):
+            upper = np.abs(np.triu(np.asarray(R, dtype=np.float64), 1))
+            if upper.size and np.max(upper) > 0:
+                raise ValueError(
+                    "SqrtInformationNoise: sqrt_information must be lower triangular; "
+                    f"it has entries up to {np.max(upper):.3g} above the diagonal. "
+                    "Transpose an upper-triangular factor, or use "
+                    "SqrtInformationNoise.from_information / from_covariance"
+                )
+        else:
+            diag = jnp.diagonal(R, axis1=-2, axis2=-1)
+            R = eqx.error_if(
+                R,
+                ~jnp.all(diag > 0),
+                "SqrtInformationNoise.sqrt_information diagonal must be positive and "
+                "finite (checked under jit)",
+            )
+        self.sqrt_information = jnp.tril(R)
 
     def __check_init__(self):
         R = self.sqrt_information
@@ -201,9 +317,16 @@ class SqrtInformationNoise(AbstractNoiseModel):
     def from_covariance(
         cls, covariance: Float[ArrayLike, "*rows m m"]
     ) -> "SqrtInformationNoise":
-        """Build from covariance matrices Σ (`R = chol(Σ)⁻¹`, so `RᵀR = Σ⁻¹`)."""
-        cov = jnp.asarray(covariance)
-        L = jnp.linalg.cholesky(cov)
+        """Build from covariance matrices Σ (`R = chol(Σ)⁻¹`, so `RᵀR = Σ⁻¹`).
+
+        Σ must be square, symmetric (it is not symmetrised for you) and
+        positive definite; otherwise `ValueError` (concrete input) or an
+        `eqx.error_if` run-time error (under `jit`) names the fault.
+        """
+        cov = _as_float(covariance)
+        _check_square("SqrtInformationNoise.from_covariance", "covariance", cov)
+        _check_symmetric("SqrtInformationNoise.from_covariance", "covariance", cov)
+        L = _cholesky_checked("SqrtInformationNoise.from_covariance", "covariance", cov)
         eye = jnp.broadcast_to(jnp.eye(cov.shape[-1], dtype=cov.dtype), cov.shape)
         R = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
         return cls(R)
@@ -212,8 +335,13 @@ class SqrtInformationNoise(AbstractNoiseModel):
     def from_information(
         cls, information: Float[ArrayLike, "*rows m m"]
     ) -> "SqrtInformationNoise":
-        """Build from information matrices Λ (a lower-triangular `R` with `RᵀR = Λ`)."""
-        info = jnp.asarray(information)
+        """Build from information (precision) matrices Λ (a lower-triangular `R`
+        with `RᵀR = Λ`); Λ is checked like `from_covariance` checks Σ."""
+        info = _as_float(information)
+        who = "SqrtInformationNoise.from_information"
+        _check_square(who, "information", info)
+        _check_symmetric(who, "information", info)
+        _cholesky_checked(who, "information", info)
         # Reverse-order Cholesky: with J the exchange matrix, J Λ J = L Lᵀ gives
         # Λ = (J L J)(J Lᵀ J); R = J Lᵀ J is lower triangular.
         flip = info[..., ::-1, ::-1]
@@ -268,6 +396,11 @@ class AbstractRobustNoise(AbstractNoiseModel):
     scale: eqx.AbstractVar[Float[Array, "*rows"]]
 
     def __check_init__(self):
+        if not isinstance(self.base, AbstractNoiseModel):
+            raise TypeError(
+                f"{type(self).__name__}.base must be a Gaussian noise model such as "
+                f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
+            )
         _check_scale(type(self).__name__, self.scale)
 
     def whiten(self, r):

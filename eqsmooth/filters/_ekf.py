@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ..factors import AbstractFactor
-from ..manifold import local, retract, tangent_dim
+from ..manifold import is_group, local, retract, tangent_dim
 from ._rows import (
     check_gaussian,
     check_rows,
@@ -255,6 +255,9 @@ def ekf(
             f"ekf: initial_covariance has shape {initial_covariance.shape}; the state "
             f"has tangent dimension {d}, so it must be ({d}, {d})"
         )
+    initial_mean, initial_covariance = _check_initial_belief(
+        initial_mean, initial_covariance
+    )
     return _ekf(
         transition,
         measurements,
@@ -264,6 +267,56 @@ def ekf(
         reset_covariance,
         throw,
     )
+
+
+def _check_initial_belief(mean: PyTree, cov: Array) -> tuple[PyTree, Array]:
+    """Validate the initial belief: a finite mean and a finite, symmetric,
+    positive-definite covariance. Concrete values raise `ValueError` naming
+    the fault; traced ones get an `eqx.error_if`."""
+    if not jnp.issubdtype(cov.dtype, jnp.floating):
+        raise TypeError(
+            f"ekf: initial_covariance must be a floating-point array, got {cov.dtype}"
+        )
+    leaves = [
+        leaf.parameters() if is_group(leaf) else jnp.asarray(leaf)
+        for leaf in jax.tree_util.tree_leaves(mean, is_leaf=is_group)
+    ]
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in leaves + [cov])
+    if concrete:
+        for k, leaf in enumerate(leaves):
+            if not np.all(np.isfinite(np.asarray(leaf))):
+                raise ValueError(
+                    f"ekf: initial_mean has non-finite entries (leaf {k}, shape "
+                    f"{leaf.shape})"
+                )
+        c = np.asarray(cov, dtype=np.float64)
+        if not np.all(np.isfinite(c)):
+            raise ValueError("ekf: initial_covariance has non-finite entries")
+        asym = np.max(np.abs(c - c.T), initial=0.0)
+        if asym > 1e-8 * max(np.max(np.abs(c), initial=0.0), 1e-300):
+            raise ValueError(
+                f"ekf: initial_covariance is not symmetric (largest |P - Pᵀ| entry "
+                f"{asym:.3g})"
+            )
+        eig = np.linalg.eigvalsh(c) if c.size else np.ones(1)
+        if eig.min() <= 0:
+            raise ValueError(
+                "ekf: initial_covariance is not positive definite (smallest "
+                f"eigenvalue {eig.min():.3g})"
+            )
+        return mean, cov
+    finite = jnp.all(jnp.isfinite(cov))
+    for leaf in leaves:
+        finite = finite & jnp.all(jnp.isfinite(leaf))
+    chol = jnp.linalg.cholesky(cov)
+    ok = finite & jnp.all(jnp.isfinite(chol)) & jnp.allclose(cov, cov.T)
+    cov = eqx.error_if(
+        cov,
+        ~ok,
+        "ekf: the initial belief is invalid: initial_mean or initial_covariance is "
+        "not finite, or the covariance is not symmetric positive definite",
+    )
+    return mean, cov
 
 
 @eqx.filter_jit

@@ -55,8 +55,17 @@ def _fail(path, lineno, message):
 
 def _tokenize(path: Path, skip_unsupported: bool) -> dict[str, _Lines]:
     found: dict[str, _Lines] = collections.defaultdict(_Lines)
-    with open(path) as fh:
-        for lineno, line in enumerate(fh, 1):
+    with open(path, "rb") as fh:
+        for lineno, raw in enumerate(fh, 1):
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError as e:
+                _fail(
+                    path,
+                    lineno,
+                    f"not UTF-8 text: byte {raw[e.start : e.start + 1]!r} at column "
+                    f"{e.start + 1} (is this a binary file, or in another encoding?)",
+                )
             tokens = line.split()
             if not tokens or tokens[0].startswith("#"):
                 continue
@@ -87,9 +96,15 @@ def _numbers(path, tag: str, lines: _Lines, start: int, stop: int | None, dtype)
         for lineno, row in zip(lines.linenos, rows):
             for tok in row:
                 try:
-                    convert(tok)
+                    value = convert(tok)
+                    if convert is int and not (
+                        np.iinfo(np.int64).min <= value <= np.iinfo(np.int64).max
+                    ):
+                        raise OverflowError
                 except (ValueError, OverflowError):
                     what = "an integer id" if convert is int else "a number"
+                    if convert is int and tok.lstrip("+-").isdigit():
+                        what = "a 64-bit integer id (out of range)"
                     _fail(path, lineno, f"{tag}: cannot read {tok!r} as {what}")
         raise
     if dtype is np.float64:
@@ -338,6 +353,10 @@ def load_g2o(
     if se3_information not in ("g2o", "gtsam"):
         raise ValueError(
             f"se3_information must be 'g2o' or 'gtsam', got {se3_information!r}"
+        )
+    if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
+        raise TypeError(
+            f"load_g2o: dtype must be float32 or float64, got {np.dtype(dtype)}"
         )
     path = Path(path)
     found = _tokenize(path, skip_unsupported)

@@ -70,16 +70,29 @@ class AbstractLieGroup(eqx.Module):
 
     @classmethod
     @abc.abstractmethod
-    def from_matrix(cls: type[_G], matrix: Float[ArrayLike, "*batch n n"]) -> _G:
-        """Build an element from its homogeneous matrix.
+    def from_matrix(
+        cls: type[_G], matrix: Float[ArrayLike, "*batch n n"], check: bool = True
+    ) -> _G:
+        """Build an element from its (homogeneous) matrix.
 
         **Arguments:**
 
-        - `matrix`: array of shape `(*batch, matrix_dim, matrix_dim)`.
+        - `matrix`: array of shape `(*batch, matrix_dim, matrix_dim)`; any other
+            shape raises `ValueError`.
+        - `check`: if `True` (the default) the matrix must be in the group up to
+            a tolerance of `max(1e-3, 10 eps)`: rotation block orthonormal with
+            determinant +1, bottom row `(0, ..., 0, 1)` for SE(2)/SE(3), every
+            entry finite. A concrete matrix that fails raises `ValueError`
+            naming the batch index and the fault (a reflection, not
+            orthonormal, a bad bottom row, non-finite entries); under `jax.jit`
+            the check is an `eqx.error_if`. With `check=False` nothing is
+            checked: the rotation block is projected onto the rotations (the
+            closest rotation for a slightly perturbed one, an arbitrary one for
+            a reflection or a singular matrix) and the bottom row is ignored.
 
         **Returns:**
 
-        The group element. Matrices slightly off the group are projected onto it.
+        The group element.
         """
 
     @classmethod

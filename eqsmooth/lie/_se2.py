@@ -8,7 +8,11 @@ from ._base import AbstractLieGroup, check_parameters
 from ._so2 import SO2
 from ._utils import (
     as_float_array,
+    as_matrices,
+    as_vectors,
     broadcast_batch,
+    check_on_group,
+    check_unit_norm,
     coef_a,
     coef_b,
     coef_c,
@@ -36,12 +40,21 @@ class SE2(AbstractLieGroup):
     matrix_dim: ClassVar[int] = 3
     space_dim: ClassVar[int] = 2
 
-    def __init__(self, unit_complex_xy: Float[ArrayLike, "*batch 4"]):
+    def __init__(
+        self, unit_complex_xy: Float[ArrayLike, "*batch 4"], check: bool = True
+    ):
         """**Arguments:**
 
         - `unit_complex_xy`: `(cos, sin, x, y)`, shape `(*batch, 4)`.
+        - `check`: raise `ValueError` if the parameters are concrete and the
+            rotation part is not finite with unit norm (within
+            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
+            not checked. `check=False` accepts any parameters, e.g. to
+            call `normalize()` on them.
         """
-        self.unit_complex_xy = as_float_array(unit_complex_xy)
+        self.unit_complex_xy = as_vectors(unit_complex_xy, 4, "SE2", "unit_complex_xy")
+        if check:
+            check_unit_norm("SE2", "unit_complex_xy", self.unit_complex_xy, 2)
 
     def __check_init__(self):
         check_parameters("SE2", self.unit_complex_xy, 4)
@@ -66,9 +79,15 @@ class SE2(AbstractLieGroup):
         """
         z, t = broadcast_batch(
             rotation.unit_complex,
-            as_float_array(translation, like=rotation.unit_complex),
+            as_vectors(
+                translation,
+                2,
+                "SE2.from_rotation_and_translation",
+                "translation",
+                like=rotation.unit_complex,
+            ),
         )
-        return cls(jnp.concatenate([z, t], axis=-1))
+        return cls(jnp.concatenate([z, t], axis=-1), check=False)
 
     @classmethod
     def from_xy_theta(
@@ -93,7 +112,9 @@ class SE2(AbstractLieGroup):
         x, y, theta = jnp.broadcast_arrays(
             as_float_array(x), as_float_array(y), as_float_array(theta)
         )
-        return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1))
+        return cls(
+            jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1), check=False
+        )
 
     @classmethod
     def identity(
@@ -101,25 +122,53 @@ class SE2(AbstractLieGroup):
     ) -> "SE2":
         dtype = default_float_dtype() if dtype is None else dtype
         return cls(
-            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4))
+            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4)),
+            check=False,
         )
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 3"]) -> "SE2":
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
         t = jnp.square(theta)
         a = sinc(t)
         b = theta * coef_a(t)
         x = a * vx - b * vy
         y = b * vx + a * vy
-        return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1))
+        return cls(
+            jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1), check=False
+        )
 
     @classmethod
-    def from_matrix(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> "SE2":
-        matrix = as_float_array(matrix)
+    def from_matrix(
+        cls, matrix: Float[ArrayLike, "*batch 3 3"], check: bool = True
+    ) -> "SE2":
+        """Build an element from its homogeneous matrix.
+
+        **Arguments:**
+
+        - `matrix`: array of shape `(*batch, 3, 3)`; any other shape raises
+            `ValueError`.
+        - `check`: if `True` (the default), the matrix must be in the group up
+            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
+            with determinant +1 and bottom row `(0, ..., 0, 1)`, every entry
+            finite. Concrete input that fails raises `ValueError` naming the
+            batch index and the fault; under `jax.jit` the check is an
+            `eqx.error_if`. With `check=False`
+            nothing is checked: the rotation block is projected onto the
+            rotations (the closest rotation for a slightly perturbed one; an
+            arbitrary one for a reflection or a singular matrix), and the
+            bottom row is ignored.
+
+        **Returns:**
+
+        The group element.
+        """
+        matrix = as_matrices(matrix, 3, "SE2")
+        if check:
+            matrix = check_on_group("SE2", matrix, 2, True)
         return cls.from_rotation_and_translation(
-            SO2.from_matrix(matrix[..., :2, :2]), matrix[..., :2, 2]
+            SO2.from_matrix(matrix[..., :2, :2], check=False), matrix[..., :2, 2]
         )
 
     @classmethod
@@ -142,14 +191,14 @@ class SE2(AbstractLieGroup):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
         zero = jnp.zeros_like(theta)
         return stack_matrix([[zero, -theta, vx], [theta, zero, vy], [zero, zero, zero]])
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
-        matrix = as_float_array(matrix)
+        matrix = as_matrices(matrix, cls.matrix_dim, cls.__name__)
         return jnp.stack(
             [matrix[..., 0, 2], matrix[..., 1, 2], matrix[..., 1, 0]], axis=-1
         )
@@ -160,7 +209,7 @@ class SE2(AbstractLieGroup):
     ) -> Float[Array, "*batch 3 3"]:
         # Sola, Deray and Atchuthan, "A micro Lie theory for state estimation in
         # robotics" (2018), appendix on SE(2).
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
         t = jnp.square(theta)
         a = sinc(t)
@@ -183,7 +232,7 @@ class SE2(AbstractLieGroup):
     ) -> Float[Array, "*batch 3 3"]:
         # Block inverse of right_jacobian: the 2x2 block [[a, b], [-b, a]] has inverse
         # [[h, -theta/2], [theta/2, h]] with h = (theta/2) cot(theta/2) = 1 - t C(t).
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
         t = jnp.square(theta)
         h = 1.0 - t * coef_c(t)
@@ -209,7 +258,7 @@ class SE2(AbstractLieGroup):
 
     def rotation(self) -> SO2:
         """The rotation part, an [`eqsmooth.lie.SO2`][]."""
-        return SO2(self.unit_complex_xy[..., :2])
+        return SO2(self.unit_complex_xy[..., :2], check=False)
 
     def translation(self) -> Float[Array, "*batch 2"]:
         """The translation part, shape `(*batch, 2)`."""
@@ -246,17 +295,25 @@ class SE2(AbstractLieGroup):
         c, s, t = a[..., 0:1], a[..., 1:2], a[..., 2:]
         z = a[..., :2] * signs([1.0, -1.0], a)
         # -R(θ)ᵀ t = (-c x - s y, s x - c y)
-        return SE2(jnp.concatenate([z, s * rotate_pairs(t) - c * t], axis=-1))
+        return SE2(
+            jnp.concatenate([z, s * rotate_pairs(t) - c * t], axis=-1), check=False
+        )
 
     def compose(self, other: "SE2") -> "SE2":
         a, b = broadcast_batch(self.unit_complex_xy, other.unit_complex_xy)
         # (c₁ + i s₁)(c₂ + i s₂) and R₁ t₂, both as c₁ b + s₁ (b turned by 90°).
         out = a[..., 0:1] * b + a[..., 1:2] * rotate_pairs(b)
-        return SE2(jnp.concatenate([out[..., :2], out[..., 2:] + a[..., 2:]], axis=-1))
+        return SE2(
+            jnp.concatenate([out[..., :2], out[..., 2:] + a[..., 2:]], axis=-1),
+            check=False,
+        )
 
     def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
-        params, p = broadcast_batch(self.unit_complex_xy, as_float_array(points))
-        return SO2(params[..., :2]).apply(p) + params[..., 2:]
+        params, p = broadcast_batch(
+            self.unit_complex_xy,
+            as_vectors(points, self.space_dim, type(self).__name__, "points"),
+        )
+        return SO2(params[..., :2], check=False).apply(p) + params[..., 2:]
 
     def adjoint(self) -> Float[Array, "*batch 3 3"]:
         c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))

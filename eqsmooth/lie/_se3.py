@@ -7,8 +7,11 @@ from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 from ._base import AbstractLieGroup, check_parameters
 from ._so3 import skew, SO3
 from ._utils import (
-    as_float_array,
+    as_matrices,
+    as_vectors,
     broadcast_batch,
+    check_on_group,
+    check_unit_norm,
     coef_a,
     coef_b,
     coef_c,
@@ -65,12 +68,19 @@ class SE3(AbstractLieGroup):
     matrix_dim: ClassVar[int] = 4
     space_dim: ClassVar[int] = 3
 
-    def __init__(self, wxyz_xyz: Float[ArrayLike, "*batch 7"]):
+    def __init__(self, wxyz_xyz: Float[ArrayLike, "*batch 7"], check: bool = True):
         """**Arguments:**
 
         - `wxyz_xyz`: `(qw, qx, qy, qz, x, y, z)`, shape `(*batch, 7)`.
+        - `check`: raise `ValueError` if the parameters are concrete and the
+            rotation part is not finite with unit norm (within
+            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
+            not checked. `check=False` accepts any parameters, e.g. to
+            call `normalize()` on them.
         """
-        self.wxyz_xyz = as_float_array(wxyz_xyz)
+        self.wxyz_xyz = as_vectors(wxyz_xyz, 7, "SE3", "wxyz_xyz")
+        if check:
+            check_unit_norm("SE3", "wxyz_xyz", self.wxyz_xyz, 4)
 
     def __check_init__(self):
         check_parameters("SE3", self.wxyz_xyz, 7)
@@ -94,9 +104,16 @@ class SE3(AbstractLieGroup):
         The rigid motion.
         """
         q, t = broadcast_batch(
-            rotation.wxyz, as_float_array(translation, like=rotation.wxyz)
+            rotation.wxyz,
+            as_vectors(
+                translation,
+                3,
+                "SE3.from_rotation_and_translation",
+                "translation",
+                like=rotation.wxyz,
+            ),
         )
-        return cls(jnp.concatenate([q, t], axis=-1))
+        return cls(jnp.concatenate([q, t], axis=-1), check=False)
 
     @classmethod
     def identity(
@@ -104,23 +121,50 @@ class SE3(AbstractLieGroup):
     ) -> "SE3":
         dtype = default_float_dtype() if dtype is None else dtype
         params = jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype)
-        return cls(jnp.broadcast_to(params, (*batch_shape, 7)))
+        return cls(jnp.broadcast_to(params, (*batch_shape, 7)), check=False)
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 6"]) -> "SE3":
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         rho, omega = tangent[..., :3], tangent[..., 3:]
         t = jnp.sum(jnp.square(omega), axis=-1, keepdims=True)
         # translation = Jl(omega) @ rho, written with cross products.
         w_rho = jnp.cross(omega, rho)
         translation = rho + coef_a(t) * w_rho + coef_b(t) * jnp.cross(omega, w_rho)
-        return cls(jnp.concatenate([SO3.exp(omega).wxyz, translation], axis=-1))
+        return cls(
+            jnp.concatenate([SO3.exp(omega).wxyz, translation], axis=-1), check=False
+        )
 
     @classmethod
-    def from_matrix(cls, matrix: Float[ArrayLike, "*batch 4 4"]) -> "SE3":
-        matrix = as_float_array(matrix)
+    def from_matrix(
+        cls, matrix: Float[ArrayLike, "*batch 4 4"], check: bool = True
+    ) -> "SE3":
+        """Build an element from its homogeneous matrix.
+
+        **Arguments:**
+
+        - `matrix`: array of shape `(*batch, 4, 4)`; any other shape raises
+            `ValueError`.
+        - `check`: if `True` (the default), the matrix must be in the group up
+            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
+            with determinant +1 and bottom row `(0, ..., 0, 1)`, every entry
+            finite. Concrete input that fails raises `ValueError` naming the
+            batch index and the fault; under `jax.jit` the check is an
+            `eqx.error_if`. With `check=False`
+            nothing is checked: the rotation block is projected onto the
+            rotations (the closest rotation for a slightly perturbed one; an
+            arbitrary one for a reflection or a singular matrix), and the
+            bottom row is ignored.
+
+        **Returns:**
+
+        The group element.
+        """
+        matrix = as_matrices(matrix, 4, "SE3")
+        if check:
+            matrix = check_on_group("SE3", matrix, 3, True)
         return cls.from_rotation_and_translation(
-            SO3.from_matrix(matrix[..., :3, :3]), matrix[..., :3, 3]
+            SO3.from_matrix(matrix[..., :3, :3], check=False), matrix[..., :3, 3]
         )
 
     @classmethod
@@ -143,14 +187,14 @@ class SE3(AbstractLieGroup):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 6"]) -> Float[Array, "*batch 4 4"]:
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         top = jnp.concatenate([skew(tangent[..., 3:]), tangent[..., :3, None]], axis=-1)
         bottom = jnp.zeros_like(top[..., :1, :])
         return jnp.concatenate([top, bottom], axis=-2)
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 6"]:
-        m = as_float_array(matrix)
+        m = as_matrices(matrix, cls.matrix_dim, cls.__name__)
         return jnp.concatenate([m[..., :3, 3], SO3.vee(m[..., :3, :3])], axis=-1)
 
     @classmethod
@@ -158,7 +202,7 @@ class SE3(AbstractLieGroup):
         cls, tangent: Float[ArrayLike, "*batch 6"]
     ) -> Float[Array, "*batch 6 6"]:
         # Jr(xi) = Jl(-xi) = [[Jr(omega), Q(-rho, -omega)], [0, Jr(omega)]].
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         rho, omega = tangent[..., :3], tangent[..., 3:]
         jr = SO3.right_jacobian(omega)
         return _block(jr, _q_matrix(-rho, -omega), jr)
@@ -167,7 +211,7 @@ class SE3(AbstractLieGroup):
     def right_jacobian_inv(
         cls, tangent: Float[ArrayLike, "*batch 6"]
     ) -> Float[Array, "*batch 6 6"]:
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         rho, omega = tangent[..., :3], tangent[..., 3:]
         jr_inv = SO3.right_jacobian_inv(omega)
         q = _q_matrix(-rho, -omega)
@@ -180,7 +224,7 @@ class SE3(AbstractLieGroup):
 
     def rotation(self) -> SO3:
         """The rotation part, an [`eqsmooth.lie.SO3`][]."""
-        return SO3(self.wxyz_xyz[..., :4])
+        return SO3(self.wxyz_xyz[..., :4], check=False)
 
     def translation(self) -> Float[Array, "*batch 3"]:
         """The translation part, shape `(*batch, 3)`."""
@@ -200,19 +244,23 @@ class SE3(AbstractLieGroup):
         return SE3(
             jnp.concatenate(
                 [rotation_inv.wxyz, -rotation_inv.apply(self.translation())], axis=-1
-            )
+            ),
+            check=False,
         )
 
     def compose(self, other: "SE3") -> "SE3":
         a, b = broadcast_batch(self.wxyz_xyz, other.wxyz_xyz)
-        rotation = SO3(a[..., :4])
-        q = rotation.compose(SO3(b[..., :4])).wxyz
+        rotation = SO3(a[..., :4], check=False)
+        q = rotation.compose(SO3(b[..., :4], check=False)).wxyz
         t = rotation.apply(b[..., 4:]) + a[..., 4:]
-        return SE3(jnp.concatenate([q, t], axis=-1))
+        return SE3(jnp.concatenate([q, t], axis=-1), check=False)
 
     def apply(self, points: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
-        params, p = broadcast_batch(self.wxyz_xyz, as_float_array(points))
-        return SO3(params[..., :4]).apply(p) + params[..., 4:]
+        params, p = broadcast_batch(
+            self.wxyz_xyz,
+            as_vectors(points, self.space_dim, type(self).__name__, "points"),
+        )
+        return SO3(params[..., :4], check=False).apply(p) + params[..., 4:]
 
     def adjoint(self) -> Float[Array, "*batch 6 6"]:
         r = self.rotation().as_matrix()

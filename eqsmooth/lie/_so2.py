@@ -7,7 +7,11 @@ from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 from ._base import AbstractLieGroup, check_parameters
 from ._utils import (
     as_float_array,
+    as_matrices,
+    as_vectors,
     broadcast_batch,
+    check_on_group,
+    check_unit_norm,
     default_float_dtype,
     rotate_pairs,
     stack_matrix,
@@ -30,12 +34,19 @@ class SO2(AbstractLieGroup):
     matrix_dim: ClassVar[int] = 2
     space_dim: ClassVar[int] = 2
 
-    def __init__(self, unit_complex: Float[ArrayLike, "*batch 2"]):
+    def __init__(self, unit_complex: Float[ArrayLike, "*batch 2"], check: bool = True):
         """**Arguments:**
 
         - `unit_complex`: `(cos, sin)` of the rotation angle, shape `(*batch, 2)`.
+        - `check`: raise `ValueError` if the parameters are concrete and the
+            rotation part is not finite with unit norm (within
+            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
+            not checked. `check=False` accepts any parameters, e.g. to
+            call `normalize()` on them.
         """
-        self.unit_complex = as_float_array(unit_complex)
+        self.unit_complex = as_vectors(unit_complex, 2, "SO2", "unit_complex")
+        if check:
+            check_unit_norm("SO2", "unit_complex", self.unit_complex, 2)
 
     def __check_init__(self):
         check_parameters("SO2", self.unit_complex, 2)
@@ -55,29 +66,55 @@ class SO2(AbstractLieGroup):
         The rotations.
         """
         theta = as_float_array(theta)
-        return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta)], axis=-1))
+        return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta)], axis=-1), check=False)
 
     @classmethod
     def identity(
         cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
     ) -> "SO2":
         dtype = default_float_dtype() if dtype is None else dtype
-        return cls(jnp.broadcast_to(jnp.array([1.0, 0.0], dtype), (*batch_shape, 2)))
+        return cls(
+            jnp.broadcast_to(jnp.array([1.0, 0.0], dtype), (*batch_shape, 2)),
+            check=False,
+        )
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 1"]) -> "SO2":
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         return cls.from_radians(tangent[..., 0])
 
     @classmethod
-    def from_matrix(cls, matrix: Float[ArrayLike, "*batch 2 2"]) -> "SO2":
-        matrix = as_float_array(matrix)
+    def from_matrix(
+        cls, matrix: Float[ArrayLike, "*batch 2 2"], check: bool = True
+    ) -> "SO2":
+        """Build an element from its rotation matrix.
+
+        **Arguments:**
+
+        - `matrix`: array of shape `(*batch, 2, 2)`; any other shape raises
+            `ValueError`.
+        - `check`: if `True` (the default), the matrix must be in the group up
+            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
+            with determinant +1, every entry finite. Concrete input that
+            fails raises `ValueError` naming the batch index and the fault;
+            under `jax.jit` the check is an `eqx.error_if`. With `check=False`
+            nothing is checked: the rotation block is projected onto the
+            rotations (the closest rotation for a slightly perturbed one; an
+            arbitrary one for a reflection or a singular matrix).
+
+        **Returns:**
+
+        The group element.
+        """
+        matrix = as_matrices(matrix, 2, "SO2")
+        if check:
+            matrix = check_on_group("SO2", matrix, 2, False)
         # Average the two copies of cos and sin: this gives the closest rotation
         # (in Frobenius norm) to a slightly perturbed matrix.
         cos = matrix[..., 0, 0] + matrix[..., 1, 1]
         sin = matrix[..., 1, 0] - matrix[..., 0, 1]
         z = jnp.stack([cos, sin], axis=-1)
-        return cls(z / jnp.linalg.norm(z, axis=-1, keepdims=True))
+        return cls(z / jnp.linalg.norm(z, axis=-1, keepdims=True), check=False)
 
     @classmethod
     def sample_uniform(
@@ -96,28 +133,28 @@ class SO2(AbstractLieGroup):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 1"]) -> Float[Array, "*batch 2 2"]:
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         theta = tangent[..., 0]
         zero = jnp.zeros_like(theta)
         return stack_matrix([[zero, -theta], [theta, zero]])
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 2 2"]) -> Float[Array, "*batch 1"]:
-        matrix = as_float_array(matrix)
+        matrix = as_matrices(matrix, cls.matrix_dim, cls.__name__)
         return matrix[..., 1, 0:1]
 
     @classmethod
     def right_jacobian(
         cls, tangent: Float[ArrayLike, "*batch 1"]
     ) -> Float[Array, "*batch 1 1"]:
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         return jnp.ones_like(tangent)[..., None]
 
     @classmethod
     def right_jacobian_inv(
         cls, tangent: Float[ArrayLike, "*batch 1"]
     ) -> Float[Array, "*batch 1 1"]:
-        tangent = as_float_array(tangent)
+        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         return jnp.ones_like(tangent)[..., None]
 
     # ---------------------------------------------------------------- operations
@@ -134,15 +171,18 @@ class SO2(AbstractLieGroup):
 
     def inverse(self) -> "SO2":
         z = self.unit_complex
-        return SO2(jnp.stack([z[..., 0], -z[..., 1]], axis=-1))
+        return SO2(jnp.stack([z[..., 0], -z[..., 1]], axis=-1), check=False)
 
     def compose(self, other: "SO2") -> "SO2":
         a, b = broadcast_batch(self.unit_complex, other.unit_complex)
         # (c₁ + i s₁)(c₂ + i s₂) = c₁ b + s₁ (b turned by 90°), on whole vectors.
-        return SO2(a[..., 0:1] * b + a[..., 1:2] * rotate_pairs(b))
+        return SO2(a[..., 0:1] * b + a[..., 1:2] * rotate_pairs(b), check=False)
 
     def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
-        z, p = broadcast_batch(self.unit_complex, as_float_array(points))
+        z, p = broadcast_batch(
+            self.unit_complex,
+            as_vectors(points, self.space_dim, type(self).__name__, "points"),
+        )
         c, s = z[..., 0], z[..., 1]
         x, y = p[..., 0], p[..., 1]
         return jnp.stack([c * x - s * y, s * x + c * y], axis=-1)

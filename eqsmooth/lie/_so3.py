@@ -7,7 +7,11 @@ from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 from ._base import AbstractLieGroup, check_parameters
 from ._utils import (
     as_float_array,
+    as_matrices,
+    as_vectors,
     broadcast_batch,
+    check_on_group,
+    check_unit_norm,
     coef_a,
     coef_b,
     coef_c,
@@ -48,12 +52,19 @@ class SO3(AbstractLieGroup):
     matrix_dim: ClassVar[int] = 3
     space_dim: ClassVar[int] = 3
 
-    def __init__(self, wxyz: Float[ArrayLike, "*batch 4"]):
+    def __init__(self, wxyz: Float[ArrayLike, "*batch 4"], check: bool = True):
         """**Arguments:**
 
         - `wxyz`: quaternion `(w, x, y, z)`, shape `(*batch, 4)`.
+        - `check`: raise `ValueError` if the parameters are concrete and the
+            rotation part is not finite with unit norm (within
+            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
+            not checked. `check=False` accepts any parameters, e.g. to
+            call `normalize()` on them.
         """
-        self.wxyz = as_float_array(wxyz)
+        self.wxyz = as_vectors(wxyz, 4, "SO3", "wxyz")
+        if check:
+            check_unit_norm("SO3", "wxyz", self.wxyz, 4)
 
     def __check_init__(self):
         check_parameters("SO3", self.wxyz, 4)
@@ -113,23 +124,47 @@ class SO3(AbstractLieGroup):
     ) -> "SO3":
         dtype = default_float_dtype() if dtype is None else dtype
         return cls(
-            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4))
+            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4)),
+            check=False,
         )
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 3"]) -> "SO3":
-        omega = as_float_array(tangent)
+        omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         t = jnp.sum(jnp.square(omega), axis=-1)
         w = cos_half(t)
         v = sin_half_over(t)[..., None] * omega
-        return cls(jnp.concatenate([w[..., None], v], axis=-1))
+        return cls(jnp.concatenate([w[..., None], v], axis=-1), check=False)
 
     @classmethod
-    def from_matrix(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> "SO3":
+    def from_matrix(
+        cls, matrix: Float[ArrayLike, "*batch 3 3"], check: bool = True
+    ) -> "SO3":
+        """Build an element from its rotation matrix.
+
+        **Arguments:**
+
+        - `matrix`: array of shape `(*batch, 3, 3)`; any other shape raises
+            `ValueError`.
+        - `check`: if `True` (the default), the matrix must be in the group up
+            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
+            with determinant +1, every entry finite. Concrete input that
+            fails raises `ValueError` naming the batch index and the fault;
+            under `jax.jit` the check is an `eqx.error_if`. With `check=False`
+            nothing is checked: the rotation block is projected onto the
+            rotations (the closest rotation for a slightly perturbed one; an
+            arbitrary one for a reflection or a singular matrix).
+
+        **Returns:**
+
+        The group element.
+        """
         # Shepperd's method without square roots: each candidate below equals
         # 4 q_i q for one component q_i; the one with the largest |q_i| is well
         # conditioned (|q_i| >= 1/2) and is normalized.
-        m = as_float_array(matrix)
+        m = as_matrices(matrix, 3, "SO3")
+        if check:
+            m = check_on_group("SO3", m, 3, False)
         r = [[m[..., i, j] for j in range(3)] for i in range(3)]
         t_w = 1.0 + r[0][0] + r[1][1] + r[2][2]
         t_x = 1.0 + r[0][0] - r[1][1] - r[2][2]
@@ -153,7 +188,7 @@ class SO3(AbstractLieGroup):
         q = jnp.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
         q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
         q = jnp.where(q[..., :1] < 0, -q, q)
-        return cls(q)
+        return cls(q, check=False)
 
     @classmethod
     def sample_uniform(
@@ -166,17 +201,17 @@ class SO3(AbstractLieGroup):
         # Haar measure on SO(3).
         dtype = default_float_dtype() if dtype is None else dtype
         q = jax.random.normal(key, (*batch_shape, 4), dtype=dtype)
-        return cls(q / jnp.linalg.norm(q, axis=-1, keepdims=True))
+        return cls(q / jnp.linalg.norm(q, axis=-1, keepdims=True), check=False)
 
     # ------------------------------------------------------------- Lie algebra
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-        return skew(as_float_array(tangent))
+        return skew(as_vectors(tangent, cls.tangent_dim, cls.__name__))
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
-        m = as_float_array(matrix)
+        m = as_matrices(matrix, cls.matrix_dim, cls.__name__)
         return jnp.stack([m[..., 2, 1], m[..., 0, 2], m[..., 1, 0]], axis=-1)
 
     @classmethod
@@ -186,7 +221,7 @@ class SO3(AbstractLieGroup):
         # Jr(w) = I - A(theta) hat(w) + B(theta) hat(w)^2; see Sola, Deray and
         # Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
         # appendix on SO(3).
-        omega = as_float_array(tangent)
+        omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
         w = skew(omega)
         return _eye_like(omega, 3) - coef_a(t) * w + coef_b(t) * (w @ w)
@@ -196,7 +231,7 @@ class SO3(AbstractLieGroup):
         cls, tangent: Float[ArrayLike, "*batch 3"]
     ) -> Float[Array, "*batch 3 3"]:
         # Jr(w)^-1 = I + hat(w) / 2 + C(theta) hat(w)^2, C regular up to 2 pi.
-        omega = as_float_array(tangent)
+        omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
         w = skew(omega)
         return _eye_like(omega, 3) + 0.5 * w + coef_c(t) * (w @ w)
@@ -214,7 +249,7 @@ class SO3(AbstractLieGroup):
 
     def inverse(self) -> "SO3":
         q = self.wxyz
-        return SO3(jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1))
+        return SO3(jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1), check=False)
 
     def compose(self, other: "SO3") -> "SO3":
         a, b = broadcast_batch(self.wxyz, other.wxyz)
@@ -222,10 +257,12 @@ class SO3(AbstractLieGroup):
         w2, v2 = b[..., 0], b[..., 1:]
         w = w1 * w2 - jnp.sum(v1 * v2, axis=-1)
         v = w1[..., None] * v2 + w2[..., None] * v1 + jnp.cross(v1, v2)
-        return SO3(jnp.concatenate([w[..., None], v], axis=-1))
+        return SO3(jnp.concatenate([w[..., None], v], axis=-1), check=False)
 
     def apply(self, points: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
-        q, p = broadcast_batch(self.wxyz, as_float_array(points))
+        q, p = broadcast_batch(
+            self.wxyz, as_vectors(points, self.space_dim, type(self).__name__, "points")
+        )
         w, v = q[..., :1], q[..., 1:]
         # p + (2 / |q|^2) (w (v x p) + v x (v x p)): exact for any nonzero scale.
         k = 2.0 / jnp.sum(jnp.square(q), axis=-1, keepdims=True)

@@ -12,6 +12,7 @@ import math
 from collections.abc import Callable, Sequence
 from fractions import Fraction
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -239,3 +240,124 @@ def matvec(m: Array, v: Array) -> Array:
 def stack_matrix(rows: Sequence[Sequence[Array]]) -> Array:
     """Build a `(*batch, n, m)` matrix from nested lists of `(*batch,)` arrays."""
     return jnp.stack([jnp.stack(list(row), axis=-1) for row in rows], axis=-2)
+
+
+def as_vectors(
+    x, size: int, who: str, what: str = "tangent vectors", like: Array | None = None
+) -> Array:
+    """`as_float_array`, then check that the last axis has `size` entries.
+
+    Without this check, `x[..., i]` past the end is clamped by JAX and a
+    wrongly sized input gives a plausible but wrong answer.
+    """
+    x = as_float_array(x, like=like)
+    if x.ndim < 1 or x.shape[-1] != size:
+        raise ValueError(
+            f"{who}: {what} must have shape (*batch, {size}), got {x.shape}"
+        )
+    return x
+
+
+def as_matrices(x, size: int, who: str) -> Array:
+    """`as_float_array`, then check that the last two axes are `(size, size)`."""
+    x = as_float_array(x)
+    if x.ndim < 2 or x.shape[-2:] != (size, size):
+        raise ValueError(
+            f"{who}: matrices must have shape (*batch, {size}, {size}), got {x.shape}"
+        )
+    return x
+
+
+def unit_tolerance(dtype) -> float:
+    """How far from 1 the norm of rotation parameters may be when checked."""
+    return max(1e-3, 10 * float(jnp.finfo(dtype).eps))
+
+
+def check_unit_norm(who: str, field: str, params, stop: int) -> None:
+    """Raise if the rotation part `params[..., :stop]` is not finite and of unit
+    norm (within `unit_tolerance`); traced values are not checked."""
+    if isinstance(params, jax.core.Tracer):
+        return
+    arr = np.asarray(params[..., :stop], dtype=np.float64)
+    if arr.size == 0:
+        return
+    norms = np.linalg.norm(arr, axis=-1)
+    bad = ~np.isfinite(norms) | (np.abs(norms - 1.0) > unit_tolerance(params.dtype))
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        where = f" at batch index {idx}" if idx else ""
+        raise ValueError(
+            f"{who}: the rotation part of {field}{where} has norm "
+            f"{norms[bad].flat[0]:.4g}"
+            "; a rotation needs unit norm. Normalise the parameters, use "
+            f"{who}(..., check=False).normalize(), or build from angles or matrices"
+        )
+
+
+def check_on_group(who: str, matrix: Array, rot: int, homogeneous: bool) -> Array:
+    """Check that `matrix` (already shape-checked) is a rotation, or a rigid
+    motion with bottom row `(0, ..., 0, 1)` if `homogeneous`.
+
+    Concrete input raises `ValueError` naming the first bad batch element and
+    what is wrong; traced input is checked with `eqx.error_if` (the returned
+    matrix must be used).
+    """
+    tol = unit_tolerance(matrix.dtype)
+    if not isinstance(matrix, jax.core.Tracer):
+        m = np.asarray(matrix, dtype=np.float64)
+        R = m[..., :rot, :rot]
+        finite = np.all(np.isfinite(m), axis=(-2, -1))
+        with np.errstate(invalid="ignore"):
+            ortho = np.max(
+                np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(rot)), axis=(-2, -1)
+            )
+            det = np.linalg.det(np.where(np.isfinite(R), R, 0.0))
+        block = "rotation block" if homogeneous else "matrix"
+        problems = [
+            (~finite, "matrix", lambda i: "has non-finite entries"),
+            (
+                ortho > tol,
+                block,
+                lambda i: f"is not orthonormal (RᵀR differs from I by {ortho[i]:.3g})",
+            ),
+            (det < 0, block, lambda i: f"is a reflection (determinant {det[i]:.3g})"),
+        ]
+        if homogeneous:
+            want = np.zeros(rot + 1)
+            want[-1] = 1.0
+            off = np.max(np.abs(m[..., rot, :] - want), axis=-1)
+            problems.append(
+                (
+                    off > tol,
+                    "matrix",
+                    lambda i: (
+                        f"has bottom row {np.round(m[i][rot], 6).tolist()}, "
+                        f"not {want.tolist()}"
+                    ),
+                )
+            )
+        for bad, subject, text in problems:
+            if np.any(bad):
+                idx = tuple(int(i) for i in np.argwhere(bad)[0])
+                where = f" at batch index {idx}" if idx else ""
+                raise ValueError(
+                    f"{who}.from_matrix: the {subject}{where} {text(idx)}; it is not "
+                    f"in {who} (pass check=False to project onto the group instead)"
+                )
+        return matrix
+    R = matrix[..., :rot, :rot]
+    eye = jnp.broadcast_to(jnp.eye(rot, dtype=R.dtype), R.shape)
+    err = jnp.max(jnp.abs(jnp.swapaxes(R, -1, -2) @ R - eye))
+    bad = ~(err <= tol) | jnp.any(jnp.linalg.det(R) < 0)
+    if homogeneous:
+        bottom = matrix[..., rot, :]
+        want = jnp.broadcast_to(
+            jnp.zeros(rot + 1, matrix.dtype).at[-1].set(1.0), bottom.shape
+        )
+        bad = bad | ~(jnp.max(jnp.abs(bottom - want)) <= tol)
+    return eqx.error_if(
+        matrix,
+        bad,
+        f"{who}.from_matrix: a matrix is not in the group (not orthonormal, a "
+        "reflection, non-finite, or a bad bottom row); pass check=False to project",
+    )

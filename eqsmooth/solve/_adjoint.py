@@ -42,6 +42,7 @@ from ._default_solver import linear_solver_for
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize, retract_values, Tangent
 from ._misc import preconditioned_cg, tree_where
+from ._solution import RESULTS
 
 
 Values = dict[str, PyTree]
@@ -347,6 +348,13 @@ class ImplicitAdjoint(AbstractAdjoint):
     - `hessian="gauss_newton"`: `H ≈ JᵀJ`, one structured solve. Exact for
         linear problems and zero residuals, an approximation otherwise.
 
+    If the solve failed with `RESULTS.nonfinite_problem` or
+    `RESULTS.linear_solve_failed` (e.g. with `throw=False`), there is no
+    optimum to differentiate and every gradient that reaches the solve is
+    NaN (never a plausible finite value or zero), so a training loop sees it
+    (see `eqsmooth.learn.train(on_nonfinite=...)`). Other codes (such as
+    `max_steps_reached`) give the gradient at the returned point.
+
     The gradient is exact only at a stationary point: run the solver to
     convergence (not [`eqsmooth.solve.FixedStepGaussNewton`][], whose result
     is not a minimiser). Gradients with respect to the initial values are
@@ -395,7 +403,12 @@ class ImplicitAdjoint(AbstractAdjoint):
         carry = init(stopped_graph, _stop(values))
         carry = lax.while_loop(cond, lambda c: body(stopped_graph, c), carry)
         x_star, state, history = _stop(carry)
-        delta = _implicit_delta(graph, x_star, state.lin, self, linear_solver)
+        # A solve that failed (non-finite problem, singular system) has no
+        # optimality condition to differentiate: its gradient is NaN.
+        failed = (state.result == RESULTS.nonfinite_problem) | (
+            state.result == RESULTS.linear_solve_failed
+        )
+        delta = _implicit_delta(graph, x_star, state.lin, self, linear_solver, failed)
         return retract_values(x_star, delta), state, history
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
@@ -438,20 +451,20 @@ def _tangent_gradient(graph: FactorGraph, x_star: Values, delta: Tangent) -> Tan
 
 
 @eqx.filter_custom_vjp
-def _implicit_delta(graph, x_star, lin, adjoint, linear_solver):
-    del graph, x_star, adjoint, linear_solver
+def _implicit_delta(graph, x_star, lin, adjoint, linear_solver, failed):
+    del graph, x_star, adjoint, linear_solver, failed
     return _zeros(lin)
 
 
 @_implicit_delta.def_fwd
-def _implicit_delta_fwd(perturbed, graph, x_star, lin, adjoint, linear_solver):
-    del perturbed, graph, x_star, adjoint, linear_solver
+def _implicit_delta_fwd(perturbed, graph, x_star, lin, adjoint, linear_solver, failed):
+    del perturbed, graph, x_star, adjoint, linear_solver, failed
     return _zeros(lin), None
 
 
 @_implicit_delta.def_bwd
 def _implicit_delta_bwd(
-    residuals, grad_obj, perturbed, graph, x_star, lin, adjoint, linear_solver
+    residuals, grad_obj, perturbed, graph, x_star, lin, adjoint, linear_solver, failed
 ):
     del residuals
     zero = _zeros(lin)
@@ -471,7 +484,7 @@ def _implicit_delta_bwd(
         w, *_ = preconditioned_cg(
             hvp, structured_solve, v, rtol, adjoint.atol, adjoint.max_steps, True
         )
-    neg_w = {k: -w[k] for k in w}
+    neg_w = {k: jnp.where(failed, jnp.nan, -w[k]) for k in w}
     _, vjp_fn = eqx.filter_vjp(lambda g: _tangent_gradient(g, x_star, zero), graph)
     (grad_graph,) = vjp_fn(neg_w)
     return jax.tree_util.tree_map(

@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, PyTree
 
@@ -229,6 +230,7 @@ def least_squares(
         )
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
+    _check_arguments(values, max_steps)
     # Called outside any JAX transformation, `throw` is checked here, after
     # the program has run, rather than by an `eqx.error_if` inside it: that is
     # a host callback, and JAX neither writes a program with host callbacks to
@@ -257,6 +259,31 @@ def least_squares(
 def _is_traced(tree) -> bool:
     """Whether any leaf is a JAX tracer (called inside jit, vmap, grad, ...)."""
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
+_SOLVER_DTYPES = (jnp.float32, jnp.float64)
+
+
+def _check_arguments(values: Values, max_steps: int) -> None:
+    """Trace-time checks of `least_squares`'s arguments, with messages naming
+    the argument (instead of an IndexError or a finfo error deep inside)."""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)):
+        raise TypeError(
+            f"least_squares: max_steps must be a Python int, got {max_steps!r} "
+            f"({type(max_steps).__name__})"
+        )
+    if max_steps < 1:
+        raise ValueError(f"least_squares: max_steps must be >= 1, got {max_steps}")
+    if not isinstance(values, dict):
+        return  # graph.validate names the problem
+    for name, group in values.items():
+        for leaf in jax.tree_util.tree_leaves(group):
+            dtype = jnp.result_type(leaf)
+            if jnp.issubdtype(dtype, jnp.floating) and dtype not in _SOLVER_DTYPES:
+                raise TypeError(
+                    f"least_squares: values[{name!r}] has dtype {dtype}; the solvers "
+                    "work in float32 or float64 (cast with .astype(jnp.float32))"
+                )
 
 
 @eqx.filter_jit
