@@ -429,7 +429,10 @@ class ImplicitAdjoint(AbstractAdjoint):
         lin = linearize(_stop(graph), x_star)
         own = solver.linear_solver if isinstance(solver, AbstractGraphSolver) else None
         linear_solver = linear_solver_for(own, lin)
-        delta = _implicit_delta(graph, x_star, lin, self, linear_solver)
+        # optimistix does not hand the solve's result code to an adjoint; a
+        # non-finite problem at the returned point is the failure we can see.
+        failed = ~jnp.isfinite(lin.cost)
+        delta = _implicit_delta(graph, x_star, lin, self, linear_solver, failed)
         return retract_values(x_star, delta), residual
 
 
