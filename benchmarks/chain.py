@@ -135,7 +135,9 @@ def se2vel_problem(T: int, seed: int = 0):
                 data=gps,
             ),
             eqs.PriorFactor(
-                eqs.Var("pose", [0]), eqs.SE2.identity((1,)), eqs.IsotropicNoise(100.0)
+                eqs.Var("pose", [0]),
+                eqs.SE2.identity((1,)),
+                eqs.IsotropicNoise(sqrt_precision=100.0),
             ),
         ]
     )

@@ -114,12 +114,14 @@ def build_graph(meas, dtype):
             eqs.FunctionFactor(
                 _disk_dyn,
                 (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
-                eqs.DiagonalNoise(1.0 / jnp.asarray(DYN_SIGMAS, dtype)),
+                eqs.DiagonalNoise(sqrt_precision=1.0 / jnp.asarray(DYN_SIGMAS, dtype)),
             ),
             eqs.FunctionFactor(
                 _disk_meas,
                 (eqs.Var("x", t),),
-                eqs.DiagonalNoise(jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)),
+                eqs.DiagonalNoise(
+                    sqrt_precision=jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)
+                ),
                 data=meas,
             ),
         ]

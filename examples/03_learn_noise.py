@@ -115,12 +115,12 @@ def build_graph(model: NoiseModel, meas, ctx) -> eqs.FactorGraph:
     process = eqs.FunctionFactor(
         cv_residual,
         (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
-        eqs.DiagonalNoise(jnp.exp(-model.log_q)),
+        eqs.DiagonalNoise(sqrt_precision=jnp.exp(-model.log_q)),
     )
     sensor = eqs.FunctionFactor(
         position_residual,
         (eqs.Var("x", t),),
-        eqs.IsotropicNoise(jnp.exp(-model.sensor_log_sigma(ctx))),
+        eqs.IsotropicNoise(sqrt_precision=jnp.exp(-model.sensor_log_sigma(ctx))),
         data=meas[:, None],
     )
     return eqs.FactorGraph([process, sensor])

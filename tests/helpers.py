@@ -69,7 +69,9 @@ def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
                 eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05])),
             ),
             eqs.PriorFactor(
-                eqs.Var("pose", [0]), truth[np.array([0])], eqs.IsotropicNoise(1e3)
+                eqs.Var("pose", [0]),
+                truth[np.array([0])],
+                eqs.IsotropicNoise(sqrt_precision=1e3),
             ),
         ]
     )

@@ -104,11 +104,13 @@ def pose_problem(group: str, seed: int = 0):
             eqs.FunctionFactor(
                 _odometry,
                 (eqs.Var("pose", t[:-1]), eqs.Var("pose", t[1:])),
-                eqs.DiagonalNoise(jnp.linspace(5.0, 10.0, d)),
+                eqs.DiagonalNoise(sqrt_precision=jnp.linspace(5.0, 10.0, d)),
                 data=twists / 1.1,
                 params=jnp.asarray(1.1),
             ),
-            eqs.PriorFactor(eqs.Var("pose", t), priors, eqs.IsotropicNoise(4.0)),
+            eqs.PriorFactor(
+                eqs.Var("pose", t), priors, eqs.IsotropicNoise(sqrt_precision=4.0)
+            ),
         ]
     )
     theta = {
@@ -406,7 +408,7 @@ def test_gradient_of_a_failed_unrolled_solve_is_nan(linear_solver):
         factor = eqs.FunctionFactor(
             _between,
             (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
-            eqs.IsotropicNoise(scale * jnp.ones(T - 1)),
+            eqs.IsotropicNoise(sqrt_precision=scale * jnp.ones(T - 1)),
             data=jnp.ones((T - 1, 2)),
         )
         sol = eqs.least_squares(

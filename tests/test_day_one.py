@@ -55,7 +55,7 @@ def _residual(x, data, params):
 def test_function_factor_warns_on_recreated_lambdas():
     import eqsmooth as eqs
 
-    noise = eqs.IsotropicNoise(1.0)
+    noise = eqs.IsotropicNoise(sqrt_precision=1.0)
     var = eqs.Var("x", [0])
     data = jnp.zeros((1, 2))
     # The same module-level function, many times: no warning.

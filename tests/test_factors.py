@@ -45,11 +45,11 @@ def test_noise_whitening_and_logdet():
     iso = eqs.IsotropicNoise.from_sigma(2.0)
     np.testing.assert_allclose(iso.whiten(r), r / 2)
     np.testing.assert_allclose(iso.log_det_sqrt_information(4, 3), 12 * np.log(0.5))
-    per_row = eqs.IsotropicNoise(jnp.arange(1.0, 5.0))
+    per_row = eqs.IsotropicNoise(sqrt_precision=jnp.arange(1.0, 5.0))
     np.testing.assert_allclose(
         per_row.whiten(r), np.asarray(r) * np.arange(1, 5)[:, None]
     )
-    diag = eqs.DiagonalNoise(jnp.array([1.0, 2.0, 3.0]))
+    diag = eqs.DiagonalNoise(sqrt_precision=jnp.array([1.0, 2.0, 3.0]))
     np.testing.assert_allclose(diag.whiten(r), np.asarray(r) * np.array([1, 2, 3]))
     cov = jnp.array([[2.0, 0.3, 0.1], [0.3, 1.0, 0.2], [0.1, 0.2, 0.5]])
     full = eqs.SqrtInformationNoise.from_covariance(cov)
@@ -74,13 +74,13 @@ def test_noise_rejects_bad_values():
     with pytest.raises(
         ValueError, match="IsotropicNoise.sqrt_precision must be positive"
     ):
-        eqs.IsotropicNoise(-1.0)
+        eqs.IsotropicNoise(sqrt_precision=-1.0)
     with pytest.raises(ValueError, match="sigmas must be positive"):
         eqs.DiagonalNoise.from_sigmas(jnp.array([1.0, 0.0]))
     with pytest.raises(ValueError, match="diagonal must be positive"):
         eqs.SqrtInformationNoise(-jnp.eye(2))
     with pytest.raises(ValueError, match="HuberNoise.scale must be positive"):
-        eqs.HuberNoise(eqs.IsotropicNoise(1.0), 0.0)
+        eqs.HuberNoise(eqs.IsotropicNoise(sqrt_precision=1.0), 0.0)
 
 
 @pytest.mark.parametrize("kind", ["huber", "cauchy"])
@@ -89,7 +89,7 @@ def test_robust_irls_gradient_matches_true_cost(kind):
     import eqsmooth as eqs
     from eqsmooth.solve._linearization import gradient, linearize
 
-    base = eqs.IsotropicNoise(1.0)
+    base = eqs.IsotropicNoise(sqrt_precision=1.0)
     noise = eqs.HuberNoise(base, 0.7) if kind == "huber" else eqs.CauchyNoise(base, 0.7)
     data = jnp.asarray(np.random.default_rng(1).normal(size=(5, 2)) * 2)
 
@@ -113,7 +113,7 @@ def test_robust_irls_gradient_matches_true_cost(kind):
 def test_huber_value_and_derivative_continuous():
     import eqsmooth as eqs
 
-    h = eqs.HuberNoise(eqs.IsotropicNoise(1.0), 2.0)
+    h = eqs.HuberNoise(eqs.IsotropicNoise(sqrt_precision=1.0), 2.0)
     s = jnp.array([4.0 - 1e-9, 4.0 + 1e-9, 0.0, 100.0])
     rho, d = h.rho(s)
     np.testing.assert_allclose(rho[:2], [4.0, 4.0], atol=1e-6)
@@ -134,7 +134,7 @@ def test_graph_errors_name_the_culprit():
             eqs.FunctionFactor(
                 res,
                 (eqs.Var("x", [0, 1, 5]),),
-                eqs.IsotropicNoise(1.0),
+                eqs.IsotropicNoise(sqrt_precision=1.0),
                 data=jnp.zeros((3, 2)),
             )
         ]
@@ -150,7 +150,10 @@ def test_graph_errors_name_the_culprit():
     bad = eqs.FactorGraph(
         [
             eqs.FunctionFactor(
-                res, (eqs.Var("x", t),), eqs.IsotropicNoise(1.0), data=jnp.zeros((4, 2))
+                res,
+                (eqs.Var("x", t),),
+                eqs.IsotropicNoise(sqrt_precision=1.0),
+                data=jnp.zeros((4, 2)),
             )
         ]
     )
@@ -163,7 +166,7 @@ def test_graph_errors_name_the_culprit():
             eqs.FunctionFactor(
                 res,
                 (eqs.Var("x", t),),
-                eqs.DiagonalNoise(jnp.ones(5)),
+                eqs.DiagonalNoise(sqrt_precision=jnp.ones(5)),
                 data=jnp.zeros((3, 2)),
             )
         ]
@@ -177,7 +180,9 @@ def test_graph_errors_name_the_culprit():
         linearize(wrong_noise, {"x": jnp.zeros((3, 2))})
     with pytest.raises(ValueError, match="same number of rows"):
         eqs.FunctionFactor(
-            res, (eqs.Var("x", [0]), eqs.Var("x", [0, 1])), eqs.IsotropicNoise(1.0)
+            res,
+            (eqs.Var("x", [0]), eqs.Var("x", [0, 1])),
+            eqs.IsotropicNoise(sqrt_precision=1.0),
         )
 
 

@@ -220,12 +220,12 @@ def _se2_problem(meas_scale, trans_scale, seed=0):
     trans = eqs.FunctionFactor(
         _se2_trans,
         (eqs.Var("s", t[:-1]), eqs.Var("s", t[1:])),
-        eqs.DiagonalNoise(trans_scale * sqrt_prec),
+        eqs.DiagonalNoise(sqrt_precision=trans_scale * sqrt_prec),
     )
     meas = eqs.FunctionFactor(
         _se2_meas,
         (eqs.Var("s", t),),
-        eqs.IsotropicNoise(meas_scale / sig),
+        eqs.IsotropicNoise(sqrt_precision=meas_scale / sig),
         data=z,
     )
     return trans, meas, truth
@@ -363,7 +363,7 @@ def test_clear_errors():
     trans, meas, _ = _linear_problem()
     meas1 = meas[0]
     m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
-    noise = eqs.IsotropicNoise(1.0)
+    noise = eqs.IsotropicNoise(sqrt_precision=1.0)
     t = np.arange(T)
     not_chain = eqs.FunctionFactor(
         _lin_trans, (eqs.Var("x", t[:-1]), eqs.Var("x", t[:-1] + 2)), noise
@@ -396,7 +396,7 @@ def test_clear_errors():
     robust = eqs.FunctionFactor(
         _lin_meas,
         meas1.variables,
-        eqs.HuberNoise(eqs.IsotropicNoise(1.0), 1.0),
+        eqs.HuberNoise(eqs.IsotropicNoise(sqrt_precision=1.0), 1.0),
         data=meas1.data,
         params=meas1.params,
     )

@@ -52,7 +52,7 @@ def _lin(factors, values):
 
 
 def _iso():
-    return _eqs().IsotropicNoise(1.0)
+    return _eqs().IsotropicNoise(sqrt_precision=1.0)
 
 
 # (mean shape per row) on (T, 3) Euclidean states.
@@ -148,12 +148,12 @@ def test_between_across_groups_of_different_shape():
 def test_residual_dimension_vs_noise(fn, noise, dims, api):
     eqs = _eqs()
     models = {
-        "diag3": eqs.DiagonalNoise(jnp.ones(3)),
-        "diag1": eqs.DiagonalNoise(jnp.ones(1)),
-        "diag2": eqs.DiagonalNoise(jnp.ones(2)),
+        "diag3": eqs.DiagonalNoise(sqrt_precision=jnp.ones(3)),
+        "diag1": eqs.DiagonalNoise(sqrt_precision=jnp.ones(1)),
+        "diag2": eqs.DiagonalNoise(sqrt_precision=jnp.ones(2)),
         "sqrt1": eqs.SqrtInformationNoise(jnp.ones((1, 1))),
         "sqrt3": eqs.SqrtInformationNoise(jnp.eye(3)),
-        "iso_rows": eqs.IsotropicNoise(jnp.ones(4)),
+        "iso_rows": eqs.IsotropicNoise(sqrt_precision=jnp.ones(4)),
     }
     x = jnp.zeros((T, 3))
     f = eqs.FunctionFactor(fn, (eqs.Var("x", t),), models[noise], data=x)
@@ -228,7 +228,9 @@ def test_graph_against_values(case, exc, fragments):
         (lambda e: e.Var(3, [0]), "hook", ["Var.__init__", "group"]),
         (
             lambda e: e.FunctionFactor(
-                _dyn, (e.Var("x", [0, 1]), e.Var("x", [0, 1, 2])), e.IsotropicNoise(1.0)
+                _dyn,
+                (e.Var("x", [0, 1]), e.Var("x", [0, 1, 2])),
+                e.IsotropicNoise(sqrt_precision=1.0),
             ),
             ValueError,
             ["FunctionFactor", "same number of rows", "[2, 3]"],
@@ -250,6 +252,25 @@ def _solve_graph():
         _dyn, (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])), _iso(), params=1.0
     )
     return eqs.FactorGraph([prior, dyn]), {"x": x}
+
+
+@pytest.mark.parametrize(
+    "field,value,need",
+    [
+        ("initial_damping", -1.0, ">= 0"),
+        ("initial_damping", float("nan"), ">= 0"),
+        ("min_diagonal", 0.0, "> 0"),
+        ("max_diagonal", 1e-9, ">= min_diagonal"),
+        ("max_damping", 1e-9, "> initial_damping"),
+        ("min_gain", 1.0, "in [0, 1)"),
+        ("ftol", -1e-3, ">= 0"),
+    ],
+)
+def test_levenberg_marquardt_fields(field, value, need):
+    import eqsmooth as eqs
+
+    with raises(ValueError, f"LevenbergMarquardt.{field}", need):
+        eqs.LevenbergMarquardt(**{field: value})
 
 
 @pytest.mark.parametrize(

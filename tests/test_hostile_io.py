@@ -103,10 +103,15 @@ def _ekf_factors():
     eqs = _eqs()
     t = np.arange(4)
     tr = eqs.FunctionFactor(
-        _trans, (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])), eqs.IsotropicNoise(1.0)
+        _trans,
+        (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+        eqs.IsotropicNoise(sqrt_precision=1.0),
     )
     me = eqs.FunctionFactor(
-        _meas, (eqs.Var("x", t),), eqs.IsotropicNoise(1.0), data=jnp.zeros((4, 2))
+        _meas,
+        (eqs.Var("x", t),),
+        eqs.IsotropicNoise(sqrt_precision=1.0),
+        data=jnp.zeros((4, 2)),
     )
     return tr, [me]
 
@@ -153,6 +158,27 @@ def test_ekf_initial_belief(case):
     mean, cov, field, what = EKF_CASES[case]
     tr, me = _ekf_factors()
     with raises(ValueError, "ekf", field, what):
+        _eqs().ekf(tr, me, mean, cov)
+
+
+EKF_MEANS = {
+    "mean_too_long": (
+        jnp.zeros(3),
+        jnp.eye(3),
+        ["array of shape (3,)", "incompatible"],
+    ),
+    # Under the test suite's jaxtyping hook the residual's return annotation
+    # fails first; without it the message says "without a time axis".
+    "mean_with_time_axis": (jnp.zeros((1, 2)), jnp.eye(2), ["(1, 2)"]),
+    "mean_wrong_type": ({"a": jnp.zeros(2)}, jnp.eye(2), ["dict of", "initial_mean"]),
+}
+
+
+@pytest.mark.parametrize("case", list(EKF_MEANS))
+def test_ekf_initial_mean_that_does_not_fit(case):
+    mean, cov, fragments = EKF_MEANS[case]
+    tr, me = _ekf_factors()
+    with raises(ValueError, "ekf", "FunctionFactor", "initial_mean", *fragments):
         _eqs().ekf(tr, me, mean, cov)
 
 
@@ -237,6 +263,44 @@ def test_discover_find_inputs(case):
     kw, *fragments = DISCOVER_CASES[case]
     with raises(ValueError, "find", *fragments):
         dc.find(_model(), _data(**kw))
+
+
+def test_ragged_sequences():
+    import jaxtyping
+
+    import eqsmooth.discover as dc
+    from eqsmooth.discover._model import _stacked
+
+    y = [np.zeros((5, 1)), np.zeros((6, 1))]
+    # The test suite's jaxtyping hook rejects the ragged list first ...
+    with raises(jaxtyping.TypeCheckError, "Sequences.__init__", "measurements"):
+        dc.Sequences(y, np.zeros((2, 2)))
+    # ... and without it, Sequences names the lengths (its own check).
+    with raises(ValueError, "Sequences.measurements", "ragged", "(5, 1)", "(6, 1)"):
+        _stacked("measurements", y)
+    assert _stacked("inputs", [np.zeros((5, 1))] * 2).shape == (2, 5, 1)
+
+
+@pytest.mark.parametrize(
+    "field,value",
+    [("process_sigma", -1.0), ("measurement_sigma", 0.0), ("prior_sigma", np.nan)],
+)
+def test_chain_model_sigmas_at_construction(field, value):
+    import eqsmooth.discover as dc
+
+    model = _model()
+    kwargs = dict(
+        process_sigma=model.process_sigma,
+        measurement_sigma=model.measurement_sigma,
+        prior_sigma=model.prior_sigma,
+    )
+    bad = np.asarray(kwargs[field]).copy()
+    bad[0] = value
+    kwargs[field] = bad
+    with raises(ValueError, f"ChainModel.{field}", "positive"):
+        dc.ChainModel(
+            _dyn, _h, jnp.asarray(0.05), candidates=model.candidates, **kwargs
+        )
 
 
 @pytest.mark.parametrize(

@@ -28,13 +28,28 @@ BAD_VALUES = {"zero": 0.0, "negative": -1.0, "nan": np.nan, "inf": np.inf}
 
 def _build(cls_name, ctor):
     cls = getattr(_eqs(), cls_name)
-    return cls if ctor is None else getattr(cls, ctor)
+    if ctor is None:
+        return lambda value: cls(sqrt_precision=value)
+    return getattr(cls, ctor)
 
 
 def _value(cls_name, bad):
     if cls_name == "IsotropicNoise":
         return jnp.asarray(bad)
     return jnp.array([1.0, bad])
+
+
+@pytest.mark.parametrize("cls_name", ["IsotropicNoise", "DiagonalNoise"])
+def test_positional_scale_is_refused(cls_name):
+    # `DiagonalNoise(0.1)` reads like σ = 0.1 but would be 1/σ: refused, and
+    # the error names the constructor that takes standard deviations.
+    cls = getattr(_eqs(), cls_name)
+    with raises(TypeError, cls_name, "by keyword", "from_sigma"):
+        cls(_value(cls_name, 2.0))
+    with raises(TypeError, cls_name, "by keyword"):
+        cls()
+    noise = cls(sqrt_precision=_value(cls_name, 2.0))
+    assert float(jnp.max(noise.sqrt_precision)) == 2.0
 
 
 @pytest.mark.parametrize("bad", list(BAD_VALUES))
@@ -167,7 +182,34 @@ def test_robust_scale_not_positive(robust):
     eqs = _eqs()
     cls = getattr(eqs, robust)
     with raises(ValueError, f"{robust}.scale", "positive"):
-        cls(eqs.IsotropicNoise(1.0), 0.0)
+        cls(eqs.IsotropicNoise(sqrt_precision=1.0), 0.0)
+
+
+ROBUST = [
+    "HuberNoise",
+    "CauchyNoise",
+    "TukeyNoise",
+    "GemanMcClureNoise",
+    "WelschNoise",
+    "DCSNoise",
+    "FairNoise",
+    "L2WithDeadZoneNoise",
+    "TruncatedQuadraticNoise",
+]
+
+
+@pytest.mark.parametrize("robust", ROBUST)
+def test_robust_scale_not_positive_under_jit(robust):
+    import equinox as eqx
+
+    eqs = _eqs()
+    cls = getattr(eqs, robust)
+    fn = eqx.filter_jit(
+        lambda k: cls(eqs.IsotropicNoise(sqrt_precision=1.0), k).rho(jnp.ones(2))[0]
+    )
+    assert np.all(np.isfinite(np.asarray(fn(jnp.asarray(2.0)))))
+    with raises(eqx.EquinoxRuntimeError, f"{robust}.scale", "under jit"):
+        fn(jnp.asarray(0.0))
 
 
 def test_named_constructors_agree():

@@ -64,7 +64,7 @@ def _check_jacobians(factor, states, atol=1e-6):
 def _noise(m):
     import eqsmooth as eqs
 
-    return eqs.DiagonalNoise(jnp.ones(m))
+    return eqs.DiagonalNoise(sqrt_precision=jnp.ones(m))
 
 
 def test_bearing_range_2d_values_and_jacobians():

@@ -49,26 +49,26 @@ def chain_problem(seed: int, T: int = 6, dtype=jnp.float64):
                     eqs.Var("p", t[1:]),
                     eqs.Var("v", t[1:]),
                 ),
-                eqs.IsotropicNoise(jnp.asarray(3.0, dtype)),
+                eqs.IsotropicNoise(sqrt_precision=jnp.asarray(3.0, dtype)),
                 data=arr(T - 1, 2),
             ),
             eqs.FunctionFactor(
                 _measure,
                 (eqs.Var("p", t),),
-                eqs.DiagonalNoise(jnp.asarray([2.0, 0.5], dtype)),
+                eqs.DiagonalNoise(sqrt_precision=jnp.asarray([2.0, 0.5], dtype)),
                 data=arr(T, 2),
             ),
             eqs.PriorFactor(
                 eqs.Var("v", [3, 0]),
                 arr(2, 2),
-                eqs.IsotropicNoise(jnp.asarray(1.0, dtype)),
+                eqs.IsotropicNoise(sqrt_precision=jnp.asarray(1.0, dtype)),
             ),
             # (t+1, t): contributes to super-diagonal blocks through a transpose.
             eqs.BetweenFactor(
                 eqs.Var("v", t[1:][::2]),
                 eqs.Var("v", t[:-1][::2]),
                 arr(len(t[1:][::2]), 2),
-                eqs.IsotropicNoise(jnp.asarray(0.7, dtype)),
+                eqs.IsotropicNoise(sqrt_precision=jnp.asarray(0.7, dtype)),
             ),
         ]
     )
@@ -90,19 +90,19 @@ def loop_problem(seed: int, N: int = 8):
                 eqs.Var("x", a),
                 eqs.Var("x", b),
                 jnp.asarray(rng.normal(size=(len(a), 2))),
-                eqs.IsotropicNoise(2.0),
+                eqs.IsotropicNoise(sqrt_precision=2.0),
             ),
             eqs.FunctionFactor(
                 _offset,
                 (eqs.Var("x", [0]),),
-                eqs.IsotropicNoise(1.0),
+                eqs.IsotropicNoise(sqrt_precision=1.0),
                 data=jnp.zeros((1, 2)),
             ),
             eqs.BetweenFactor(
                 eqs.Var("x", lm_x),
                 eqs.Var("l", lm_l),
                 jnp.asarray(rng.normal(size=(4, 2))),
-                eqs.DiagonalNoise(jnp.asarray([1.0, 3.0])),
+                eqs.DiagonalNoise(sqrt_precision=jnp.asarray([1.0, 3.0])),
             ),
         ]
     )
@@ -126,14 +126,18 @@ def closure_problem(seed: int, N: int = 9):
             eqs.FunctionFactor(
                 _dynamics,
                 (eqs.Var("p", a), eqs.Var("v", a), eqs.Var("p", b), eqs.Var("v", b)),
-                eqs.IsotropicNoise(2.0),
+                eqs.IsotropicNoise(sqrt_precision=2.0),
                 data=jnp.asarray(rng.normal(size=(len(a), 2))),
             ),
             eqs.PriorFactor(
-                eqs.Var("p", [4]), jnp.zeros((1, 2)), eqs.IsotropicNoise(1.0)
+                eqs.Var("p", [4]),
+                jnp.zeros((1, 2)),
+                eqs.IsotropicNoise(sqrt_precision=1.0),
             ),
             eqs.PriorFactor(
-                eqs.Var("v", [4]), jnp.zeros((1, 2)), eqs.IsotropicNoise(1.0)
+                eqs.Var("v", [4]),
+                jnp.zeros((1, 2)),
+                eqs.IsotropicNoise(sqrt_precision=1.0),
             ),
         ]
     )
@@ -368,7 +372,7 @@ def test_block_tridiagonal_rejects_non_chain():
     t = np.arange(6)
     skip = eqs.BetweenFactor(
         eqs.Var("p", t[:-2]), eqs.Var("p", t[2:]), jnp.zeros((4, 2)),
-        eqs.IsotropicNoise(1.0),
+        eqs.IsotropicNoise(sqrt_precision=1.0),
     )  # fmt: skip
     lin = _linearize(eqs.FactorGraph(list(graph.factors) + [skip]), values)
     with pytest.raises(
@@ -390,7 +394,7 @@ def _gauge_free_chain(T=7):
                 eqs.Var("x", t[:-1]),
                 eqs.Var("x", t[1:]),
                 jnp.asarray(rng.normal(size=(T - 1, 2))),
-                eqs.IsotropicNoise(10.0),
+                eqs.IsotropicNoise(sqrt_precision=10.0),
             )
         ]
     )

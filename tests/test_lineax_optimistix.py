@@ -34,10 +34,15 @@ def se3_loop(seed: int, N: int = 6, noise_scale: float = 0.05):
     graph = eqs.FactorGraph(
         [
             eqs.BetweenFactor(
-                eqs.Var("pose", a), eqs.Var("pose", b), meas, eqs.IsotropicNoise(10.0)
+                eqs.Var("pose", a),
+                eqs.Var("pose", b),
+                meas,
+                eqs.IsotropicNoise(sqrt_precision=10.0),
             ),
             eqs.PriorFactor(
-                eqs.Var("pose", [0]), truth[np.array([0])], eqs.IsotropicNoise(1e3)
+                eqs.Var("pose", [0]),
+                truth[np.array([0])],
+                eqs.IsotropicNoise(sqrt_precision=1e3),
             ),
         ]
     )

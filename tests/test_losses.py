@@ -52,13 +52,13 @@ def _chain_graph(theta):
             eqs.FunctionFactor(
                 dyn.fn,
                 dyn.variables,
-                eqs.IsotropicNoise(jnp.exp(theta["log_sp_dyn"])),
+                eqs.IsotropicNoise(sqrt_precision=jnp.exp(theta["log_sp_dyn"])),
                 params=theta["coeff"],
             ),
             eqs.FunctionFactor(
                 _meas_with_net,
                 meas.variables,
-                eqs.DiagonalNoise(sp),
+                eqs.DiagonalNoise(sqrt_precision=sp),
                 data=meas.data,
                 params=theta["sensor"],
             ),
@@ -232,7 +232,7 @@ def _se2_loss(log_sigmas):
         between.variables[0],
         between.variables[1],
         between.measurement,
-        eqs.DiagonalNoise(jnp.exp(-log_sigmas)),
+        eqs.DiagonalNoise(sqrt_precision=jnp.exp(-log_sigmas)),
     )
     return surrogate_loss(
         eqs.FactorGraph([between, prior]),

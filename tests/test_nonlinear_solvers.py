@@ -172,7 +172,7 @@ def test_changing_data_does_not_recompile():
                 eqs.FunctionFactor(
                     _counting_meas,
                     (eqs.Var("x", t),),
-                    eqs.IsotropicNoise(1.0),
+                    eqs.IsotropicNoise(sqrt_precision=1.0),
                     data=data,
                 )
             ]

@@ -60,7 +60,7 @@ SCALE = 1.3
 def test_rho_and_weight_closed_forms(name):
     import eqsmooth as eqs
 
-    noise = _kernels()[name](eqs.IsotropicNoise(1.0), SCALE)
+    noise = _kernels()[name](eqs.IsotropicNoise(sqrt_precision=1.0), SCALE)
     s = jnp.asarray(ERRORS**2)
     rho, drho = noise.rho(s)
     ref = np.array([_closed_form(name, e, SCALE) for e in ERRORS])
@@ -76,7 +76,7 @@ def test_rho_and_weight_closed_forms(name):
     )
 
     def total(k):
-        n = _kernels()[name](eqs.IsotropicNoise(1.0), k)
+        n = _kernels()[name](eqs.IsotropicNoise(sqrt_precision=1.0), k)
         r, w = n.rho(s)
         return jnp.sum(r) + jnp.sum(w)
 
@@ -100,7 +100,7 @@ def test_matches_gtsam_mestimators(name):
         "truncated": M.TruncatedLeastSquares,
     }[name]
     ref = cls.Create(SCALE)
-    noise = _kernels()[name](eqs.IsotropicNoise(1.0), SCALE)
+    noise = _kernels()[name](eqs.IsotropicNoise(sqrt_precision=1.0), SCALE)
     rho, drho = noise.rho(jnp.asarray(ERRORS**2))
     np.testing.assert_allclose(
         0.5 * np.asarray(rho), [ref.loss(e) for e in ERRORS], rtol=1e-12, atol=1e-15
@@ -113,13 +113,15 @@ def test_matches_gtsam_mestimators(name):
 def test_per_row_scale_and_bad_scale():
     import eqsmooth as eqs
 
-    noise = eqs.WelschNoise(eqs.IsotropicNoise(1.0), jnp.array([1.0, 2.0]))
+    noise = eqs.WelschNoise(
+        eqs.IsotropicNoise(sqrt_precision=1.0), jnp.array([1.0, 2.0])
+    )
     rho, _ = noise.rho(jnp.array([1.0, 1.0]))
     np.testing.assert_allclose(
         np.asarray(rho), [1 - np.exp(-1.0), 4 * (1 - np.exp(-0.25))]
     )
     with pytest.raises(ValueError, match="scale"):
-        eqs.TukeyNoise(eqs.IsotropicNoise(1.0), -1.0)
+        eqs.TukeyNoise(eqs.IsotropicNoise(sqrt_precision=1.0), -1.0)
 
 
 # A robust mean of five 2-D points, one of them an outlier.

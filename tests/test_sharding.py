@@ -75,10 +75,12 @@ _SCRIPT = textwrap.dedent(
         graph = eqs.FactorGraph([
             eqs.FunctionFactor(
                 walk, (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
-                eqs.IsotropicNoise(jnp.exp(model["log_q"])), params=model["coeff"],
+                eqs.IsotropicNoise(sqrt_precision=jnp.exp(model["log_q"])),
+                params=model["coeff"],
             ),
             eqs.FunctionFactor(
-                obs, (eqs.Var("x", t),), eqs.DiagonalNoise(jnp.exp(model["log_r"])),
+                obs, (eqs.Var("x", t),),
+                eqs.DiagonalNoise(sqrt_precision=jnp.exp(model["log_r"])),
                 data=ex["meas"],
             ),
         ])

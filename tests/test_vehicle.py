@@ -37,7 +37,7 @@ def test_from_poses_and_zero_residual():
     dyn = eqs.factors.VehicleDynamicsFactor(
         eqs.Var("x", t[:-1]),
         eqs.Var("x", t[1:]),
-        eqs.DiagonalNoise(jnp.ones(5)),
+        eqs.DiagonalNoise(sqrt_precision=jnp.ones(5)),
         dt=dt,
     )
     # Velocities carried over: use the rebuilt trajectory (v_{t+1} = v_t only
@@ -79,10 +79,15 @@ def test_jacobians_match_finite_differences():
     x = eqs.retract(truth, jnp.asarray(0.1 * rng.normal(size=(3, 5))))
     t = np.arange(3)
     dyn = eqs.factors.VehicleDynamicsFactor(
-        eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]), eqs.DiagonalNoise(jnp.ones(5)), dt
+        eqs.Var("x", t[:-1]),
+        eqs.Var("x", t[1:]),
+        eqs.DiagonalNoise(sqrt_precision=jnp.ones(5)),
+        dt,
     )
     meas = eqs.factors.VelocityMeasurementFactor(
-        eqs.Var("x", t), jnp.zeros((3, 2)), eqs.DiagonalNoise(jnp.ones((3, 2)))
+        eqs.Var("x", t),
+        jnp.zeros((3, 2)),
+        eqs.DiagonalNoise(sqrt_precision=jnp.ones((3, 2))),
     )
     a, b = x[:2], x[1:]
     _, (Ja, Jb) = linearize_rows(dyn, (a, b))
@@ -110,7 +115,9 @@ def test_smoothing_recovers_trajectory():
     graph = eqs.FactorGraph(
         [
             eqs.PriorFactor(
-                eqs.Var("x", [0]), truth[:1], eqs.DiagonalNoise(jnp.full(5, 1e3))
+                eqs.Var("x", [0]),
+                truth[:1],
+                eqs.DiagonalNoise(sqrt_precision=jnp.full(5, 1e3)),
             ),
             eqs.factors.VehicleDynamicsFactor(
                 eqs.Var("x", t[:-1]),

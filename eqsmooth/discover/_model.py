@@ -15,6 +15,20 @@ from ._candidates import Candidate
 from ._laplace import laplace_at_map
 
 
+def _stacked(field: str, value, dtype=None) -> Array:
+    # A list of sequences of different lengths would otherwise fail inside
+    # NumPy with "inhomogeneous shape"; name the lengths instead.
+    if isinstance(value, (list, tuple)):
+        shapes = [np.shape(v) for v in value]
+        if len(set(shapes)) > 1:
+            raise ValueError(
+                f"Sequences.{field} is ragged: its {len(shapes)} entries have shapes "
+                f"{shapes}. discover needs sequences of one length T; cut them to "
+                "a common length or split them into batches of equal length"
+            )
+    return jnp.asarray(value, dtype=dtype)
+
+
 class Sequences(eqx.Module):
     """A batch of measured sequences of equal length.
 
@@ -39,8 +53,8 @@ class Sequences(eqx.Module):
         inputs: Float[ArrayLike, "B T k"] | None = None,
         initial_states: Float[ArrayLike, "B T n"] | None = None,
     ):
-        y = jnp.asarray(measurements)
-        x0 = jnp.asarray(x0_mean, dtype=y.dtype)
+        y = _stacked("measurements", measurements)
+        x0 = _stacked("x0_mean", x0_mean, y.dtype)
         if y.ndim != 3:
             raise ValueError(f"Sequences.measurements must be (B, T, m), got {y.shape}")
         if x0.ndim != 2 or x0.shape[0] != y.shape[0]:
@@ -52,7 +66,7 @@ class Sequences(eqx.Module):
         if inputs is None:
             u = jnp.zeros((B, T, 1), y.dtype)
         else:
-            u = jnp.asarray(inputs, dtype=y.dtype)
+            u = _stacked("inputs", inputs, y.dtype)
             if u.ndim != 3 or u.shape[:2] != (B, T):
                 raise ValueError(
                     f"Sequences.inputs must be (B, T, k) = ({B}, {T}, k), got {u.shape}"
@@ -60,7 +74,7 @@ class Sequences(eqx.Module):
         if initial_states is None:
             xi = jnp.broadcast_to(x0[:, None, :], (B, T, x0.shape[1]))
         else:
-            xi = jnp.asarray(initial_states, dtype=y.dtype)
+            xi = _stacked("initial_states", initial_states, y.dtype)
             if xi.shape != (B, T, x0.shape[1]):
                 raise ValueError(
                     f"Sequences.initial_states must be {(B, T, x0.shape[1])}, got "
@@ -168,6 +182,16 @@ class ChainModel(eqx.Module):
                 "ChainModel.measurement_sigma must be (m,), got "
                 f"{self.measurement_sigma.shape}"
             )
+        for field in ("process_sigma", "measurement_sigma", "prior_sigma"):
+            sigma = getattr(self, field)
+            if isinstance(sigma, jax.core.Tracer):
+                continue  # learned scales are built positive (exp) under jit
+            sigma = np.asarray(sigma)
+            if not np.all(np.isfinite(sigma) & (sigma > 0)):
+                raise ValueError(
+                    f"ChainModel.{field} must be positive and finite standard "
+                    f"deviations, got {sigma}"
+                )
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -233,20 +257,20 @@ class ChainModel(eqx.Module):
                 FunctionFactor(
                     _prior_residual,
                     (Var("x", [0]),),
-                    DiagonalNoise(1.0 / self.prior_sigma),
+                    DiagonalNoise(sqrt_precision=1.0 / self.prior_sigma),
                     data=x0_mean[None],
                 ),
                 FunctionFactor(
                     _transition_residual,
                     (Var("x", t[:-1]), Var("x", t[1:])),
-                    DiagonalNoise(1.0 / self.process_sigma),
+                    DiagonalNoise(sqrt_precision=1.0 / self.process_sigma),
                     data=inputs[:-1],
                     params=self,
                 ),
                 FunctionFactor(
                     _measurement_residual,
                     (Var("x", t),),
-                    DiagonalNoise(1.0 / self.measurement_sigma),
+                    DiagonalNoise(sqrt_precision=1.0 / self.measurement_sigma),
                     data=(measurements, inputs),
                     params=self,
                 ),
@@ -364,14 +388,14 @@ def _diagnostic_filter_one(model: ChainModel, y, u, x0, xhat):
     transition = FunctionFactor(
         _linear_transition_residual,
         (Var("x", t[:-1]), Var("x", t[1:])),
-        DiagonalNoise(1.0 / model.process_sigma),
+        DiagonalNoise(sqrt_precision=1.0 / model.process_sigma),
         data=(u[:-1], xhat[:-1]),
         params=model,
     )
     measurement = FunctionFactor(
         _linear_measurement_residual,
         (Var("x", t),),
-        DiagonalNoise(1.0 / model.measurement_sigma),
+        DiagonalNoise(sqrt_precision=1.0 / model.measurement_sigma),
         data=(y, u, xhat),
         params=model,
     )

@@ -142,6 +142,21 @@ class AbstractNoiseModel(eqx.Module):
         """Raise a `ValueError` naming `factor_name` if shapes do not fit `(n, m)`."""
 
 
+def _keyword_only(name: str, positional: tuple, sqrt_precision):
+    # `IsotropicNoise(0.1)` reads like a standard deviation but would be a
+    # square-root precision: the field is keyword-only so that it cannot be
+    # misread, and the error says which constructor was probably meant.
+    if positional or sqrt_precision is None:
+        sigma = "from_sigma" if name == "IsotropicNoise" else "from_sigmas"
+        raise TypeError(
+            f"{name} takes its square-root precision by keyword: "
+            f"{name}(sqrt_precision=1/σ). Use {name}.{sigma}(σ) for standard "
+            f"deviations, or {name}.from_precision(1/σ²)"
+            + (f"; got {len(positional)} positional argument(s)" if positional else "")
+        )
+    return sqrt_precision
+
+
 class IsotropicNoise(AbstractNoiseModel):
     """Isotropic Gaussian noise: `R = sqrt_precision · I`.
 
@@ -152,7 +167,12 @@ class IsotropicNoise(AbstractNoiseModel):
 
     sqrt_precision: Float[Array, "*rows"]
 
-    def __init__(self, sqrt_precision: Float[ArrayLike, "*rows"]):
+    def __init__(
+        self,
+        *positional: object,
+        sqrt_precision: Float[ArrayLike, "*rows"] | None = None,
+    ):
+        sqrt_precision = _keyword_only("IsotropicNoise", positional, sqrt_precision)
         self.sqrt_precision = _positive_under_jit(
             "IsotropicNoise", "sqrt_precision", _as_float(sqrt_precision)
         )
@@ -165,14 +185,14 @@ class IsotropicNoise(AbstractNoiseModel):
         """Build from standard deviation(s) σ (`sqrt_precision = 1/σ`)."""
         sigma = _positive_under_jit("IsotropicNoise", "sigma", _as_float(sigma))
         _check_positive("IsotropicNoise", "sigma", sigma)
-        return cls(1.0 / sigma)
+        return cls(sqrt_precision=1.0 / sigma)
 
     @classmethod
     def from_precision(cls, precision: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
         """Build from precision(s) `1/σ²` (`sqrt_precision = √precision`)."""
         p = _positive_under_jit("IsotropicNoise", "precision", _as_float(precision))
         _check_positive("IsotropicNoise", "precision", p)
-        return cls(jnp.sqrt(p))
+        return cls(sqrt_precision=jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
         s = self.sqrt_precision.astype(r.dtype)
@@ -205,7 +225,12 @@ class DiagonalNoise(AbstractNoiseModel):
 
     sqrt_precision: Float[Array, "*rows m"]
 
-    def __init__(self, sqrt_precision: Float[ArrayLike, "*rows m"]):
+    def __init__(
+        self,
+        *positional: object,
+        sqrt_precision: Float[ArrayLike, "*rows m"] | None = None,
+    ):
+        sqrt_precision = _keyword_only("DiagonalNoise", positional, sqrt_precision)
         self.sqrt_precision = _positive_under_jit(
             "DiagonalNoise", "sqrt_precision", _as_float(sqrt_precision)
         )
@@ -223,21 +248,21 @@ class DiagonalNoise(AbstractNoiseModel):
         """Build from per-coordinate standard deviations σ_j (`1/σ_j`)."""
         sigmas = _positive_under_jit("DiagonalNoise", "sigmas", _as_float(sigmas))
         _check_positive("DiagonalNoise", "sigmas", sigmas)
-        return cls(1.0 / sigmas)
+        return cls(sqrt_precision=1.0 / sigmas)
 
     @classmethod
     def from_variances(cls, variances: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate variances σ_j² (`1/σ_j`)."""
         v = _positive_under_jit("DiagonalNoise", "variances", _as_float(variances))
         _check_positive("DiagonalNoise", "variances", v)
-        return cls(1.0 / jnp.sqrt(v))
+        return cls(sqrt_precision=1.0 / jnp.sqrt(v))
 
     @classmethod
     def from_precision(cls, precision: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate precisions `1/σ_j²` (`√precision`)."""
         p = _positive_under_jit("DiagonalNoise", "precision", _as_float(precision))
         _check_positive("DiagonalNoise", "precision", p)
-        return cls(jnp.sqrt(p))
+        return cls(sqrt_precision=jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
         s = self.sqrt_precision.astype(r.dtype)
@@ -375,6 +400,11 @@ def _check_scale(name: str, scale) -> None:
     _check_positive(name, "scale", scale)
 
 
+def robust_scale(name: str, scale: ArrayLike) -> Array:
+    """A robust kernel's scale, with an `eqx.error_if` when it is traced."""
+    return _positive_under_jit(name, "scale", jnp.asarray(scale))
+
+
 class AbstractRobustNoise(AbstractNoiseModel):
     """A robust loss `ρ` on top of a Gaussian noise model.
 
@@ -436,7 +466,7 @@ class HuberNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k = self.scale.astype(s.dtype)
@@ -464,7 +494,7 @@ class CauchyNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k2 = (self.scale * self.scale).astype(s.dtype)

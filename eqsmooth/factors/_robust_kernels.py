@@ -17,7 +17,7 @@ mode.
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._noise import AbstractNoiseModel, AbstractRobustNoise
+from ._noise import AbstractNoiseModel, AbstractRobustNoise, robust_scale
 
 
 def _safe_sqrt(s: Array) -> Array:
@@ -44,7 +44,7 @@ class TukeyNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k2 = jnp.square(self.scale).astype(s.dtype)
@@ -66,7 +66,7 @@ class GemanMcClureNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k2 = jnp.square(self.scale).astype(s.dtype)
@@ -88,7 +88,7 @@ class WelschNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k2 = jnp.square(self.scale).astype(s.dtype)
@@ -114,7 +114,7 @@ class DCSNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         phi = self.scale.astype(s.dtype)
@@ -141,7 +141,7 @@ class FairNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k = self.scale.astype(s.dtype)
@@ -168,7 +168,7 @@ class L2WithDeadZoneNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k = self.scale.astype(s.dtype)
@@ -199,7 +199,7 @@ class TruncatedQuadraticNoise(AbstractRobustNoise):
 
     def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
         self.base = base
-        self.scale = jnp.asarray(scale)
+        self.scale = robust_scale(type(self).__name__, scale)
 
     def rho(self, s):
         k2 = jnp.square(self.scale).astype(s.dtype)

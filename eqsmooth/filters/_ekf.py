@@ -128,13 +128,39 @@ def _row_dim(factor: AbstractFactor, rows, *states) -> int:
     def fn(rows0, *xs):
         return with_rows(factor, rows0).residual(*xs)
 
-    out = eqx.filter_eval_shape(fn, row0, *states)
-    if len(out.shape) != 1:
+    name = type(factor).__name__
+    try:
+        out = eqx.filter_eval_shape(fn, row0, *states)
+    except (TypeError, ValueError, IndexError) as e:
+        # A mean of the wrong size or type fails deep inside the user's
+        # residual; say that the initial mean is the likely cause.
         raise ValueError(
-            f"{type(factor).__name__}.residual must return a 1-D array, got shape "
-            f"{out.shape}"
+            f"ekf: factor {name} cannot be evaluated at initial_mean "
+            f"({_describe(states[0])}); initial_mean must be one state of the "
+            f"chain's group, of the type and size the factor's residual expects. "
+            f"The residual raised {type(e).__name__}: {e}"
+        ) from e
+    if not isinstance(out, jax.ShapeDtypeStruct) or len(out.shape) != 1:
+        shape = getattr(out, "shape", type(out).__name__)
+        raise ValueError(
+            f"ekf: {name}.residual must return a 1-D array, got {shape} at "
+            f"initial_mean ({_describe(states[0])}); initial_mean is one state, "
+            "without a time axis"
         )
     return out.shape[0]
+
+
+def _describe(state: PyTree) -> str:
+    leaves = jax.tree_util.tree_leaves(state, is_leaf=is_group)
+    parts = [
+        f"{type(x).__name__} of shape {tuple(x.parameters().shape)}"
+        if is_group(x)
+        else f"array of shape {tuple(jnp.shape(x))}"
+        for x in leaves
+    ]
+    if len(leaves) == 1 and (is_group(state) or eqx.is_array(state)):
+        return parts[0]
+    return f"{type(state).__name__} of " + ", ".join(parts) if parts else "empty"
 
 
 def ekf(

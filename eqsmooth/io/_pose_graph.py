@@ -163,7 +163,9 @@ def make_pose_graph(
             PriorFactor(
                 Var(POSE, anchored),
                 group(jnp.asarray(poses[anchored], dtype)),
-                IsotropicNoise(jnp.asarray(anchor_sqrt_information, dtype)),
+                IsotropicNoise(
+                    sqrt_precision=jnp.asarray(anchor_sqrt_information, dtype)
+                ),
             )
         )
     return PoseGraph(

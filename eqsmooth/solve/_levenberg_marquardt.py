@@ -1,3 +1,4 @@
+import math
 from typing import Any
 
 import equinox as eqx
@@ -91,6 +92,32 @@ class LevenbergMarquardt(AbstractGraphSolver):
     max_diagonal: float = eqx.field(static=True, default=1e32)
     max_damping: float = eqx.field(static=True, default=1e16)
     min_gain: float = eqx.field(static=True, default=1e-3)
+
+    def __check_init__(self):
+        checks = (
+            ("ftol", self.ftol >= 0, ">= 0"),
+            ("gtol", self.gtol >= 0, ">= 0"),
+            ("xtol", self.xtol >= 0, ">= 0"),
+            (
+                "initial_damping",
+                0 <= self.initial_damping < math.inf,
+                ">= 0 and finite",
+            ),
+            ("min_diagonal", 0 < self.min_diagonal < math.inf, "> 0 and finite"),
+            ("max_diagonal", self.max_diagonal >= self.min_diagonal, ">= min_diagonal"),
+            (
+                "max_damping",
+                self.max_damping > self.initial_damping,
+                "> initial_damping",
+            ),
+            ("min_gain", 0 <= self.min_gain < 1, "in [0, 1)"),
+        )
+        for field, ok, need in checks:
+            if not ok:  # NaN fails every comparison, so it lands here too
+                raise ValueError(
+                    f"LevenbergMarquardt.{field} must be {need}, got "
+                    f"{getattr(self, field)!r}"
+                )
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, options, f_struct, aux_struct, tags

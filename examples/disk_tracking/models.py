@@ -349,12 +349,12 @@ def build_smoother_graph(
     dyn = eqs.FunctionFactor(
         dynamics_residual,
         (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
-        eqs.DiagonalNoise(dynamics_sqrt_precision),
+        eqs.DiagonalNoise(sqrt_precision=dynamics_sqrt_precision),
     )
     obs = eqs.FunctionFactor(
         position_residual,
         (eqs.Var("x", t),),
-        eqs.IsotropicNoise(sqrt_precision),
+        eqs.IsotropicNoise(sqrt_precision=sqrt_precision),
         data=measurements,
     )
     factors: list[eqs.AbstractFactor] = [dyn, obs]
@@ -372,7 +372,9 @@ def build_smoother_graph(
             eqs.FunctionFactor(
                 out_of_view_residual,
                 (eqs.Var("x", t),),
-                eqs.IsotropicNoise(jnp.broadcast_to(view_sqrt_precision, (T,))),
+                eqs.IsotropicNoise(
+                    sqrt_precision=jnp.broadcast_to(view_sqrt_precision, (T,))
+                ),
                 data=hidden,
             )
         )

@@ -211,16 +211,18 @@ class Estimator(eqx.Module):
         prior = eqs.PriorFactor(
             eqs.Var("x", [0]),
             truth[:1],
-            eqs.DiagonalNoise(jnp.asarray(1.0 / PRIOR_SIGMAS, z.dtype)),
+            eqs.DiagonalNoise(sqrt_precision=jnp.asarray(1.0 / PRIOR_SIGMAS, z.dtype)),
         )
         dyn = VehicleDynamicsFactor(
             eqs.Var("x", t[:-1]),
             eqs.Var("x", t[1:]),
-            eqs.DiagonalNoise(jnp.exp(self.log_dynamics_sqrt_precision)),
+            eqs.DiagonalNoise(sqrt_precision=jnp.exp(self.log_dynamics_sqrt_precision)),
             dt=D.DT,
         )
         sp = self.noise(window["features"], window["log_sigma"])
-        meas = VelocityMeasurementFactor(eqs.Var("x", t), z, eqs.DiagonalNoise(sp))
+        meas = VelocityMeasurementFactor(
+            eqs.Var("x", t), z, eqs.DiagonalNoise(sqrt_precision=sp)
+        )
         return prior, dyn, meas
 
     def graph(self, window: dict) -> eqs.FactorGraph:
