@@ -305,9 +305,9 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     truth = jax.numpy.asarray(test.fold.states[0], "float32")
     learned = res["models"]["smoother_hetero_surrogate_learndyn_view"]
     assert learned.log_view_sqrt_precision is not None
-    g = eqx.filter_grad(lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3))(
-        learned
-    )
+    g = eqx.filter_jit(
+        eqx.filter_grad(lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3))
+    )(learned)
     assert np.any(np.asarray(g.log_dynamics_sqrt_precision) != 0)
     het = dataclasses.replace(learned, learn_dynamics=False)
     for loss in (
@@ -316,7 +316,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
         lambda m: train.ekf_mse_one(m, meas, counts, truth),
         lambda m: train.ekf_nll_one(m, meas, counts, truth),
     ):
-        g = eqx.filter_grad(loss)(het)
+        g = eqx.filter_jit(eqx.filter_grad(loss))(het)
         w = np.asarray(g.noise.mlp.layers[-1].weight)
         assert np.all(np.isfinite(w)) and np.any(w != 0)
         # The dynamics noise is fixed (the paper's setting): no gradient.

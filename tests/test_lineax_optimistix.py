@@ -201,7 +201,8 @@ def _assert_same_minimum(graph, got, ref):
         assert float(jnp.max(jnp.abs(d))) < 1e-6
 
 
-@pytest.mark.parametrize("name", ["se2", "se3"])
+# SE(3) repeats the SE(2) case's code path on another group (slow: 40 s).
+@pytest.mark.parametrize("name", ["se2", pytest.param("se3", marks=pytest.mark.slow)])
 def test_optx_least_squares_runs_our_solvers(name):
     import eqsmooth as eqs
 
@@ -230,7 +231,7 @@ def test_optx_least_squares_runs_our_solvers(name):
     )
 
 
-@pytest.mark.parametrize("name", ["se2", "se3"])
+@pytest.mark.parametrize("name", ["se2", pytest.param("se3", marks=pytest.mark.slow)])
 def test_tangent_adapter_with_optimistix_solvers(name):
     import eqsmooth as eqs
 

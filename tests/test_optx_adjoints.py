@@ -54,7 +54,14 @@ def _grad_fn(path: str):
     return eqx.filter_jit(jax.value_and_grad(loss))
 
 
-@pytest.mark.parametrize("name", ["unrolled", "truncated", "implicit"])
+# Unrolled (about 50 s) is slow: its optimistix `apply` only swaps in a
+# masked scan, which the truncated case also runs (and unrolled gradients are
+# checked against finite differences in test_adjoint.py). Truncated stays: its
+# `apply` has its own replay loop.
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param("unrolled", marks=pytest.mark.slow), "truncated", "implicit"],
+)
 def test_optx_least_squares_with_our_adjoint(name):
     import eqsmooth as eqs
 

@@ -1,5 +1,6 @@
 """Laplace approximation of the log marginal likelihood of a factor graph."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -83,6 +84,7 @@ def laplace_log_marginal(
     return laplace_at_map(graph, x_hat, solver.linear_solver), x_hat
 
 
+@eqx.filter_jit  # an eager call would dispatch (and compile) op by op
 def laplace_at_map(
     graph: FactorGraph,
     map_values: Values,
