@@ -346,6 +346,8 @@ def find_and_name(theta, u, y, ts, quick: bool) -> dict:
             f"  {c['name']}: {c['value']:.4g} ± {c['std_error']:.2g} "
             f"(sign ok: {c['sign_ok']})"
         )
+    for flag in added["flags"]:
+        print(f"  flag: {flag}")
     named_candidates = tuple(library[model.index(nm)] for nm in named["named"])
     return {
         "xs": xs,

@@ -8,6 +8,7 @@ absent.
 
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -72,3 +73,9 @@ def test_quick_example_runs(data, tmp_path):
     assert report["workflow"]["find"]["status"] == "ok"
     assert report["workflow"]["find"]["detected"]
     assert report["nominal"]["validation_rmse"] > 0
+    # A coefficient without a standard error is explained by a flag, never a
+    # bare NaN (the sensor clip's information matrix is indefinite).
+    added = report["workflow"]["add"]
+    for c in added["coefficients"]:
+        if not math.isfinite(c["std_error"]):
+            assert any(c["name"] in f for f in added["flags"]), added["flags"]

@@ -841,7 +841,9 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
 
     **Returns:** a dict with `model` (the fitted
     [`eqsmooth.discover.ChainModel`][]), `coefficients` (name, value,
-    standard error, interval, sign check) and `noise_scales`.
+    standard error, interval, sign check), `noise_scales` and `flags` (a fit
+    that did not converge, an information matrix that is not positive
+    definite, a coefficient without a standard error).
     """
     st = found["_state"]
     if st.get("failed"):
@@ -868,11 +870,25 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
         except np.linalg.LinAlgError:
             cov = np.full(info.shape, np.nan)
             flags.append("information matrix could not be inverted")
+        sym = 0.5 * (info + info.T)
+        if np.all(np.isfinite(sym)):
+            smallest = float(np.linalg.eigvalsh(sym).min())
+            if smallest <= 0:
+                flags.append(
+                    "information matrix is not positive definite (smallest "
+                    f"eigenvalue {smallest:.3g}): the fit is not a strict maximum "
+                    "of the evidence, so standard errors are unreliable"
+                )
         zq = normal_quantile(0.5 + level / 2)
         for i, k in enumerate(active):
             c = model.candidates[k]
             value = float(ev.z[k])
             se = float(np.sqrt(cov[i, i])) if cov[i, i] >= 0 else float("nan")
+            if not np.isfinite(se):
+                flags.append(
+                    f"no standard error for {c.name!r}: its variance from the "
+                    f"(pseudo-)inverse information is {float(cov[i, i]):.3g}"
+                )
             coefs.append(
                 {
                     "name": c.name,
