@@ -11,8 +11,10 @@ minutes per fold, one fold per call or several. Every stage trains with
 `eqsmooth.learn.train` and checkpoints under --work: kill the run and start
 the same command again, and it resumes. A finished fold writes
 `fold_K.json`, `fold_K.log` and `sensor_foldK.eqx` under --out, and is
-skipped by later calls; `summary.json` / `summary.md` (mean ± std/√n over the
-finished folds) and the figures are rewritten after each fold.
+skipped by later calls (`--rerun` evaluates it again with the current code,
+training only stages that have no finished checkpoint); `summary.json` /
+`summary.md` (mean ± std/√n over the finished folds) and the figures are
+rewritten after each fold.
 
     python examples/04_disk_tracking.py --quick --out results/disk_quick   # ~5 min
     python examples/04_disk_tracking.py --folds 0 --out results/disk        # one fold
@@ -52,6 +54,12 @@ def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
         help="checkpoints and caches (default: runs/disk, or OUT/work with --quick)",
     )
     p.add_argument("--folds", type=int, nargs="+", help="test folds to run")
+    p.add_argument(
+        "--rerun",
+        action="store_true",
+        help="run finished folds again with the current code: stages whose "
+        "checkpoints are finished are only evaluated, new methods are trained",
+    )
     p.add_argument(
         "--methods",
         nargs="+",
@@ -100,7 +108,8 @@ def main(argv=None):
     label = "QUICK RUN" if cfg.quick else "full protocol"
     print(f"Disk tracking ({label}): test folds {list(cfg.test_folds)}")
     for k in cfg.test_folds:
-        if (a.out / f"fold_{k}.json").exists():
+        finished = (a.out / f"fold_{k}.json").exists()
+        if finished and not a.rerun:
             print(f"fold {k}: already finished ({a.out / f'fold_{k}.json'}), skipped")
             continue
         log_file = a.out / f"fold_{k}.log"
@@ -109,6 +118,12 @@ def main(argv=None):
             print(msg, flush=True)
             with open(log_file, "a") as f:
                 f.write(msg + "\n")
+
+        if finished:
+            log(
+                f"--- re-run with code {report.git_hash()}: finished stages are "
+                "evaluated again, new ones trained"
+            )
 
         result = protocol.run_fold(cfg, k, a.work, a.work / "cache", log)
         path = protocol.write_fold(a.out, dataclasses.asdict(cfg), result)

@@ -145,6 +145,7 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
                     method,
                     learn_dynamics="learndyn" in parts[3:],
                     out_of_view="view" in parts[3:],
+                    robust_view="robustview" in parts[3:],
                 )
                 pred = T.predict_split(
                     lambda m, b: T.smoothed_positions(m, b, steps),
