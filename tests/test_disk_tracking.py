@@ -210,6 +210,19 @@ def test_out_of_view_factor():
     )
     extra = float(graph.cost(values)) - float(plain.cost(values))
     np.testing.assert_allclose(extra, 0.5 * 2 * (0.5 * L) ** 2, rtol=1e-4)
+    # The robust variant: a Geman-McClure kernel caps each hidden frame's cost
+    # at k²/2, so a target the other frames place deep inside stays there.
+    k = 1.5
+    robust = M.build_smoother_graph(
+        meas,
+        jnp.ones(T),
+        jnp.asarray(1.0 / M.DYNAMICS_SIGMAS),
+        out_of_view=(jnp.asarray(0.5), hidden),
+        out_of_view_robust_scale=k,
+    )
+    s = (0.5 * L) ** 2
+    extra = float(robust.cost(values)) - float(plain.cost(values))
+    np.testing.assert_allclose(extra, 0.5 * 2 * k**2 * s / (k**2 + s), rtol=1e-4)
 
 
 def test_splits_keep_the_test_fold_out():
