@@ -12,11 +12,10 @@ adjoint), keeps the threshold with the lowest error on two validation
 trajectories, and reports the error on two test trajectories before and
 after. A JSON summary is saved in `--out`.
 
-Runtime: with `--quick`, measured on 2 CPU cores shared with another heavy
-job, 214 s for the three first solves and 79 s for the learning steps,
-nearly all of it compilation (three noise types and one gradient each
-compile once); expect much less on an idle machine. The default size is not
-timed yet.
+Runtime: with `--quick`, measured on 2 CPU cores shared with two other heavy
+jobs, 90 s in all: 30 s for the three first solves and 39 s for the six
+training steps with their validations, nearly all of it compilation. The
+default size is not timed yet.
 
     python examples/09_gps_odometry_robust.py --quick --out results/09
 """
