@@ -488,3 +488,44 @@ def test_user_defined_candidate_is_first_class():
     assert named["named"] == ["saturating spring"], named["verdict"]
     (c,) = dc.add(found, named, data)["coefficients"]
     assert abs(c["value"] - 0.05) < 0.1 * 0.05 and c["sign_ok"], c
+
+
+def _oscillator_field(x, u):
+    # ẋ = (v, −ω₀² p) with ω₀ = 3 (module-level: hashable by identity).
+    return jnp.stack([x[1], -9.0 * x[0]])
+
+
+@pytest.mark.parametrize("dt", [0.1, 0.25])
+def test_midpoint_kick_reads_continuous_damping(dt):
+    """A viscous kick at the start of the step dissipates cos(ω₀dt) of the
+    continuous damping it stands for, so a fitted rate reads high by
+    1/cos(ω₀dt); evaluated at the nominal half-step state it does not."""
+    import jax
+    import jax.scipy.linalg as jsl
+
+    import eqsmooth.discover as dc
+
+    w0, c = 3.0, 1e-3
+    A0 = jnp.array([[0.0, 1.0], [-(w0**2), 0.0]])
+    step = np.asarray(jsl.expm(A0 * dt))  # the exact frictionless step
+    x, u = jnp.array([0.3, -0.2]), jnp.zeros(1)
+    ratios = {}
+    for kind, field in (("start", None), ("midpoint", _oscillator_field)):
+        (cand,) = dc.mechanical_library(
+            [0], [1], 2, dt=dt, include=["viscous damping"], vector_field=field
+        )
+        kick = np.asarray(jax.jacfwd(lambda s: cand.feature(s, u))(x))
+        radius = np.max(np.abs(np.linalg.eigvals(step + c * kick)))
+        # The damping rate the kicked step implements, per unit coefficient.
+        ratios[kind] = (-2.0 * np.log(radius) / dt) / c
+    np.testing.assert_allclose(ratios["start"], np.cos(w0 * dt), rtol=1e-3)
+    assert abs(ratios["midpoint"] - 1.0) < 0.02 * (w0 * dt / 0.75) ** 2
+    with pytest.raises(TypeError, match="hashable"):
+        dc.mechanical_library([0], [1], 2, vector_field=_Unhashable())
+
+
+class _Unhashable:
+    __hash__ = None  # type: ignore[assignment]
+
+    def __call__(self, x, u):
+        return x

@@ -70,7 +70,8 @@ def test_midpoint_kick_is_a_continuous_time_rate():
     # viscous candidate at 100 Hz loses the energy of the continuous damped
     # pendulum at rate c (reference: RK4 at 1 ms).
     w2, c, dt, amp = 64.0, 0.067, 0.01, 1.2
-    feature = M.ContinuousAcceleration("viscous", dt, w2)
+    library = M.pendulum_library(dt, w2)
+    feature = next(c for c in library if c.name == "viscous damping").feature
     params = {"dt": jnp.asarray(dt), "omega0_sq": jnp.asarray(w2)}
     zero = jnp.zeros(1)
 

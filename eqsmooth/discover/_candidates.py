@@ -157,6 +157,7 @@ class _Acceleration:
     eps: float = 1.0
     axis: int | None = None
     input_index: int = 0
+    vector_field: Callable | None = None
 
     def _select(self, index: tuple[int, ...]) -> np.ndarray:
         sel = np.zeros((self.state_dim, len(index)))
@@ -168,6 +169,10 @@ class _Acceleration:
         # programs to compile once differentiated twice.
         sel_p = jnp.asarray(self._select(self.positions), x.dtype)
         sel_v = jnp.asarray(self._select(self.velocities), x.dtype)
+        if self.vector_field is not None:
+            # The kick of a continuous acceleration over one step, evaluated
+            # at the nominal half-step state (midpoint rule).
+            x = x + 0.5 * self.dt * self.vector_field(x, u)
         p, v = x @ sel_p, x @ sel_v
         if self.kind in ("constant", "actuator"):
             unit = np.zeros(len(self.velocities))
@@ -238,6 +243,7 @@ def mechanical_library(
     num_inputs: int = 0,
     axis_names: Sequence[str] | None = None,
     include: Sequence[str] | None = None,
+    vector_field: Callable | None = None,
 ) -> tuple[Candidate, ...]:
     """The standard candidate effects of a second-order mechanical system.
 
@@ -245,6 +251,13 @@ def mechanical_library(
     (`positions[i]` and `velocities[i]` are the indices of axis `i`). Every
     dynamics candidate is an extra acceleration `a(p, v, u)` entering the
     velocities as `v' += c · a · dt` (the discretisation of `v̇ = … + c a`).
+    By default `a` is evaluated at the start of the step (`x_t`). Given the
+    nominal model's continuous-time `vector_field`, it is evaluated at the
+    nominal half-step state `x_t + dt/2 · f(x_t, u_t)` (a midpoint kick),
+    and a fitted coefficient is then a continuous-time quantity. For viscous
+    damping of an oscillator of frequency `ω₀`, the start-of-step kick reads
+    the damping rate high by `1/cos(ω₀ dt)`; the midpoint kick removes that
+    factor (see the tests).
     Dissipative and stiffness terms share one coefficient over all axes
     (isotropic); constant force, actuator gain and the sensor effects get one
     candidate per axis or channel.
@@ -279,6 +292,10 @@ def mechanical_library(
     - `axis_names`: names of the axes for per-axis candidates (default
         `x0, x1, …`; with one axis no suffix is used).
     - `include`: restrict to these candidate names (before axis suffixes).
+    - `vector_field`: the nominal continuous-time dynamics `f(x, u) -> ẋ`
+        `(n,)` for midpoint kicks, or `None` (kicks at the start of the
+        step). Like a feature it must be hashable and compare by value or
+        identity (a module-level function or a frozen dataclass).
 
     **Returns:** a tuple of [`eqsmooth.discover.Candidate`][].
     """
@@ -296,6 +313,19 @@ def mechanical_library(
             )
     if coulomb_eps <= 0:
         raise ValueError("mechanical_library: coulomb_eps must be positive")
+    if vector_field is not None:
+        if not callable(vector_field):
+            raise TypeError(
+                "mechanical_library: vector_field must be a callable f(x, u) -> "
+                f"dx/dt, got {type(vector_field).__name__}"
+            )
+        try:
+            hash(vector_field)
+        except TypeError:
+            raise TypeError(
+                "mechanical_library: vector_field must be hashable (a module-level "
+                "function or a frozen dataclass), so that compiled code is reused"
+            ) from None
     naxes = len(positions)
     if axis_names is None:
         axis_names = [f"x{i}" for i in range(naxes)]
@@ -311,7 +341,11 @@ def mechanical_library(
         if wanted is not None and name not in wanted:
             continue
         common = dict(
-            positions=positions, velocities=velocities, state_dim=state_dim, dt=dt
+            positions=positions,
+            velocities=velocities,
+            state_dim=state_dim,
+            dt=dt,
+            vector_field=vector_field,
         )
         if kind == "constant":
             for i in range(naxes):
