@@ -653,8 +653,8 @@ def report(records, nulls, info, quick) -> str:
             "Each alarm a run can raise, as the fraction of null data sets that "
             "raised it (target ≤ α = 5% each): `detected` = the score test "
             'rejects; `unnamed structure` = the verdict says "unnamed residual '
-            'structure" with no name (diagnostics of the nominal model significant, '
-            "or detected but no candidate passes the gate); `ambiguous` = a name "
+            'structure" with no name (the residual diagnostics significant, '
+            "whether or not the score test rejects); `ambiguous` = a name "
             "given with a runner-up within ln 20; `leftover structure` = names "
             "given but the named model's diagnostics still significant (the names "
             "are then reported as tentative); `any alarm` = any of these. "

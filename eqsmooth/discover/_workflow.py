@@ -598,11 +598,13 @@ def name(
     `ln 20` log-units makes the step "ambiguous"; when the two candidates'
     observed-information correlation exceeds `equivalence_corr` the
     data cannot tell them apart and they are reported as an equivalence set.
-    If the decision test fires but no candidate passes the gate, or the
-    innovation diagnostics of the final model stay significant, the verdict
-    includes "unnamed residual structure"; in the second case the names are
-    reported as tentative (an effect outside the library must not get a
-    confident name from its closest candidate).
+    If the innovation diagnostics of the final model stay significant, the
+    verdict includes "unnamed residual structure": with no name, something
+    the library does not contain; with names, the names are reported as
+    tentative (an effect outside the library must not get a confident name
+    from its closest candidate). If the decision test fires but no candidate
+    passes the gate and the diagnostics are clean, the verdict says so
+    without claiming residual structure (the "detected" alarm is raised).
 
     Never raises on a numerical failure: a fit that did not converge is
     listed in `flags`, and a failed `find` gives the verdict "no decision".
@@ -725,7 +727,11 @@ def name(
         "whiteness_p_values": [w["p_value"] for w in innov["whiteness"]],
     }
     out["alarms"]["ambiguous"] = bool(out["ambiguous"])
-    out["alarms"]["unnamed_structure"] = not out["named"]
+    # "Unnamed residual structure" claims structure in the residuals, so it
+    # needs the residual diagnostics, not only the decision test (whose
+    # false rejections are already the "detected" alarm): counting a false
+    # detection twice held the alarm at about 2α on null data.
+    out["alarms"]["unnamed_structure"] = not out["named"] and leftover
     out["alarms"]["leftover_structure"] = bool(out["named"]) and leftover
     # Names given while the fitted model still fails its own diagnostics are
     # tentative: the effect may lie outside the library, and the closest
@@ -743,9 +749,14 @@ def name(
             parts.append(nm)
     if out["tentative"]:
         parts = ["tentative: " + "; ".join(parts)]
-    if not out["named"] or leftover:
+    if leftover:
         out["unnamed_residual_structure"] = True
         parts.append("unnamed residual structure")
+    elif not out["named"]:
+        parts.append(
+            "a missing effect is detected, but no candidate passes the naming "
+            "test and the residual diagnostics are clean"
+        )
     out["verdict"] = "; ".join(parts)
     out["_state"] = {"evaluation": current, "active": active}
     return out
