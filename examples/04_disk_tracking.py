@@ -22,6 +22,7 @@ rewritten after each fold.
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -112,6 +113,17 @@ def main(argv=None):
         if finished and not a.rerun:
             print(f"fold {k}: already finished ({a.out / f'fold_{k}.json'}), skipped")
             continue
+        if finished:
+            # A re-run rewrites fold_K.json with the methods it runs: refuse
+            # one that would drop rows the committed file has.
+            saved = json.loads((a.out / f"fold_{k}.json").read_text())["records"]
+            lost = sorted(set(saved) - {"virtual_sensor", *cfg.methods})
+            if lost:
+                raise SystemExit(
+                    f"--rerun of fold {k} with --methods would drop {lost} from "
+                    f"{a.out / f'fold_{k}.json'}; run every method, or write to "
+                    "another --out"
+                )
         log_file = a.out / f"fold_{k}.log"
 
         def log(msg, log_file=log_file):

@@ -522,6 +522,12 @@ def test_midpoint_kick_reads_continuous_damping(dt):
     assert abs(ratios["midpoint"] - 1.0) < 0.02 * (w0 * dt / 0.75) ** 2
     with pytest.raises(TypeError, match="hashable"):
         dc.mechanical_library([0], [1], 2, vector_field=_Unhashable())
+    with pytest.raises(ValueError, match="shape"):
+        dc.mechanical_library([0], [1], 2, vector_field=_scalar_field)
+
+
+def _scalar_field(x, u):
+    return x[0]
 
 
 class _Unhashable:
@@ -529,3 +535,21 @@ class _Unhashable:
 
     def __call__(self, x, u):
         return x
+
+
+def test_detection_with_clean_diagnostics_is_not_unnamed_structure(monkeypatch):
+    """A score-test rejection that no candidate explains, with clean residual
+    diagnostics, raises only the "detected" alarm: "unnamed residual
+    structure" needs the diagnostics."""
+    import eqsmooth.discover as dc
+    from eqsmooth.discover import _workflow as W
+
+    data = _simulate(1, "drag", 0.02)
+    found = dc.find(_model(), data)
+    assert found["detected"]
+    found["_state"]["alpha"] = 1e-300  # no candidate can pass the gate
+    monkeypatch.setattr(W, "_diagnostics_significant", lambda innov, alpha: False)
+    named = dc.name(found, data)
+    assert named["named"] == [] and not named["unnamed_residual_structure"]
+    assert named["alarms"]["detected"] and not named["alarms"]["unnamed_structure"]
+    assert "no candidate passes the naming test" in named["verdict"]

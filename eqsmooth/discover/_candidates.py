@@ -294,8 +294,11 @@ def mechanical_library(
     - `include`: restrict to these candidate names (before axis suffixes).
     - `vector_field`: the nominal continuous-time dynamics `f(x, u) -> ẋ`
         `(n,)` for midpoint kicks, or `None` (kicks at the start of the
-        step). Like a feature it must be hashable and compare by value or
-        identity (a module-level function or a frozen dataclass).
+        step). It takes no `params`: bake the nominal parameters in (a
+        frozen dataclass holding them), and build the library again if they
+        change. Like a feature it must be hashable and compare by value or
+        identity (a module-level function or a frozen dataclass; a lambda
+        works but compiles again every time it is created).
 
     **Returns:** a tuple of [`eqsmooth.discover.Candidate`][].
     """
@@ -326,6 +329,23 @@ def mechanical_library(
                 "mechanical_library: vector_field must be hashable (a module-level "
                 "function or a frozen dataclass), so that compiled code is reused"
             ) from None
+        import jax
+
+        x = jax.ShapeDtypeStruct((state_dim,), jnp.float32)
+        u = jax.ShapeDtypeStruct((max(num_inputs, 1),), jnp.float32)
+        try:
+            out = jax.eval_shape(vector_field, x, u)
+        except Exception as e:
+            raise ValueError(
+                f"mechanical_library: vector_field fails on a state of shape "
+                f"{(state_dim,)} and an input of shape {(max(num_inputs, 1),)}: "
+                f"{type(e).__name__}: {e}"
+            ) from e
+        if getattr(out, "shape", None) != (state_dim,):
+            raise ValueError(
+                f"mechanical_library: vector_field must return dx/dt of shape "
+                f"{(state_dim,)}, got {getattr(out, 'shape', type(out).__name__)}"
+            )
     naxes = len(positions)
     if axis_names is None:
         axis_names = [f"x{i}" for i in range(naxes)]

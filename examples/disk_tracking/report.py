@@ -197,7 +197,7 @@ def _smoother_band(model, test, seq: int) -> tuple[np.ndarray, np.ndarray]:
     sol = eqs.least_squares(
         graph,
         {"x": M.initial_guess(meas, x0)},
-        eqs.GaussNewton(eqs.BlockTridiagonal()),
+        eqs.LevenbergMarquardt(eqs.BlockTridiagonal()),  # as the evaluation
         max_steps=10,
         throw=False,
     )

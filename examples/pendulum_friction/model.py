@@ -80,6 +80,8 @@ def pendulum_library(dt: float, omega0_sq: float) -> tuple[dc.Candidate, ...]:
         measured_positions=[0],
         vector_field=PendulumField(float(omega0_sq)),
     )
+    missing = set(_DYNAMICS) - {c.name for c in library}
+    assert not missing, f"mechanical_library has no {sorted(missing)}"
     out = []
     for c in library:
         if c.name in _DYNAMICS:
