@@ -232,6 +232,40 @@ _MECHANICAL = (
 )
 
 
+def _check_vector_field(vector_field, state_dim: int, num_inputs: int) -> None:
+    """Raise a clear error unless `vector_field(x, u)` is a hashable callable
+    returning `(state_dim,)` (see `mechanical_library`)."""
+    if not callable(vector_field):
+        raise TypeError(
+            "mechanical_library: vector_field must be a callable f(x, u) -> "
+            f"dx/dt, got {type(vector_field).__name__}"
+        )
+    try:
+        hash(vector_field)
+    except TypeError:
+        raise TypeError(
+            "mechanical_library: vector_field must be hashable (a module-level "
+            "function or a frozen dataclass), so that compiled code is reused"
+        ) from None
+    import jax
+
+    x = jax.ShapeDtypeStruct((state_dim,), jnp.float32)
+    u = jax.ShapeDtypeStruct((max(num_inputs, 1),), jnp.float32)
+    try:
+        out = jax.eval_shape(vector_field, x, u)
+    except Exception as e:
+        raise ValueError(
+            f"mechanical_library: vector_field fails on a state of shape "
+            f"{(state_dim,)} and an input of shape {(max(num_inputs, 1),)}: "
+            f"{type(e).__name__}: {e}"
+        ) from e
+    if getattr(out, "shape", None) != (state_dim,):
+        raise ValueError(
+            f"mechanical_library: vector_field must return dx/dt of shape "
+            f"{(state_dim,)}, got {getattr(out, 'shape', type(out).__name__)}"
+        )
+
+
 def mechanical_library(
     positions: Sequence[int],
     velocities: Sequence[int],
@@ -317,35 +351,7 @@ def mechanical_library(
     if coulomb_eps <= 0:
         raise ValueError("mechanical_library: coulomb_eps must be positive")
     if vector_field is not None:
-        if not callable(vector_field):
-            raise TypeError(
-                "mechanical_library: vector_field must be a callable f(x, u) -> "
-                f"dx/dt, got {type(vector_field).__name__}"
-            )
-        try:
-            hash(vector_field)
-        except TypeError:
-            raise TypeError(
-                "mechanical_library: vector_field must be hashable (a module-level "
-                "function or a frozen dataclass), so that compiled code is reused"
-            ) from None
-        import jax
-
-        x = jax.ShapeDtypeStruct((state_dim,), jnp.float32)
-        u = jax.ShapeDtypeStruct((max(num_inputs, 1),), jnp.float32)
-        try:
-            out = jax.eval_shape(vector_field, x, u)
-        except Exception as e:
-            raise ValueError(
-                f"mechanical_library: vector_field fails on a state of shape "
-                f"{(state_dim,)} and an input of shape {(max(num_inputs, 1),)}: "
-                f"{type(e).__name__}: {e}"
-            ) from e
-        if getattr(out, "shape", None) != (state_dim,):
-            raise ValueError(
-                f"mechanical_library: vector_field must return dx/dt of shape "
-                f"{(state_dim,)}, got {getattr(out, 'shape', type(out).__name__)}"
-            )
+        _check_vector_field(vector_field, state_dim, num_inputs)
     naxes = len(positions)
     if axis_names is None:
         axis_names = [f"x{i}" for i in range(naxes)]

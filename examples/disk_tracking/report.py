@@ -185,25 +185,21 @@ def jsonable(x):
 
 
 def _smoother_band(model, test, seq: int) -> tuple[np.ndarray, np.ndarray]:
-    """MAP positions and their marginal standard deviations for one sequence."""
+    """MAP positions and their marginal standard deviations for one sequence
+    (the MAP from `train.smooth_one`, the evaluation's own solve)."""
     import eqsmooth as eqs
 
-    from . import models as M
+    from . import train as T
 
     meas = jnp.asarray(test.sensor[seq])
     counts = jnp.asarray(test.fold.visible_pixels[seq], meas.dtype)
     x0 = jnp.asarray(test.fold.states[seq, 0], meas.dtype)
+    steps = T.Config.eval_solver_steps
+    xs = T.smooth_one(model, meas, counts, x0, steps)
     graph = model.graph(meas, counts, x0)
-    sol = eqs.least_squares(
-        graph,
-        {"x": M.initial_guess(meas, x0)},
-        eqs.LevenbergMarquardt(eqs.BlockTridiagonal()),  # as the evaluation
-        max_steps=10,
-        throw=False,
-    )
-    cov = eqs.marginal_covariances(eqs.solve.linearize(graph, sol.value))["x"]
+    cov = eqs.marginal_covariances(eqs.solve.linearize(graph, {"x": xs}))["x"]
     std = np.sqrt(np.diagonal(np.asarray(cov), axis1=1, axis2=2))[:, :2]
-    return np.asarray(sol.value["x"])[:, :2], std
+    return np.asarray(xs)[:, :2], std
 
 
 def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
