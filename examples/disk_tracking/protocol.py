@@ -120,14 +120,15 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
     steps = cfg.eval_solver_steps
     for method in cfg.methods:
         parts = method.split("_")
+        outcomes = None  # smoothers: SOLVE_OUTCOMES index per test sequence
         with timer(method):
             if method == "smoother_hetero_finetune":
                 start = models.get("smoother_hetero_surrogate")
                 if start is None:
                     start = T.make_smoother_model("hetero", sigma, k_noise, cfg.dtype)
                 res = T.train_finetune(cfg, train, val, sensor, start, fold_dir, method)
-                pred = T.predict_split(
-                    lambda m, b: T.finetune_positions(m, b, steps),
+                pred, outcomes = T.predict_split(
+                    lambda m, b: T.finetune_smoothed(m, b, steps),
                     res.best_model,
                     T._finetune_data(test, cfg.dtype),
                     batch=8,
@@ -147,8 +148,8 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
                     out_of_view="view" in parts[3:],
                     robust_view="robustview" in parts[3:],
                 )
-                pred = T.predict_split(
-                    lambda m, b: T.smoothed_positions(m, b, steps),
+                pred, outcomes = T.predict_split(
+                    lambda m, b: T.smoothed(m, b, steps),
                     res.best_model,
                     test.sequences(cfg.dtype),
                 )
@@ -179,6 +180,11 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
         models[method] = res.best_model
         predictions[method] = pred
         records[method] = _record(res, pred, truth, timer.seconds[method])
+        if outcomes is not None:
+            records[method]["test_solves"] = {
+                name: int(np.sum(outcomes == i))
+                for i, name in enumerate(T.SOLVE_OUTCOMES)
+            }
         rec = records[method]
         log(
             f"{method}: val RMSE {rec['val_rmse']:.3f} (step {rec['best_step']}), "

@@ -195,7 +195,7 @@ def _smoother_band(model, test, seq: int) -> tuple[np.ndarray, np.ndarray]:
     counts = jnp.asarray(test.fold.visible_pixels[seq], meas.dtype)
     x0 = jnp.asarray(test.fold.states[seq, 0], meas.dtype)
     steps = T.Config.eval_solver_steps
-    xs = T.smooth_one(model, meas, counts, x0, steps)
+    xs, _ = T.smooth_one(model, meas, counts, x0, steps)
     graph = model.graph(meas, counts, x0)
     cov = eqs.marginal_covariances(eqs.solve.linearize(graph, {"x": xs}))["x"]
     std = np.sqrt(np.diagonal(np.asarray(cov), axis1=1, axis2=2))[:, :2]
