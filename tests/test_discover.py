@@ -553,3 +553,81 @@ def test_detection_with_clean_diagnostics_is_not_unnamed_structure(monkeypatch):
     assert named["named"] == [] and not named["unnamed_residual_structure"]
     assert named["alarms"]["detected"] and not named["alarms"]["unnamed_structure"]
     assert "no candidate passes the naming test" in named["verdict"]
+
+
+def _two_axis_dyn(x, u, params):
+    k, kc = params
+    p, v = x[:2], x[2:]
+    return jnp.concatenate([p + v, v - k * p - kc * (p - p[::-1])])
+
+
+def _two_axis_meas(x, params):
+    return x[:2]
+
+
+@pytest.mark.slow  # its own shapes: about 40 s of compilation on 2 cores
+def test_two_coupled_axes_with_two_sensors():
+    # Two axes joined by a coupling spring, one position sensor each. An
+    # effect on one axis is named on that axis; an isotropic one is named
+    # once; null data names nothing.
+    import eqsmooth.discover as dc
+
+    b, t, k, kc = 16, 40, 0.05, 0.02
+    q, r = np.array([0.05, 0.05, 0.5, 0.5]), np.array([1.0, 1.0])
+    prior = np.array([20.0, 20.0, 4.0, 4.0])
+
+    def simulate(effect, coef):
+        rng = np.random.default_rng(1)
+        x = rng.normal(size=(b, 4)) * prior
+        xs = []
+        for _ in range(t):
+            xs.append(x)
+            p, v = x[:, :2], x[:, 2:]
+            a = -k * p - kc * (p - p[:, ::-1])
+            if effect == "force_y":
+                a = a + np.array([0.0, coef])
+            elif effect == "drag":
+                a = a - coef * v * np.abs(v)
+            x = np.concatenate([p + v, v + a], 1) + rng.normal(size=(b, 4)) * q
+        xs = np.stack(xs, 1)
+        y = xs[..., :2] + r * rng.normal(size=(b, t, 2))
+        init = np.concatenate([y, np.zeros_like(y)], -1)
+        return dc.Sequences(y, np.zeros((b, 4)), initial_states=init)
+
+    lib = dc.mechanical_library(
+        [0, 1],
+        [2, 3],
+        4,
+        measured_positions=[0, 1],
+        axis_names=["x", "y"],
+        coulomb_eps=1.0,
+        include=("constant force", "viscous damping", "quadratic drag", "sensor bias"),
+    )
+    model = dc.ChainModel(
+        _two_axis_dyn,
+        _two_axis_meas,
+        (jnp.asarray(k), jnp.asarray(kc)),
+        q,
+        r,
+        prior,
+        lib,
+    )
+
+    def run(effect, coef):
+        data = simulate(effect, coef)
+        found = dc.find(model, data)
+        named = dc.name(found, data)
+        return found, named, dc.add(found, named, data)
+
+    found, named, added = run("drag", 0.02)
+    assert found["detected"] and named["verdict"] == "quadratic drag", named
+    (c,) = added["coefficients"]
+    assert abs(c["value"] - 0.02) < 0.1 * 0.02, c
+    # A constant force on y: named on y. With springs it is equivalent to a
+    # bias of the y sensor (a shifted equilibrium), never to anything on x.
+    found, named, _ = run("force_y", 0.3)
+    assert found["detected"] and named["named"][:1] == ["constant force [y]"], named
+    together = set().union(*map(set, named["equivalence_sets"]))
+    assert together <= {"constant force [y]", "sensor bias [y1]"}, named
+    found, named, _ = run(None, 0.0)
+    assert not found["detected"] and named["named"] == [], named
