@@ -268,6 +268,14 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
     err = ((pos - truth[..., :2]) ** 2).sum(-1)[hidden]
     assert np.sqrt(err.mean() / 2) < 6.0
     assert outcome.shape == (300,) and set(outcome.tolist()) <= {0, 1}
+    # The outcome codes: one step is too few (step limit), and a NaN
+    # measurement fails.
+    short = T.smoothed(model, jax.tree.map(jnp.asarray, batch), 1)[1]
+    assert np.any(np.asarray(short) == 1)
+    bad = dict(batch, meas=meas.copy())
+    bad["meas"][0, 5] = np.nan
+    _, outcome = T.smoothed(model, jax.tree.map(jnp.asarray, bad), 10)
+    assert outcome[0] == 2 and set(np.asarray(outcome[1:]).tolist()) <= {0, 1}
 
 
 def test_splits_keep_the_test_fold_out():

@@ -69,6 +69,7 @@ def main(argv=None) -> None:
         a.smoother,
         learn_dynamics="learndyn" in flags,
         out_of_view="view" in flags,
+        robust_view="robustview" in flags,
     )
     steps = cfg.eval_solver_steps
     smoothed = T.predict_split(
