@@ -182,8 +182,18 @@ def test_smoother_beats_its_measurements():
 
 
 def test_out_of_view_factor():
+    import jax
     import jax.numpy as jnp
-    from disk_tracking import models as M
+    from disk_tracking import models as M, train as T
+
+    # Which factor a method name asks for, and a clear error for others.
+    assert T.view_factor("smoother_hetero_surrogate_learndyn") is None
+    assert T.view_factor("smoother_hetero_surrogate_learndyn_view") == "hinge"
+    assert T.view_factor("smoother_hetero_surrogate_learndyn_robustview") == "robust"
+    robust = T.make_smoother_model("const", 5.0, jax.random.key(0), "float32", "robust")
+    assert robust.view_robust_scale == T.OUT_OF_VIEW_ROBUST_SCALE
+    with pytest.raises(ValueError, match="out-of-view factor 'mixture'"):
+        T.make_smoother_model("const", 5.0, jax.random.key(0), "float32", "mixture")
 
     L = M.VIEW_HALF_WIDTH
     assert L == 67.0  # 60 px half image + radius 7: no target pixel beyond

@@ -68,8 +68,7 @@ def main(argv=None) -> None:
         fold_dir,
         a.smoother,
         learn_dynamics="learndyn" in flags,
-        out_of_view="view" in flags,
-        robust_view="robustview" in flags,
+        view=T.view_factor(a.smoother),
     )
     steps = cfg.eval_solver_steps
     smoothed = T.predict_split(

@@ -145,8 +145,7 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
                     fold_dir,
                     method,
                     learn_dynamics="learndyn" in parts[3:],
-                    out_of_view="view" in parts[3:],
-                    robust_view="robustview" in parts[3:],
+                    view=T.view_factor(method),
                 )
                 pred, outcomes = T.predict_split(
                     lambda m, b: T.smoothed(m, b, steps),

@@ -390,13 +390,22 @@ class SmootherModel(eqx.Module):
 OUT_OF_VIEW_ROBUST_SCALE = 1.0
 
 
+# The out-of-view factors a smoother can carry: none, the hinge, or the hinge
+# under a Geman-McClure kernel.
+VIEW_FACTORS = (None, "hinge", "robust")
+
+
+def view_factor(method: str) -> str | None:
+    """The out-of-view factor a method name asks for (`VIEW_FACTORS`):
+    `..._view` the hinge, `..._robustview` the robust hinge."""
+    flags = method.split("_")[3:]
+    if "robustview" in flags:
+        return "robust"
+    return "hinge" if "view" in flags else None
+
+
 def make_smoother_model(
-    kind: str,
-    sigma: float,
-    key,
-    dtype,
-    out_of_view: bool = False,
-    robust_view: bool = False,
+    kind: str, sigma: float, key, dtype, view: str | None = None
 ) -> SmootherModel:
     if kind == "const":
         noise = M.ConstantNoise(sigma, dtype=dtype)
@@ -404,14 +413,16 @@ def make_smoother_model(
         noise = M.HeteroscedasticNoise(sigma, key, dtype=dtype)
     else:
         raise ValueError(f"unknown noise kind {kind!r}")
-    view = None
-    if out_of_view or robust_view:
-        view = jnp.asarray(np.log(OUT_OF_VIEW_SQRT_PRECISION), dtype=dtype)
+    if view not in VIEW_FACTORS:
+        raise ValueError(f"unknown out-of-view factor {view!r}; one of {VIEW_FACTORS}")
+    weight = None
+    if view is not None:
+        weight = jnp.asarray(np.log(OUT_OF_VIEW_SQRT_PRECISION), dtype=dtype)
     return SmootherModel(
         noise,
         jnp.asarray(-np.log(M.DYNAMICS_SIGMAS), dtype=dtype),
-        log_view_sqrt_precision=view,
-        view_robust_scale=OUT_OF_VIEW_ROBUST_SCALE if robust_view else None,
+        log_view_sqrt_precision=weight,
+        view_robust_scale=OUT_OF_VIEW_ROBUST_SCALE if view == "robust" else None,
     )
 
 
@@ -574,10 +585,9 @@ def train_smoother(
     work: Path,
     name: str,
     learn_dynamics: bool = False,
-    out_of_view: bool = False,
-    robust_view: bool = False,
+    view: str | None = None,
 ):
-    model = make_smoother_model(kind, sigma, key, cfg.dtype, out_of_view, robust_view)
+    model = make_smoother_model(kind, sigma, key, cfg.dtype, view)
     if learn_dynamics:
         model = dataclasses.replace(model, learn_dynamics=True)
     if loss == "surrogate":
