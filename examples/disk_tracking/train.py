@@ -526,9 +526,9 @@ def smooth_one(model: SmootherModel, meas, counts, x0, max_steps: int):
     sol = eqs.least_squares(
         model.graph(meas, counts, x0), start, solver, max_steps=max_steps, throw=False
     )
-    limit = (sol.result == eqs.RESULTS.nonlinear_max_steps_reached) | (
-        sol.result == eqs.RESULTS.max_steps_reached
-    )
+    # A least-squares solve that runs out of steps reports
+    # `nonlinear_max_steps_reached` (optimistix's code for nonlinear solvers).
+    limit = sol.result == eqs.RESULTS.nonlinear_max_steps_reached
     outcome = jnp.where(sol.result == eqs.RESULTS.successful, 0, jnp.where(limit, 1, 2))
     return sol.value["x"], outcome
 
