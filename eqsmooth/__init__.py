@@ -38,6 +38,7 @@ from .factors import (
     RangeFactor as RangeFactor,
     shared_field as shared_field,
     SqrtInformationNoise as SqrtInformationNoise,
+    StudentTNoise as StudentTNoise,
     TranslationPriorFactor as TranslationPriorFactor,
     TruncatedQuadraticNoise as TruncatedQuadraticNoise,
     TukeyNoise as TukeyNoise,

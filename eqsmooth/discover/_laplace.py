@@ -56,8 +56,10 @@ def laplace_log_marginal(
     the Gauss-Newton approximation of `dx̂/dθ`. `jax.grad`, `jax.jacfwd` and
     `jax.hessian` all work.
 
-    Robust noise models are not normalised densities; their result is only
-    indicative.
+    [`eqsmooth.factors.StudentTNoise`][] is a normalised density, so a graph
+    with Student-t factors gets a proper (Gauss-Newton) Laplace evidence;
+    the robust kernels (Huber, Cauchy, ...) are losses, not densities, and
+    their result is only indicative.
 
     **Arguments:**
 

@@ -1,5 +1,6 @@
 """A chain (state-space) model with candidate terms, and its likelihoods."""
 
+import math
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -8,7 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ..factors import DiagonalNoise, FactorGraph, FunctionFactor, Var
+from ..factors import (
+    AbstractNoiseModel,
+    DiagonalNoise,
+    FactorGraph,
+    FunctionFactor,
+    StudentTNoise,
+    Var,
+)
 from ..filters import ekf
 from ..solve import BlockTridiagonal, GaussNewton, least_squares
 from ._candidates import Candidate
@@ -111,6 +119,13 @@ class ChainModel(eqx.Module):
         y_t     = h(x_t, params)      + Σ_j c_j ψ_j(x_t, u_t) + v_t,  v ~ N(0, diag(r²))
         x_0     ~ N(x0_mean, diag(prior_sigma²))
 
+    With `measurement_dof = ν`, the measurement noise is heavy-tailed
+    instead: `v_t` is a Student-t with `ν` degrees of freedom and scale
+    `diag(r)` ([`eqsmooth.factors.StudentTNoise`][]), a robust model whose
+    Laplace evidence is still that of a normalised density. The diagnostics
+    (innovation tests, k-step errors) then use the moment-matched Gaussian,
+    of standard deviation `measurement_std = r √(ν/(ν − 2))`.
+
     The coefficients `c` of all candidates are stored (zero = absent), so that
     models with different active sets share compiled code.
 
@@ -124,6 +139,8 @@ class ChainModel(eqx.Module):
     - `prior_sigma`: `(n,)` standard deviations of the first-state prior.
     - `candidates`: tuple of [`eqsmooth.discover.Candidate`][].
     - `coefficients`: `(K,)` coefficients (default zeros).
+    - `measurement_dof`: `None` (Gaussian measurement noise) or the degrees
+        of freedom `ν > 2` of Student-t measurement noise.
     """
 
     dynamics: Callable = eqx.field(static=True)
@@ -134,6 +151,7 @@ class ChainModel(eqx.Module):
     prior_sigma: Float[Array, " n"]
     candidates: tuple[Candidate, ...] = eqx.field(static=True)
     coefficients: Float[Array, " K"]
+    measurement_dof: float | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -145,6 +163,7 @@ class ChainModel(eqx.Module):
         prior_sigma: Float[ArrayLike, " n"],
         candidates: Sequence[Candidate] = (),
         coefficients: Float[ArrayLike, " K"] | None = None,
+        measurement_dof: float | None = None,
     ):
         self.dynamics = dynamics
         self.measurement = measurement
@@ -156,8 +175,17 @@ class ChainModel(eqx.Module):
         if coefficients is None:
             coefficients = np.zeros(len(self.candidates))
         self.coefficients = jnp.asarray(coefficients, dtype=float)
+        self.measurement_dof = (
+            None if measurement_dof is None else float(measurement_dof)
+        )
 
     def __check_init__(self):
+        dof = self.measurement_dof
+        if dof is not None and not (np.isfinite(dof) and dof > 2):
+            raise ValueError(
+                "ChainModel.measurement_dof must be None (Gaussian) or degrees of "
+                f"freedom ν > 2 (the diagnostics need a finite variance), got {dof}"
+            )
         for c in self.candidates:
             if not isinstance(c, Candidate):
                 raise TypeError(
@@ -192,6 +220,23 @@ class ChainModel(eqx.Module):
                     f"ChainModel.{field} must be positive and finite standard "
                     f"deviations, got {sigma}"
                 )
+
+    @property
+    def measurement_std(self) -> Float[Array, " m"]:
+        """Standard deviation of the measurement noise: `r`, or `r √(ν/(ν − 2))`
+        for Student-t noise."""
+        if self.measurement_dof is None:
+            return self.measurement_sigma
+        nu = self.measurement_dof
+        return self.measurement_sigma * math.sqrt(nu / (nu - 2.0))
+
+    def measurement_noise(self) -> AbstractNoiseModel:
+        """The measurement factor's noise model (Gaussian or Student-t)."""
+        gaussian = DiagonalNoise(sqrt_precision=1.0 / self.measurement_sigma)
+        if self.measurement_dof is None:
+            return gaussian
+        m = self.measurement_sigma.shape[0]
+        return StudentTNoise(gaussian, self.measurement_dof, dim=m)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -270,7 +315,7 @@ class ChainModel(eqx.Module):
                 FunctionFactor(
                     _measurement_residual,
                     (Var("x", t),),
-                    DiagonalNoise(sqrt_precision=1.0 / self.measurement_sigma),
+                    self.measurement_noise(),
                     data=(measurements, inputs),
                     params=self,
                 ),
@@ -395,7 +440,7 @@ def _diagnostic_filter_one(model: ChainModel, y, u, x0, xhat):
     measurement = FunctionFactor(
         _linear_measurement_residual,
         (Var("x", t),),
-        DiagonalNoise(sqrt_precision=1.0 / model.measurement_sigma),
+        DiagonalNoise(sqrt_precision=1.0 / model.measurement_std),
         data=(y, u, xhat),
         params=model,
     )
@@ -409,7 +454,7 @@ def _diagnostic_filter_one(model: ChainModel, y, u, x0, xhat):
     # The filter's innovations are whitened by the measurement noise and
     # signed as −R r = R (ŷ − y); turn them back into y − ŷ and S into
     # measurement units.
-    r = model.measurement_sigma
+    r = model.measurement_std
     nu = -sol.innovations[0] * r[None, :]
     S = sol.innovation_covariances[0] * jnp.outer(r, r)[None]
     return nu, S, sol.mean
@@ -428,7 +473,9 @@ def diagnostic_innovations(
     its own predictions is not used: its first-order error grows with the
     prediction covariance and rejected the true model of a system with
     Coulomb friction at the true noise levels, while the smoothed states
-    are accurate enough for the linearisation to be consistent.
+    are accurate enough for the linearisation to be consistent. With
+    Student-t measurement noise (`measurement_dof`) the filter uses the
+    moment-matched Gaussian, of standard deviation `model.measurement_std`.
     """
     return jax.vmap(_diagnostic_filter_one, in_axes=(None, 0, 0, 0, 0))(
         model, data.measurements, data.inputs, data.x0_mean, xhat

@@ -97,7 +97,7 @@ def _residuals(model: ChainModel, data: Sequences, xhat: np.ndarray):
     trans = jax.vmap(jax.vmap(model.transition))(x[:, :-1], u[:, :-1])
     obs = jax.vmap(jax.vmap(model.observe))(x, u)
     rt = (x[:, 1:] - np.asarray(trans)) / np.asarray(model.process_sigma)
-    rm = (y - np.asarray(obs)) / np.asarray(model.measurement_sigma)
+    rm = (y - np.asarray(obs)) / np.asarray(model.measurement_std)
     return rt, rm
 
 
@@ -227,7 +227,7 @@ def open_loop(model: ChainModel, data: Sequences, xhat: np.ndarray) -> dict:
     return {
         "rms_error": float(np.sqrt(np.mean(err * err))),
         "rms_error_by_time": {int(t): float(rms_t[t]) for t in marks},
-        "measurement_sigma": np.asarray(model.measurement_sigma).tolist(),
+        "measurement_std": np.asarray(model.measurement_std).tolist(),
     }
 
 

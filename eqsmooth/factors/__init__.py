@@ -37,6 +37,7 @@ from ._robust_kernels import (
     TukeyNoise as TukeyNoise,
     WelschNoise as WelschNoise,
 )
+from ._student_t import StudentTNoise as StudentTNoise
 from ._variables import Var as Var
 from ._vehicle import (
     vehicle_motion as vehicle_motion,

@@ -139,13 +139,17 @@ class FactorGraph(eqx.Module):
         return jnp.asarray(total)
 
     def negative_log_likelihood(self, values: Values) -> Float[Array, ""]:
-        """Gaussian NLL at `values`: cost − Σ log det R + ½ (Σ n m) log 2π.
+        """Negative log-likelihood at `values`: cost − Σ log normaliser.
 
-        This is the paper's "joint NLL" when `values` is the ground truth.
+        For Gaussian factors this is `cost − Σ log det R + ½ (Σ n m) log 2π`,
+        the paper's "joint NLL" when `values` is the ground truth. A
+        [`eqsmooth.factors.StudentTNoise`][] factor contributes its exact
+        Student-t density; the robust kernels (Huber, Cauchy, ...) contribute
+        their loss with their base model's Gaussian constant (see
+        [`eqsmooth.factors.AbstractNoiseModel.log_normalizer`][]).
         """
         total = self.cost(values)
         for f, rw in zip(self.factors, self.whitened_residuals(values)):
             n, m = rw.shape
-            total = total - f.noise.log_det_sqrt_information(n, m)
-            total = total + 0.5 * n * m * jnp.log(2 * jnp.pi)
+            total = total - f.noise.log_normalizer(n, m)
         return total

@@ -16,6 +16,7 @@ cost is `½ ρ(‖R r‖²)` where `ρ` is the identity for Gaussian models.
 """
 
 import abc
+import math
 
 import equinox as eqx
 import jax
@@ -113,6 +114,12 @@ def _expand(x: Array, ndim: int) -> Array:
     return x.reshape(x.shape + (1,) * (ndim - x.ndim))
 
 
+def gaussian_log_normalizer(noise: "AbstractNoiseModel", n: int, m: int) -> Array:
+    """`Σ log det R_i − ½ n m log 2π`: the Gaussian density's log constant."""
+    # A Python float stays weakly typed: float32 models stay float32.
+    return noise.log_det_sqrt_information(n, m) - 0.5 * n * m * math.log(2 * math.pi)
+
+
 class AbstractNoiseModel(eqx.Module):
     """Base class of noise models (see the module docs for shapes)."""
 
@@ -129,6 +136,18 @@ class AbstractNoiseModel(eqx.Module):
 
         The Gaussian negative log-likelihood of a stacked factor is
         `½ Σ‖R_i r_i‖² − Σ log det R_i + ½ n m log 2π`.
+        """
+
+    @abc.abstractmethod
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        """Log normalising constant of `n` rows of dimension `m`.
+
+        The negative log-likelihood of a stacked factor is
+        `½ Σ ρ(‖R_i r_i‖²) − log_normalizer(n, m)`. Gaussian models return
+        `Σ log det R_i − ½ n m log 2π`;
+        [`eqsmooth.factors.StudentTNoise`][] returns its own (it is a
+        normalised density); the robust kernels return their base model's
+        Gaussian constant (they are losses, not normalised densities).
         """
 
     @abc.abstractmethod
@@ -207,6 +226,9 @@ class IsotropicNoise(AbstractNoiseModel):
     def rho(self, s):
         return s, jnp.ones_like(s)
 
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        return gaussian_log_normalizer(self, n, m)
+
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_precision.shape not in ((), (n,)):
             raise ValueError(
@@ -277,6 +299,9 @@ class DiagonalNoise(AbstractNoiseModel):
 
     def rho(self, s):
         return s, jnp.ones_like(s)
+
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        return gaussian_log_normalizer(self, n, m)
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_precision.shape not in ((m,), (n, m)):
@@ -388,6 +413,9 @@ class SqrtInformationNoise(AbstractNoiseModel):
     def rho(self, s):
         return s, jnp.ones_like(s)
 
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        return gaussian_log_normalizer(self, n, m)
+
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_information.shape not in ((m, m), (n, m, m)):
             raise ValueError(
@@ -438,6 +466,11 @@ class AbstractRobustNoise(AbstractNoiseModel):
 
     def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
         return self.base.log_det_sqrt_information(n, m)
+
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        # A robust loss is not a normalised density: the constant is the base
+        # Gaussian's, so likelihoods built from it are only indicative.
+        return gaussian_log_normalizer(self.base, n, m)
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)

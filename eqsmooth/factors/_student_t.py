@@ -1,0 +1,111 @@
+"""Student-t noise: heavy tails with a normalised density."""
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax.scipy.special import gammaln
+from jaxtyping import Array, ArrayLike, Float
+
+from ._noise import (
+    _as_float,
+    _check_positive,
+    _positive_under_jit,
+    AbstractNoiseModel,
+    AbstractRobustNoise,
+)
+
+
+class StudentTNoise(AbstractNoiseModel):
+    """Multivariate Student-t noise: heavy tails, and a proper density.
+
+    Each row's whitened residual `e = R r` (`R` from the Gaussian `base`) is
+    a standard multivariate t with `ν` degrees of freedom in `m` dimensions:
+
+        −log p(r) = ((ν + m)/2) log(1 + ‖e‖²/ν) − log det R − log c(ν, m)
+        c(ν, m)   = Γ((ν + m)/2) / (Γ(ν/2) (νπ)^{m/2})
+
+    In the conventions of the other noise models, `ρ(s) = (ν + m) log(1 + s/ν)`
+    and `ρ'(s) = (ν + m)/(ν + s)`: solvers weight residuals and Jacobians by
+    `√ρ'(s)` (at `s = 0` that is the density's exact curvature at its mode),
+    and `log_normalizer` is the t density's own. So
+    [`eqsmooth.factors.FactorGraph.negative_log_likelihood`][] and the
+    Laplace evidence ([`eqsmooth.discover.laplace_log_marginal`][]) are those
+    of a normalised density, unlike the robust kernels (Huber, Cauchy, ...),
+    which are losses. The Laplace evidence uses the same weights, so its
+    curvature is the Gauss-Newton (IRLS) one, not the exact Hessian.
+
+    `R` sets the scale, not the covariance: for `ν > 2` the covariance is
+    `ν/(ν − 2) (RᵀR)⁻¹`. As `ν → ∞` the model becomes `base`. The density is
+    not log-concave (its curvature is negative beyond `‖e‖² = ν`): start a
+    solve near the answer, for instance from the Gaussian model's. Kalman
+    filters reject it, as they reject robust kernels.
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model that gives `R`.
+    - `dof`: degrees of freedom `ν > 0`, shared `()` or per row `(n,)`;
+        learnable.
+    - `dim`: the residual dimension `m` of the factor it belongs to (the
+        density's constant depends on it); checked against the factor.
+    """
+
+    base: AbstractNoiseModel
+    dof: Float[Array, "*rows"]
+    dim: int = eqx.field(static=True)
+
+    def __init__(
+        self, base: AbstractNoiseModel, dof: Float[ArrayLike, "*rows"], dim: int = 1
+    ):
+        self.base = base
+        self.dof = _positive_under_jit("StudentTNoise", "dof", _as_float(dof))
+        self.dim = dim
+
+    def __check_init__(self):
+        if not isinstance(self.base, AbstractNoiseModel) or isinstance(
+            self.base, (AbstractRobustNoise, StudentTNoise)
+        ):
+            raise TypeError(
+                "StudentTNoise.base must be a Gaussian noise model such as "
+                f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
+            )
+        if isinstance(self.dim, bool) or not isinstance(self.dim, int) or self.dim < 1:
+            raise ValueError(
+                f"StudentTNoise.dim must be a positive int (the residual dimension), "
+                f"got {self.dim!r}"
+            )
+        _check_positive("StudentTNoise", "dof", self.dof)
+
+    def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
+        return self.base.whiten(r)
+
+    def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
+        return self.base.log_det_sqrt_information(n, m)
+
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        nu = self.dof
+        per_row = (
+            gammaln(0.5 * (nu + m))
+            - gammaln(0.5 * nu)
+            - 0.5 * m * jnp.log(nu * math.pi)
+        )
+        const = n * per_row if nu.ndim == 0 else jnp.sum(per_row)
+        return self.base.log_det_sqrt_information(n, m) + const
+
+    def rho(self, s):
+        nu = self.dof.astype(s.dtype)
+        a = nu + self.dim
+        return a * jnp.log1p(s / nu), a / (nu + s)
+
+    def check_shapes(self, factor_name: str, n: int, m: int) -> None:
+        self.base.check_shapes(factor_name, n, m)
+        if m != self.dim:
+            raise ValueError(
+                f"{factor_name}: StudentTNoise.dim is {self.dim} but the factor's "
+                f"residual has dimension {m}; pass dim={m}"
+            )
+        if self.dof.shape not in ((), (n,)):
+            raise ValueError(
+                f"{factor_name}: StudentTNoise.dof has shape {self.dof.shape}; "
+                f"expected () or ({n},)"
+            )
