@@ -7,6 +7,7 @@ from ._candidates import (
     Candidate as Candidate,
     mechanical_library as mechanical_library,
 )
+from ._integrator import Integrator as Integrator
 from ._laplace import (
     laplace_at_map as laplace_at_map,
     laplace_log_marginal as laplace_log_marginal,

@@ -9,7 +9,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 
-_TARGETS = ("dynamics", "measurement")
+_TARGETS = ("dynamics", "rate", "measurement")
 
 
 class Candidate(eqx.Module):
@@ -17,19 +17,22 @@ class Candidate(eqx.Module):
 
     A candidate adds `coefficient · feature(x, u)` to the model: to the
     predicted next state for `target="dynamics"`
-    (`x_{t+1} = f(x_t, u_t) + c φ(x_t, u_t) + w_t`) or to the predicted
-    measurement for `target="measurement"` (`y_t = h(x_t) + c ψ(x_t, u_t) + v_t`).
+    (`x_{t+1} = f(x_t, u_t) + c φ(x_t, u_t) + w_t`), to the continuous-time
+    vector field for `target="rate"` (`ẋ = f(x, u) + c φ(x, u)`, integrated
+    with the model's own scheme; the model's dynamics must then be an
+    [`eqsmooth.discover.Integrator`][]), or to the predicted measurement for
+    `target="measurement"` (`y_t = h(x_t) + c ψ(x_t, u_t) + v_t`).
     The coefficient is a scalar; its value 0 is the nominal model.
 
     **Arguments:**
 
     - `name`: the name reported when the effect is found, e.g. `"quadratic drag"`.
     - `feature`: `feature(x, u) -> array`, with `x` ONE state `(n,)` and `u`
-        one input `(k,)`; returns `(n,)` for dynamics candidates and `(m,)` for
-        measurement candidates. Must be a hashable callable that compares by
+        one input `(k,)`; returns `(n,)` for dynamics and rate candidates and
+        `(m,)` for measurement candidates. Must be a hashable callable that compares by
         value or identity (a module-level function or a frozen dataclass), so
         that compiled code is reused.
-    - `target`: `"dynamics"` or `"measurement"`.
+    - `target`: `"dynamics"`, `"rate"` or `"measurement"`.
     - `sign`: `+1` if physics says the coefficient is non-negative, `-1` if
         non-positive, `0` if either (only reported, not enforced).
     - `unit`: unit of the coefficient, for reports.
@@ -126,7 +129,7 @@ def check_features(
     x = jax.ShapeDtypeStruct(x.shape, x.dtype)
     u = jax.ShapeDtypeStruct(u.shape, u.dtype)
     for c in candidates:
-        want = (state_dim,) if c.target == "dynamics" else (meas_dim,)
+        want = (meas_dim,) if c.target == "measurement" else (state_dim,)
         try:
             out = jax.eval_shape(c.feature, x, u)
         except Exception as e:
@@ -158,6 +161,7 @@ class _Acceleration:
     axis: int | None = None
     input_index: int = 0
     vector_field: Callable | None = None
+    rate: bool = False
 
     def _select(self, index: tuple[int, ...]) -> np.ndarray:
         sel = np.zeros((self.state_dim, len(index)))
@@ -169,7 +173,7 @@ class _Acceleration:
         # programs to compile once differentiated twice.
         sel_p = jnp.asarray(self._select(self.positions), x.dtype)
         sel_v = jnp.asarray(self._select(self.velocities), x.dtype)
-        if self.vector_field is not None:
+        if self.vector_field is not None and not self.rate:
             # The kick of a continuous acceleration over one step, evaluated
             # at the nominal half-step state (midpoint rule).
             x = x + 0.5 * self.dt * self.vector_field(x, u)
@@ -194,7 +198,9 @@ class _Acceleration:
             a = -(p**3)
         else:  # pragma: no cover - guarded by the library builder
             raise ValueError(f"unknown acceleration feature {self.kind!r}")
-        return sel_v @ (self.dt * a)
+        # A rate candidate is the acceleration itself (a term of ẋ); a
+        # dynamics candidate is its kick over one step.
+        return sel_v @ (a if self.rate else self.dt * a)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -278,6 +284,7 @@ def mechanical_library(
     axis_names: Sequence[str] | None = None,
     include: Sequence[str] | None = None,
     vector_field: Callable | None = None,
+    rate: bool = False,
 ) -> tuple[Candidate, ...]:
     """The standard candidate effects of a second-order mechanical system.
 
@@ -291,7 +298,12 @@ def mechanical_library(
     and a fitted coefficient is then a continuous-time quantity. For viscous
     damping of an oscillator of frequency `ω₀`, the start-of-step kick reads
     the damping rate high by `1/cos(ω₀ dt)`; the midpoint kick removes that
-    factor (see the tests).
+    factor (see the tests). With `rate=True` every acceleration is instead a
+    term of the continuous-time vector field (`target="rate"`,
+    `v̇ = … + c a`), integrated by the model's own scheme: the nominal model's
+    dynamics must then be an [`eqsmooth.discover.Integrator`][], and the
+    coefficients are continuous-time quantities with no discretisation
+    error, at a higher compile cost.
     Dissipative and stiffness terms share one coefficient over all axes
     (isotropic); constant force, actuator gain and the sensor effects get one
     candidate per axis or channel.
@@ -333,6 +345,8 @@ def mechanical_library(
         change. Like a feature it must be hashable and compare by value or
         identity (a module-level function or a frozen dataclass; a lambda
         works but compiles again every time it is created).
+    - `rate`: build the acceleration candidates as vector-field terms (see
+        above; then `dt` and `vector_field` are not used by them).
 
     **Returns:** a tuple of [`eqsmooth.discover.Candidate`][].
     """
@@ -350,8 +364,14 @@ def mechanical_library(
             )
     if coulomb_eps <= 0:
         raise ValueError("mechanical_library: coulomb_eps must be positive")
+    if vector_field is not None and rate:
+        raise ValueError(
+            "mechanical_library: give vector_field (midpoint kicks) or rate=True "
+            "(terms integrated by the model's Integrator), not both"
+        )
     if vector_field is not None:
         _check_vector_field(vector_field, state_dim, num_inputs)
+    target = "rate" if rate else "dynamics"
     naxes = len(positions)
     if axis_names is None:
         axis_names = [f"x{i}" for i in range(naxes)]
@@ -372,19 +392,22 @@ def mechanical_library(
             state_dim=state_dim,
             dt=dt,
             vector_field=vector_field,
+            rate=rate,
         )
+        if rate:
+            desc = desc.replace("v' ", "v̇ ").replace(" dt", "")
         if kind == "constant":
             for i in range(naxes):
                 feat = _Acceleration(kind, axis=i, **common)
-                out.append(Candidate(name + suffix(i), feat, "dynamics", 0, "", desc))
+                out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
         elif kind == "actuator":
             for i in range(min(num_inputs, naxes)):
                 feat = _Acceleration(kind, axis=i, input_index=i, **common)
-                out.append(Candidate(name + suffix(i), feat, "dynamics", 0, "", desc))
+                out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
         else:
             eps = coulomb_eps if kind == "coulomb" else 1.0
             feat = _Acceleration(kind, eps=eps, **common)
-            out.append(Candidate(name, feat, "dynamics", sign, "", desc))
+            out.append(Candidate(name, feat, target, sign, "", desc))
     if measured_positions is not None:
         measured_positions = tuple(measured_positions)
         m = len(measured_positions)

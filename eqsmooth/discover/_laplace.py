@@ -7,7 +7,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
-from ..factors import FactorGraph
+from ..factors import FactorGraph, StudentTNoise
 from ..solve import (
     AbstractGraphSolver,
     BlockTridiagonal,
@@ -57,9 +57,13 @@ def laplace_log_marginal(
     `jax.hessian` all work.
 
     [`eqsmooth.factors.StudentTNoise`][] is a normalised density, so a graph
-    with Student-t factors gets a proper (Gauss-Newton) Laplace evidence;
-    the robust kernels (Huber, Cauchy, ...) are losses, not densities, and
-    their result is only indicative.
+    with Student-t factors gets a proper Laplace evidence. Its
+    log-determinant uses the t density's Fisher information
+    ([`StudentTNoise.fisher_model`][eqsmooth.factors.StudentTNoise.fisher_model])
+    rather than the curvature at each residual: the latter changes with the
+    residuals, which makes the one-step correction's gradient inexact and
+    the evidence rough in `θ`. The robust kernels (Huber, Cauchy, ...) are
+    losses, not densities, and their result is only indicative.
 
     **Arguments:**
 
@@ -118,9 +122,21 @@ def laplace_at_map(
     linear_solver = linear_solver_for(linear_solver, lin_frozen)
     delta, _ = solve_normal(linear_solver, lin_frozen, None, rhs)
     x_tilde = retract_values(x_hat, delta)
-    lin_t = linearize(graph, x_tilde)
+    lin_t = linearize(_fisher_curvature(graph), x_tilde)
     log_det = normal_log_det(lin_t, linear_solver)
     nll = graph.negative_log_likelihood(x_tilde)
     N = lin_t.num_tangent
     log_ml = -nll + 0.5 * N * np.log(2 * np.pi) - 0.5 * log_det
     return jnp.asarray(log_ml)
+
+
+def _fisher_curvature(graph: FactorGraph) -> FactorGraph:
+    """`graph` with every Student-t noise model replaced by its Fisher
+    information (a Gaussian), for the log-determinant."""
+    factors = [
+        eqx.tree_at(lambda f: f.noise, f, f.noise.fisher_model())
+        if isinstance(f.noise, StudentTNoise)
+        else f
+        for f in graph.factors
+    ]
+    return FactorGraph(factors)

@@ -20,6 +20,7 @@ from ..factors import (
 from ..filters import ekf
 from ..solve import BlockTridiagonal, GaussNewton, least_squares
 from ._candidates import Candidate
+from ._integrator import Integrator
 from ._laplace import laplace_at_map
 
 
@@ -131,7 +132,9 @@ class ChainModel(eqx.Module):
 
     **Arguments:**
 
-    - `dynamics`: `f(x, u, params) -> (n,)` (module-level function).
+    - `dynamics`: `f(x, u, params) -> (n,)` (module-level function), or an
+        [`eqsmooth.discover.Integrator`][] of a continuous-time vector field
+        (needed by candidates with `target="rate"`).
     - `measurement`: `h(x, params) -> (m,)`.
     - `params`: nominal parameters (a pytree; held fixed by the workflow).
     - `process_sigma`: `(n,)` process noise standard deviations `q` (positive).
@@ -194,6 +197,14 @@ class ChainModel(eqx.Module):
         names = [c.name for c in self.candidates]
         if len(set(names)) != len(names):
             raise ValueError(f"ChainModel: duplicate candidate names {names}")
+        rates = [c.name for c in self.candidates if c.target == "rate"]
+        if rates and not isinstance(self.dynamics, Integrator):
+            raise ValueError(
+                f"ChainModel: candidates {rates} have target 'rate' (terms of a "
+                "continuous-time vector field), which needs dynamics given as an "
+                "eqsmooth.discover.Integrator; got "
+                f"{getattr(self.dynamics, '__name__', type(self.dynamics).__name__)}"
+            )
         if self.coefficients.shape != (len(self.candidates),):
             raise ValueError(
                 f"ChainModel.coefficients must have shape ({len(self.candidates)},), "
@@ -272,7 +283,19 @@ class ChainModel(eqx.Module):
         self, x: Float[Array, " n"], u: Float[Array, " k"]
     ) -> Float[Array, " n"]:
         """Mean of `x_{t+1}` given `x_t = x`, `u_t = u` (candidates included)."""
-        out = self.dynamics(x, u, self.params)
+        rates = [
+            (c, coef)
+            for c, coef in zip(self.candidates, self.coefficients)
+            if c.target == "rate"
+        ]
+        if isinstance(self.dynamics, Integrator):
+
+            def extra(z, v):
+                return sum(coef * c.feature(z, v) for c, coef in rates)
+
+            out = self.dynamics.step(x, u, self.params, extra if rates else None)
+        else:
+            out = self.dynamics(x, u, self.params)
         for c, coef in zip(self.candidates, self.coefficients):
             if c.target == "dynamics":
                 out = out + coef * c.feature(x, u)
