@@ -70,9 +70,23 @@ def test_large_dof_approaches_the_gaussian_and_float32_stays_float32():
     t = float(_graph(eqs.StudentTNoise(base, 1e7), y).negative_log_likelihood({"x": x}))
     np.testing.assert_allclose(t, g, rtol=1e-5)
     x32, y32 = x.astype(jnp.float32), y.astype(jnp.float32)
-    noise32 = eqs.StudentTNoise(eqs.IsotropicNoise(sqrt_precision=jnp.float32(2)), 4.0)
-    nll = _graph(noise32, y32).negative_log_likelihood({"x": x32})
-    assert nll.dtype == jnp.float32
+    base32 = eqs.IsotropicNoise(sqrt_precision=jnp.float32(2))
+    for dof in (4.0, np.float64(4.0), np.full(2, 4.0)):  # weak, strong, per row
+        noise32 = eqs.StudentTNoise(base32, dof)
+        for noise in (noise32, noise32.fisher_model()):
+            nll = _graph(noise, y32).negative_log_likelihood({"x": x32})
+            assert nll.dtype == jnp.float32
+
+
+def test_rho_derivative_is_the_irls_weight():
+    import eqsmooth as eqs
+
+    noise = eqs.StudentTNoise(eqs.DiagonalNoise.from_sigmas(jnp.ones(2)), 3.5, dim=2)
+    s = jnp.asarray([0.0, 0.3, 4.0, 50.0])
+    rho, drho = noise.rho(s)
+    auto = jax.vmap(jax.grad(lambda v: noise.rho(v[None])[0][0]))(s)
+    np.testing.assert_allclose(drho, auto, rtol=1e-12)
+    np.testing.assert_allclose(rho, 5.5 * np.log1p(np.asarray(s) / 3.5), rtol=1e-12)
 
 
 def test_bad_student_t_arguments_name_the_field():
@@ -107,7 +121,8 @@ def test_filters_reject_student_t_noise():
         (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
         eqs.IsotropicNoise.from_sigma(1.0),
     )
-    noise = eqs.StudentTNoise(eqs.IsotropicNoise.from_sigma(1.0), 3.0)
+    dof = jnp.full(5, 3.0)  # per row: the probe of user models would misfire
+    noise = eqs.StudentTNoise(eqs.IsotropicNoise.from_sigma(1.0), dof)
     measurement = eqs.PriorFactor(eqs.Var("x", t), jnp.zeros((5, 1)), noise)
     with pytest.raises(TypeError, match="StudentTNoise is robust"):
         eqs.ekf(transition, (measurement,), jnp.zeros(1), jnp.eye(1))
@@ -269,6 +284,8 @@ def test_student_t_diagnostics_do_not_alarm_on_innovation_size():
     out = innovation_tests(robust, data, xhat)
     assert out["nis_mean"] < 0.85 and out["nis_p_value"] < 1e-4, out["nis_mean"]
     assert not out["nis_alarm"] and not _diagnostics_significant(out, 0.05)
+    assert abs(out["diagnostic_nis_mean"] - 1.0) < 0.01, out["diagnostic_nis_mean"]
+    assert 0.8 < out["diagnostic_scale"] < 0.9, out["diagnostic_scale"]
     std = float(robust.measurement_std[0])
     gaussian = dc.ChainModel(*args, np.array([std]), PRIOR, ())
     out = innovation_tests(gaussian, data, xhat)

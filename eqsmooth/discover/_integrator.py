@@ -3,6 +3,7 @@
 from collections.abc import Callable
 
 import equinox as eqx
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 
@@ -56,7 +57,9 @@ class Integrator(eqx.Module):
             raise ValueError(
                 f"Integrator.method must be one of {_METHODS}, got {self.method!r}"
             )
-        if not (isinstance(self.dt, (int, float)) and self.dt > 0):
+        if isinstance(self.dt, bool) or not (
+            isinstance(self.dt, (int, float, np.floating)) and self.dt > 0
+        ):
             raise ValueError(
                 f"Integrator.dt must be a positive number, got {self.dt!r}"
             )

@@ -1,10 +1,11 @@
 """Laplace approximation of the log marginal likelihood of a factor graph."""
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph, StudentTNoise
@@ -126,7 +127,7 @@ def laplace_at_map(
     log_det = normal_log_det(lin_t, linear_solver)
     nll = graph.negative_log_likelihood(x_tilde)
     N = lin_t.num_tangent
-    log_ml = -nll + 0.5 * N * np.log(2 * np.pi) - 0.5 * log_det
+    log_ml = -nll + 0.5 * N * math.log(2 * math.pi) - 0.5 * log_det
     return jnp.asarray(log_ml)
 
 

@@ -1,5 +1,6 @@
 """A chain (state-space) model with candidate terms, and its likelihoods."""
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 
@@ -240,6 +241,18 @@ class ChainModel(eqx.Module):
             return self.measurement_sigma
         nu = self.measurement_dof
         return self.measurement_sigma * math.sqrt(nu / (nu - 2.0))
+
+    def moment_matched(self, scale: float = 1.0) -> "ChainModel":
+        """The Gaussian model with measurement standard deviation
+        `scale · measurement_std` (the model itself if Gaussian and `scale`
+        is 1)."""
+        if self.measurement_dof is None and scale == 1.0:
+            return self
+        return dataclasses.replace(
+            self,
+            measurement_sigma=self.measurement_std * scale,
+            measurement_dof=None,
+        )
 
     def measurement_noise(self) -> AbstractNoiseModel:
         """The measurement factor's noise model (Gaussian or Student-t)."""

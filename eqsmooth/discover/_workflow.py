@@ -40,25 +40,41 @@ _ALARMS = ("detected", "unnamed_structure", "ambiguous", "leftover_structure")
 # ---------------------------------------------------------------------------
 
 
+# Fixed-point steps of the Student-t diagnostic filter's noise scale (the
+# mean NIS reaches m to about 1e-3 in 5 on the benchmark's data).
+_CALIBRATION_STEPS = 5
+
+
+def _whitened_innovations(model: ChainModel, data: Sequences, xhat) -> tuple:
+    nu, S, _ = diagnostic_innovations(model, data, np.asarray(xhat))
+    nu, S = np.asarray(nu), np.asarray(S)
+    L = np.linalg.cholesky(S)
+    e = np.linalg.solve(L, nu[..., None])[..., 0]
+    return e, float(np.sum(e * e))
+
+
 def innovation_tests(
     model: ChainModel, data: Sequences, xhat: np.ndarray, lags: int = 10
 ) -> dict:
     """NIS, bias and whiteness (Ljung-Box) tests of the filter innovations.
 
     The filter is the Kalman filter of the model linearised about the
-    smoothed states `xhat` (see `diagnostic_innovations`). With Student-t
-    measurement noise (`model.measurement_dof`) the size of the innovations
-    depends on the tails the model assumes as much as on missing structure:
-    the NIS test is then reported but raises no alarm (`nis_alarm` False),
-    and the bias test divides by the innovations' sample standard deviation.
+    smoothed states `xhat` (see `diagnostic_innovations`).
+
+    With Student-t measurement noise (`model.measurement_dof`) no Gaussian
+    filter is exact, and the size of the innovations depends on the tails
+    the model assumes as much as on missing structure. The NIS test then
+    reports the moment-matched filter's innovation size but raises no alarm
+    (`nis_alarm` False). The bias and whiteness tests use the Gaussian
+    filter whose measurement standard deviation, `measurement_std` times
+    `diagnostic_scale`, makes the mean NIS equal to `m` on the data: a filter
+    with too much or too little measurement noise has autocorrelated
+    innovations, which the whiteness test would read as structure (on null
+    data, the moment-matched filter raised "unnamed structure" in 20% of
+    Gaussian and 8% of Student-t(3) data sets).
     """
-    nu, S, _ = diagnostic_innovations(model, data, np.asarray(xhat))
-    nu, S = np.asarray(nu), np.asarray(S)
-    B, T, m = nu.shape
-    L = np.linalg.cholesky(S)
-    e = np.linalg.solve(L, nu[..., None])[..., 0]  # whitened innovations
-    nis = np.sum(e * e, axis=-1)
-    total = float(np.sum(nis))
+    e, total = _whitened_innovations(model, data, xhat)
+    B, T, m = e.shape
     dof = B * T * m
     gaussian = model.measurement_dof is None
     out = {
@@ -69,11 +85,17 @@ def innovation_tests(
         "bias": [],
         "whiteness": [],
     }
+    if not gaussian:
+        scale = 1.0
+        for _ in range(_CALIBRATION_STEPS):
+            scale *= float(np.sqrt(total / dof))
+            e, total = _whitened_innovations(model.moment_matched(scale), data, xhat)
+        out["diagnostic_scale"] = scale
+        out["diagnostic_nis_mean"] = total / (B * T)
     for j in range(m):
         ej = e[..., j]
         mean = float(np.mean(ej))
-        spread = 1.0 if gaussian else max(float(np.std(ej)), 1e-300)
-        z = mean / spread * np.sqrt(ej.size)
+        z = mean * np.sqrt(ej.size)
         out["bias"].append(
             {"channel": j, "mean_whitened": mean, "p_value": normal_two_sided(z)}
         )
@@ -556,6 +578,7 @@ def _safe_innovation_tests(model, data, xhat, flags: list[str]) -> dict:
         "nis_mean": nan,
         "nis_expected": float(m),
         "nis_p_value": nan,
+        "nis_alarm": model.measurement_dof is None,
         "bias": [
             {"channel": j, "mean_whitened": nan, "p_value": nan} for j in range(m)
         ],

@@ -24,6 +24,7 @@ from ._noise import (
     AbstractRobustNoise as AbstractRobustNoise,
     CauchyNoise as CauchyNoise,
     DiagonalNoise as DiagonalNoise,
+    gaussian_log_normalizer as gaussian_log_normalizer,
     HuberNoise as HuberNoise,
     IsotropicNoise as IsotropicNoise,
     SqrtInformationNoise as SqrtInformationNoise,

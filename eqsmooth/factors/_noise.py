@@ -147,7 +147,9 @@ class AbstractNoiseModel(eqx.Module):
         `Σ log det R_i − ½ n m log 2π`;
         [`eqsmooth.factors.StudentTNoise`][] returns its own (it is a
         normalised density); the robust kernels return their base model's
-        Gaussian constant (they are losses, not normalised densities).
+        Gaussian constant (they are losses, not normalised densities). A
+        user-defined Gaussian model implements it as
+        `return eqsmooth.factors.gaussian_log_normalizer(self, n, m)`.
         """
 
     @abc.abstractmethod

@@ -33,8 +33,9 @@ class StudentTNoise(AbstractNoiseModel):
     [`eqsmooth.factors.FactorGraph.negative_log_likelihood`][] and the
     Laplace evidence ([`eqsmooth.discover.laplace_log_marginal`][]) are those
     of a normalised density, unlike the robust kernels (Huber, Cauchy, ...),
-    which are losses. The Laplace evidence uses the same weights, so its
-    curvature is the Gauss-Newton (IRLS) one, not the exact Hessian.
+    which are losses. The Laplace evidence's log-determinant uses the
+    density's Fisher information instead of these weights
+    ([`fisher_model`][eqsmooth.factors.StudentTNoise.fisher_model]).
 
     `R` sets the scale, not the covariance: for `ν > 2` the covariance is
     `ν/(ν − 2) (RᵀR)⁻¹`. As `ν → ∞` the model becomes `base`. The density is
@@ -84,14 +85,15 @@ class StudentTNoise(AbstractNoiseModel):
         return self.base.log_det_sqrt_information(n, m)
 
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
-        nu = self.dof
+        log_det = self.base.log_det_sqrt_information(n, m)
+        nu = self.dof.astype(log_det.dtype)
         per_row = (
             gammaln(0.5 * (nu + m))
             - gammaln(0.5 * nu)
             - 0.5 * m * jnp.log(nu * math.pi)
         )
         const = n * per_row if nu.ndim == 0 else jnp.sum(per_row)
-        return self.base.log_det_sqrt_information(n, m) + const
+        return log_det + const
 
     def fisher_model(self) -> AbstractNoiseModel:
         """The Gaussian noise model with this density's Fisher information.
@@ -140,9 +142,10 @@ class _ScaledGaussian(AbstractNoiseModel):
         return self.base.whiten(r) * w
 
     def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
-        log_w = jnp.log(self.weight)
+        log_det = self.base.log_det_sqrt_information(n, m)
+        log_w = jnp.log(self.weight.astype(log_det.dtype))
         extra = n * m * log_w if log_w.ndim == 0 else m * jnp.sum(log_w)
-        return self.base.log_det_sqrt_information(n, m) + extra
+        return log_det + extra
 
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
         return gaussian_log_normalizer(self, n, m)

@@ -18,6 +18,7 @@ from ..factors import (
     AbstractNoiseModel,
     AbstractRobustNoise,
     per_row_fields as per_row_fields,
+    StudentTNoise,
     with_rows as with_rows,
 )
 from ..factors._factor import check_row_leaves
@@ -32,7 +33,7 @@ def gather_rows(rows: dict[str, PyTree], index: np.ndarray) -> dict[str, PyTree]
 
 def check_gaussian(noise: AbstractNoiseModel, where: str) -> None:
     """Raise a `TypeError` if `noise` is a robust (non-Gaussian) model."""
-    robust = isinstance(noise, AbstractRobustNoise)
+    robust = isinstance(noise, (AbstractRobustNoise, StudentTNoise))
     if not robust:
         # Probe user-defined models: a Gaussian model has rho(s) = s. Skipped
         # when the noise parameters are traced (the value is then unknown).
