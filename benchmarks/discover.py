@@ -271,6 +271,15 @@ def run_workflow(data: dc.Sequences, model: dc.ChainModel = MODEL) -> dict:
     }
 
 
+def guarded_run(data: dc.Sequences, model: dc.ChainModel, log, label: str):
+    """`run_workflow`, or None after logging its exception as a crash."""
+    try:
+        return run_workflow(data, model)
+    except Exception as e:  # reported, never hidden
+        log(f"  {label}: CRASH {type(e).__name__}: {e}")
+        return None
+
+
 def classify(out: dict, truth: str) -> str:
     named = out["named"]
     if not named:
@@ -336,11 +345,9 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
     for s in range(seeds):
         _, y, snr = simulate(rng_for(tag, level, s), effect, coef)
         snrs.append(snr)
-        try:
-            out = run_workflow(sequences(y), model)
-        except Exception as e:  # reported, never hidden
+        out = guarded_run(sequences(y), model, log, f"{effect} level {level} seed {s}")
+        if out is None:
             failures += 1
-            log(f"  {effect} level {level} seed {s}: CRASH {type(e).__name__}: {e}")
             continue
         times.append(out["seconds"])
         flagged += bool(out["flags"])
@@ -437,11 +444,9 @@ def null_cell(num, log, noise="gauss", model=MODEL) -> dict:
         # Gaussian null data keep their historical stream (tag 0).
         rng = rng_for(0, 0, s) if tag == 0 else rng_for(100 + tag, 0, s)
         _, y, _ = simulate(rng, "none", 0.0, noise=noise)
-        try:
-            out = run_workflow(sequences(y), model)
-        except Exception as e:
+        out = guarded_run(sequences(y), model, log, f"null ({noise}) seed {s}")
+        if out is None:
             counts["failures"] += 1
-            log(f"  null ({noise}) seed {s}: CRASH {type(e).__name__}: {e}")
             continue
         times.append(out["seconds"])
         counts["flagged"] += bool(out["flags"])

@@ -36,7 +36,14 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine, write_json  # noqa: E402
-from discover import _git, classify, fmt_rate, rate, run_workflow  # noqa: E402
+from discover import (  # noqa: E402
+    _git,
+    classify,
+    fmt_rate,
+    guarded_run,
+    rate,
+    run_workflow,
+)
 
 import eqsmooth.discover as dc  # noqa: E402
 
@@ -123,11 +130,9 @@ def cell(effect: str | None, coef: float, seeds: int, tag: int, log) -> dict:
     for s in range(seeds):
         rng = np.random.default_rng(np.random.SeedSequence([2026, 77, tag, s]))
         data = simulate(rng, effect or "none", coef)
-        try:
-            out = run_workflow(data, MODEL)
-        except Exception as e:  # reported, never hidden
+        out = guarded_run(data, MODEL, log, f"{effect} seed {s}")
+        if out is None:
             crashes += 1
-            log(f"  {effect} seed {s}: CRASH {type(e).__name__}: {e}")
             continue
         times.append(out["seconds"])
         flagged += bool(out["flags"])
