@@ -137,6 +137,35 @@ def test_nonfinite_batches_raise_or_are_skipped():
         train(_LINE0, _line_loss, data, on_nonfinite="ignore", **kw)
 
 
+def test_augment_sees_a_key_per_step_and_never_touches_validation():
+    data = _line_data(2.0, n=16)
+
+    def augment(batch, key):
+        # Shift the targets by 1 plus a little key-dependent noise.
+        noise = 0.01 * jax.random.normal(key, batch["y"].shape)
+        return {**batch, "y": batch["y"] + 1.0 + noise}
+
+    kw = dict(
+        optimizer=make_optimizer(0.1, warmup_steps=2),
+        num_steps=60,
+        batch_size=4,
+        progress=False,
+        valid_data=data,
+        eval_every=60,
+    )
+    res = train(_LINE0, _line_loss, data, augment=augment, **kw)
+    # The model learned the augmented targets (intercept 0.5 + 1) ...
+    assert abs(float(res.model.b) - 1.5) < 0.1
+    # ... and the validation loss was computed on the raw data: about 1.
+    assert 0.8 < res.history[-1]["valid_loss"] < 1.2
+    # The key depends on (seed, step) only: the same run gives the same bytes,
+    # another seed gives another model.
+    again = train(_LINE0, _line_loss, data, augment=augment, **kw)
+    assert _same(res.model, again.model)
+    other = train(_LINE0, _line_loss, data, augment=augment, seed=1, **kw)
+    assert not _same(res.model, other.model)
+
+
 def test_model_selection_keeps_best_validation_model(tmp_path):
     # Training pulls the slope to 2; validation prefers slope 1, which the
     # trajectory passes on its way: the best model is an intermediate one.
@@ -341,6 +370,7 @@ _SCRIPT = textwrap.dedent(
         valid_data={"x": xv, "y": yv}, eval_every=4,
         checkpoint_path=ckpt, checkpoint_every=3, log_path=log, progress=False,
         callback=lambda step, rec: (executed.append(step), time.sleep(sleep)),
+        augment=lambda b, k: {**b, "x": b["x"] + 0.01 * jax.random.normal(k, b["x"].shape)},
     )
     eqx.tree_serialise_leaves(out, (res.model, res.best_model, res.best_step))
     with open(out + ".steps.json", "w") as f:

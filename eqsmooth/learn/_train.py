@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax.sharding import Mesh
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import Array, Float, PRNGKeyArray, PyTree
 from tqdm.auto import tqdm
 
 from ._checkpoint import (
@@ -293,6 +293,7 @@ def train(
     filter_spec: Any = eqx.is_inexact_array,
     callback: Callable[[int, dict], None] | None = None,
     on_nonfinite: str = "raise",
+    augment: Callable[[Any, PRNGKeyArray], Any] | None = None,
 ) -> TrainResult:
     """Train `model` by minimising `loss_fn` over mini-batches of `train_data`.
 
@@ -352,6 +353,12 @@ def train(
         update (model and optimiser state stay as they were), counts it in the
         log record's `skipped` field and goes on. Either way the non-finite
         update never reaches the model.
+    - `augment`: data augmentation, `augment(batch, key) -> batch`, applied
+        (compiled once with `eqx.filter_jit`) to every training batch before
+        the step, never to `valid_data`. `key` is
+        `jax.random.fold_in(jax.random.key(seed), step)`: it depends only on
+        the seed and the step, so a resumed run sees the same augmented
+        batches as an uninterrupted one.
 
     **Returns:** a [`eqsmooth.learn.TrainResult`][].
     """
@@ -427,6 +434,8 @@ def train(
     step_fn = make_train_step(
         loss_fn, optimizer, has_aux=has_aux, filter_spec=filter_spec, mesh=mesh
     )
+    augment_fn = None if augment is None else eqx.filter_jit(augment)
+    augment_key = jax.random.key(int(seed))
     evaluator = None
     if valid is not None:
         evaluator = _make_evaluator(
@@ -479,6 +488,8 @@ def train(
                 epoch, order = e, epoch_order(seed, e, n)
             assert order is not None
             batch = _take(data, order[pos * batch_size : (pos + 1) * batch_size])
+            if augment_fn is not None:
+                batch = augment_fn(batch, jax.random.fold_in(augment_key, s))
             batch = (
                 jax.tree_util.tree_map(jnp.asarray, batch)
                 if mesh is None
