@@ -370,7 +370,7 @@ _SCRIPT = textwrap.dedent(
         valid_data={"x": xv, "y": yv}, eval_every=4,
         checkpoint_path=ckpt, checkpoint_every=3, log_path=log, progress=False,
         callback=lambda step, rec: (executed.append(step), time.sleep(sleep)),
-        augment=lambda b, k: {**b, "x": b["x"] + 0.01 * jax.random.normal(k, b["x"].shape)},
+        augment=lambda b, k: {**b, "x": b["x"] + 0.01 * jax.random.normal(k, (8, 2))},
     )
     eqx.tree_serialise_leaves(out, (res.model, res.best_model, res.best_step))
     with open(out + ".steps.json", "w") as f:
