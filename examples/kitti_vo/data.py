@@ -316,7 +316,10 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
     road = np.zeros(shape, bool)
     ci, cj = cells(px + 1.8 * normal[:, 0], py + 1.8 * normal[:, 1])
     _stamp(road, ci, cj, ROAD_HALF_WIDTH / MAP_RESOLUTION)
-    grain = 0.85 + 0.3 * n3
+    # Fine grain plus stains and patches about a metre across (repairs, wet
+    # spots): texture that a camera near the road can see move.
+    patches = _smooth_noise(rng, shape, 4)
+    grain = 0.7 + 0.25 * n3 + 0.35 * patches
     ground[road] = np.array([85.0, 85.0, 90.0]) * grain[road][:, None]
     marks = np.zeros(shape, bool)
     dashed = (dense % 9.0) < 4.5
@@ -418,6 +421,26 @@ with np.errstate(divide="ignore"):
     )
 _LEFT = -(_COLS - W / 2) / FOCAL * _DEPTH
 _FWD_G, _LEFT_G = _DEPTH[_BELOW], _LEFT[_BELOW]
+# Level of detail of each ground pixel. A pixel row spans a stretch of ground
+# that grows with the square of its depth (about 0.7 m at 10 m, 2.8 m at 20 m);
+# point-sampling the 0.25 m map there would alias, and the texture would
+# flicker instead of moving with the camera. Each pixel therefore reads, with
+# bilinear interpolation, the box-filtered map level whose cells match the
+# larger of its depth and lateral footprints (a mip-map), as a camera
+# integrating over the pixel would see it.
+MAP_LEVELS = 6
+with np.errstate(divide="ignore"):
+    _dr = np.maximum(_ROWS - HORIZON_ROW, 0.75)
+    _SPAN = np.broadcast_to(
+        np.maximum(CAMERA_HEIGHT * FOCAL / (_dr * _dr - 0.25), CAMERA_HEIGHT / _dr),
+        (H, W),
+    )[_BELOW]
+_LOD = np.clip(np.round(np.log2(np.maximum(_SPAN / MAP_RESOLUTION, 1.0))), 0, 5)
+_LOD_GROUPS = tuple(
+    (int(lv), np.nonzero(_LOD == lv)[0])
+    for lv in range(MAP_LEVELS)
+    if (_LOD == lv).any()
+)
 _HAZE_W = np.clip(_FWD_G / MAX_RANGE, 0, 1) ** 1.5
 _KEEP_G = (1 - _HAZE_W[:, None]).astype(np.float32)
 _HAZE_G = (HAZE[None] * _HAZE_W[:, None]).astype(np.float32)
@@ -427,6 +450,31 @@ _SKY_IMG = (
 ).astype(np.float32)
 _OCCLUDER_TINT = np.array([0.9, 0.9, 1.0], np.float32)
 _NOISE_BANK = 31
+
+
+def _mip_levels(ground: np.ndarray, levels: int) -> list[np.ndarray]:
+    """The ground map and its 2 x 2 box-filtered reductions, float32."""
+    out = [ground.astype(np.float32)]
+    for _ in range(1, levels):
+        g = out[-1]
+        h, w = (g.shape[0] // 2) * 2, (g.shape[1] // 2) * 2
+        g = g[:h, :w]
+        out.append(
+            0.25 * (g[0::2, 0::2] + g[1::2, 0::2] + g[0::2, 1::2] + g[1::2, 1::2])
+        )
+    return out
+
+
+def _bilinear(level: np.ndarray, i: np.ndarray, j: np.ndarray, k: int) -> np.ndarray:
+    """Bilinear lookup at level-0 cell coordinates `(i, j)` in map level `k`."""
+    scale = 0.5**k
+    u = np.clip(i * scale - 0.5, 0, level.shape[0] - 1.001)
+    v = np.clip(j * scale - 0.5, 0, level.shape[1] - 1.001)
+    i0, j0 = u.astype(np.int64), v.astype(np.int64)
+    fu, fv = (u - i0)[:, None].astype(np.float32), (v - j0)[:, None].astype(np.float32)
+    a, b = level[i0, j0], level[i0 + 1, j0]
+    c, d = level[i0, j0 + 1], level[i0 + 1, j0 + 1]
+    return (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
 
 
 class Renderer:
@@ -446,7 +494,7 @@ class Renderer:
         self.xyt = np.asarray(xyt, np.float64)
         self.seed, self.seq = int(seed), int(seq)
         self.world = build_world(self.xyt, seed, seq)
-        self._ground_flat = self.world.ground.reshape(-1, 3)
+        self._levels = _mip_levels(self.world.ground, MAP_LEVELS)
         rng = np.random.default_rng([seed, seq, 13])
         self._noise = rng.standard_normal((_NOISE_BANK, H, W + 17, 3), np.float32)
 
@@ -474,13 +522,12 @@ class Renderer:
         c, s = np.cos(th), np.sin(th)
         img = _SKY_IMG.copy()
         # Ground: intersect each pixel's ray with the ground plane, look up the map.
-        gh, gw = w.ground.shape[:2]
         i = ((x - w.origin[0]) + c * _FWD_G - s * _LEFT_G) * (1 / MAP_RESOLUTION)
         j = ((y - w.origin[1]) + s * _FWD_G + c * _LEFT_G) * (1 / MAP_RESOLUTION)
-        flat = np.clip(i.astype(np.int64), 0, gh - 1) * gw + np.clip(
-            j.astype(np.int64), 0, gw - 1
-        )
-        img[_BELOW] = self._ground_flat[flat].astype(np.float32) * _KEEP_G + _HAZE_G
+        ground = np.empty((i.size, 3), np.float32)
+        for level, idx in _LOD_GROUPS:
+            ground[idx] = _bilinear(self._levels[level], i[idx], j[idx], level)
+        img[_BELOW] = ground * _KEEP_G + _HAZE_G
         # Vertical structures: nearest cylinder per column (a column z-buffer).
         ob = w.objects
         if ob.size:
@@ -519,7 +566,10 @@ class Renderer:
         u = W / 2 - FOCAL * lft / f
         hw = FOCAL * o[:, 2] / f + 0.5
         cols = _COLS[0]
-        cover = np.abs(cols[None] - u[:, None]) < hw[:, None]  # (K, W)
+        # Coverage of each column by each object, with the edge columns partly
+        # covered (anti-aliased), so that sub-pixel motion changes the image.
+        alpha_all = np.clip(hw[:, None] + 0.5 - np.abs(cols[None] - u[:, None]), 0, 1)
+        cover = alpha_all > 0  # (K, W)
         depth = np.where(cover, f[:, None], np.inf)
         k = np.argmin(depth, axis=0)
         hit = np.isfinite(depth[k, np.arange(W)])
@@ -552,8 +602,10 @@ class Renderer:
         colour = (ok[:, 4:7] * (1 - hz)[:, None])[None] * (pat * shade[None])[
             ..., None
         ] + (HAZE[None] * hz[:, None])[None]
+        alpha = alpha_all[k, cidx].astype(np.float32)[None, :, None]
         block = img[r0:r1, cidx]
-        block[mask] = colour[mask]
+        blended = alpha * colour + (1 - alpha) * block
+        block[mask] = blended[mask]
         img[r0:r1, cidx] = block
 
 

@@ -5,8 +5,8 @@ their last 205 frames (checkpoint selection on the validation sequence);
 (2) run the frozen sensor once over every frame pair that later stages need
 and cache its outputs; (3) train every smoother / EKF / LSTM variant on
 windows of the last 200 frames of each training trajectory with
-`eqs.learn.train` (resumable checkpoints, selection on the validation
-sequence's last 200 frames); (4) score every method on disjoint length-100
+`eqs.learn.train` (resumable checkpoints, selection on disjoint windows of
+the whole validation sequence, which no stage trains on); (4) score every method on disjoint length-100
 windows of the test sequence. `fold_K.json` is rewritten after every method,
 so a killed run started again with the same command skips what is done and
 resumes the rest from its checkpoints.
@@ -52,20 +52,22 @@ class Config:
     mirror: bool = True
     max_train_sequences: int | None = None  # keep only the k shortest ones
     # Sensor pretraining.
-    sensor_stride: int = 2  # use every k-th pretraining frame pair
+    sensor_stride: int = 1  # use every k-th pretraining frame pair
     sensor_valid_stride: int = 10
-    sensor_steps: int = 6000
+    sensor_steps: int = 10000
     sensor_batch: int = 32
     sensor_lr: float = 1e-3
+    sensor_weight_decay: float = 0.05
+    sensor_augment: bool = True  # photometric augmentation (augment_pairs)
     # Smoother / EKF / LSTM training on windows of the last 200 frames.
     window: int = 50
     window_stride: int = 10
-    steps: int = 1500
-    lstm_steps: int = 3000
+    steps: int = 4000
+    lstm_steps: int = 6000
     batch: int = 8
     lr: float = 3e-3
     eval_every: int = 100
-    gn_steps: int = 3  # K of the surrogate loss
+    gn_steps: int = 5  # K of the surrogate loss (5 in the paper's KITTI runs)
     methods: tuple[str, ...] = METHODS
     eval_window: int = D.EVAL_WINDOW
     eval_copies: int | None = None  # score only the first k test trajectories
@@ -78,6 +80,7 @@ def quick_config() -> Config:
         cameras=("image_2",),
         max_train_sequences=2,
         sensor_stride=5,
+        gn_steps=3,
         sensor_valid_stride=60,
         sensor_steps=150,
         sensor_batch=16,
@@ -169,6 +172,26 @@ def _parity_mirror(batch: dict) -> dict:
     mirrored = jnp.arange(B) % 2 == 1
     vel = batch["velocity"] * jnp.where(mirrored[:, None], jnp.array([1.0, -1.0]), 1.0)
     return {"pairs": batch["pairs"], "mirrored": mirrored, "velocity": vel}
+
+
+def augment_pairs(batch: dict, key) -> dict:
+    """Photometric augmentation of a batch of frame pairs (the same for both
+    frames of a pair, so the motion between them is unchanged): contrast
+    0.6-1.4 about the pair's mean, per-channel gains 0.85-1.15, an offset of
+    ±30 grey levels and pixel noise of std 0-10, clipped to 0-255."""
+    p = batch["pairs"]
+    B = p.shape[0]
+    k1, k2, k3, k4, k5 = jax.random.split(key, 5)
+    shape = (B, 1, 1, 1, 1)
+    gain = jax.random.uniform(k1, shape, minval=0.6, maxval=1.4)
+    chan = jax.random.uniform(k2, (B, 1, 1, 1, 3), minval=0.85, maxval=1.15)
+    offset = jax.random.uniform(k3, shape, minval=-30.0, maxval=30.0)
+    sigma = jax.random.uniform(k4, shape, maxval=10.0)
+    x = p.astype(jnp.float32)
+    mean = jnp.mean(x, axis=(1, 2, 3, 4), keepdims=True)
+    x = (x - mean) * gain * chan + mean + offset
+    x = x + sigma * jax.random.normal(k5, p.shape, jnp.float32)
+    return {**batch, "pairs": jnp.clip(x, 0.0, 255.0)}
 
 
 def sensor_train_loss(sensor, batch):
@@ -373,7 +396,9 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
                 cfg.sensor_lr,
                 warmup_steps=min(200, cfg.sensor_steps // 10),
                 decay_steps=cfg.sensor_steps,
+                weight_decay=cfg.sensor_weight_decay,
             ),
+            augment=augment_pairs if cfg.sensor_augment else None,
             num_steps=cfg.sensor_steps,
             batch_size=cfg.sensor_batch,
             seed=cfg.model_seed,
@@ -408,7 +433,9 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         if path.exists():
             caches[tr.name] = dict(np.load(path))
             continue
-        first = 0 if role == "test" else int(D.smoother_frames(tr.num_frames)[0])
+        # Training trajectories: only their last frames (the smoother split).
+        # The validation and test sequences are used whole.
+        first = 0 if role != "train" else int(D.smoother_frames(tr.num_frames)[0])
         caches[tr.name] = trajectory_cache(sensor, tr, first)
         np.savez(path, **caches[tr.name])
     timings["cache_s"] = time.perf_counter() - t1
@@ -419,7 +446,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             c = caches[tr.name]
             frames = (
                 np.arange(tr.num_frames)
-                if role == "test"
+                if role != "train"
                 else D.smoother_frames(tr.num_frames)
             )
             starts = D.windows(frames, length, stride)
