@@ -6,10 +6,10 @@ their last 205 frames (checkpoint selection on the validation sequence);
 and cache its outputs; (3) train every smoother / EKF / LSTM variant on
 windows of the last 200 frames of each training trajectory with
 `eqs.learn.train` (resumable checkpoints, selection on disjoint windows of
-the whole validation sequence, which no stage trains on); (4) score every method on disjoint length-100
-windows of the test sequence. `fold_K.json` is rewritten after every method,
-so a killed run started again with the same command skips what is done and
-resumes the rest from its checkpoints.
+the whole validation sequence, which no stage trains on); (4) score every
+method on disjoint length-100 windows of the test sequence. `fold_K.json` is
+rewritten after every method, so a killed run started again with the same
+command skips what is done and resumes the rest from its checkpoints.
 """
 
 import dataclasses
