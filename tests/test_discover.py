@@ -435,6 +435,27 @@ def test_alarm_calibration_on_a_small_null_batch():
     assert max(counts.values()) <= 2, counts
 
 
+def test_k_step_errors_burn_in_keeps_only_later_starts():
+    from eqsmooth.discover._model import (
+        diagnostic_innovations,
+        k_step_errors,
+        simulate,
+    )
+
+    data, model = _simulate(3), _model()
+    xhat = data.initial_states
+    h = 2
+    t0 = T - h - 1  # the burn-in leaves one start: check it by hand
+    errs = k_step_errors(model, data, xhat, h, t0)
+    _, _, xf = diagnostic_innovations(model, data, xhat)
+    _, ys = simulate(model, xf[:, t0], data.inputs[:, t0 : t0 + h + 1])
+    truth = data.measurements[:, t0 + 1 : t0 + h + 1]
+    manual = jnp.mean((ys[:, 1:] - truth) ** 2, axis=0)
+    np.testing.assert_allclose(np.asarray(errs), np.asarray(manual), rtol=1e-6)
+    with pytest.raises(ValueError, match="burn_in"):
+        k_step_errors(model, data, xhat, h, T - h)
+
+
 def _saturating_spring(x, u, limit, dt):
     # A spring force that saturates at `limit` (non-polynomial).
     return jnp.stack([0.0 * x[0], -dt * limit * jnp.tanh(x[0] / limit)])

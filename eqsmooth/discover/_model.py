@@ -551,9 +551,15 @@ def k_step_errors(
     filtered state still rests on few measurements). Filtered states come
     from [`diagnostic_innovations`][] about the smoothed states `xhat`.
     """
-    _, _, xf = diagnostic_innovations(model, data, xhat)
     y, u = data.measurements, data.inputs
     T = y.shape[1]
+    if horizon < 1 or not 0 <= burn_in < T - horizon:
+        raise ValueError(
+            f"k_step_errors: need horizon >= 1 and 0 <= burn_in < T - horizon "
+            f"(T = {T}) so that some start is left; got horizon={horizon}, "
+            f"burn_in={burn_in}"
+        )
+    _, _, xf = diagnostic_innovations(model, data, xhat)
     starts = np.arange(burn_in, T - horizon)
 
     def from_start(xf_b, y_b, u_b):
