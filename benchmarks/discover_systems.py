@@ -1,0 +1,434 @@
+"""Monte Carlo of the discrepancy workflow on other systems than the 1-D oscillator.
+
+`--system two_axis`: two axes joined by a coupling spring, state
+(p_x, p_y, v_x, v_y), p' = p + v, v' = v − k p − k_c (p − p_swapped) + effect
++ noise (k = 0.05, k_c = 0.02, process noise std (0.05, 0.05, 0.5, 0.5)),
+each position measured by its own sensor with std 1, first state from the
+model's prior N(0, diag(20², 20², 4², 4²)). The candidate library is the
+whole `mechanical_library` of two axes with two sensors (14 candidates).
+Hidden effects: isotropic quadratic drag, and a constant force on the y axis
+only (which the springs make equivalent to a bias of the y sensor; that set
+counts as correct, a name on the x axis as wrong).
+
+`--system driven`: the 1-D oscillator of `benchmarks/discover.py` driven by
+a known input force, p' = p + v, v' = v − k p + u + effect + noise (k = 0.05,
+process noise std (0.05, 0.5), position measured with std 1, prior
+N(0, diag(20², 4²))). Each sequence's input is a sinusoid (amplitude 0.6,
+period 6-20 steps, random phase) plus a random telegraph signal (±0.4,
+switching with probability 0.15 per step), given to the model as `u_t`.
+The library is the one-axis `mechanical_library` with one input: it adds an
+actuator-gain candidate (`v' += c u`) to the 10 of `discover.py`. Hidden
+effects: an actuator gain error, quadratic drag, Coulomb friction and a
+constant force.
+
+Both: B = 24 sequences × T = 40 steps per data set; each effect at a
+per-step signal-to-noise ratio `--level` (the RMS of its velocity increment
+over nominal trajectories, over the velocity noise 0.5); null data: no
+effect. Outcomes and rates as in `benchmarks/discover.py` (Wilson 95%
+intervals).
+
+    python benchmarks/discover_systems.py --system two_axis --seeds 10 --null 40 \
+        --json benchmarks/results/discover_two_axis.json \
+        --markdown benchmarks/results/discover_two_axis.md
+    python benchmarks/discover_systems.py --system driven --seeds 10 --null 200 \
+        --json benchmarks/results/discover_driven.json \
+        --markdown benchmarks/results/discover_driven.md
+"""
+
+import argparse
+import dataclasses
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import machine, write_json  # noqa: E402
+from discover import (  # noqa: E402
+    _git,
+    classify,
+    fmt_rate,
+    guarded_run,
+    rate,
+    run_workflow,
+)
+
+import eqsmooth.discover as dc  # noqa: E402
+
+
+B, T = 24, 40
+
+
+@dataclasses.dataclass(frozen=True)
+class System:
+    """One benchmark system: its nominal model, hidden effects and data."""
+
+    name: str
+    title: str
+    model: dc.ChainModel
+    effects: dict[str, str]  # hidden effect -> the candidate that is the truth
+    simulate: Callable[..., dc.Sequences]  # (rng, effect, coef) -> data
+    calibrate: Callable[[float], dict]  # SNR level -> coefficient per effect
+    stream: int  # offsets the random streams, so systems never share data
+
+
+# ---------------------------------------------------------------------------
+# Two coupled axes, two sensors
+# ---------------------------------------------------------------------------
+
+SPRING, COUPLING = 0.05, 0.02
+Q2 = np.array([0.05, 0.05, 0.5, 0.5])
+R2 = np.array([1.0, 1.0])
+PRIOR2 = np.array([20.0, 20.0, 4.0, 4.0])
+
+
+def _dyn2(x, u, params):
+    k, kc = params
+    p, v = x[:2], x[2:]
+    return jnp.concatenate([p + v, v - k * p - kc * (p - p[::-1])])
+
+
+def _meas2(x, params):
+    return x[:2]
+
+
+def _increment2(effect: str, v: np.ndarray) -> np.ndarray:
+    """Velocity increment `(…, 2)` of a unit coefficient."""
+    if effect == "drag":
+        return -v * np.abs(v)
+    if effect == "force_y":
+        return np.broadcast_to(np.array([0.0, 1.0]), v.shape)
+    return np.zeros_like(v)
+
+
+def _simulate2(rng, effect: str, coef: float, num: int = B):
+    x = rng.normal(size=(num, 4)) * PRIOR2
+    xs = []
+    for _ in range(T):
+        xs.append(x)
+        p, v = x[:, :2], x[:, 2:]
+        a = -SPRING * p - COUPLING * (p - p[:, ::-1]) + coef * _increment2(effect, v)
+        x = np.concatenate([p + v, v + a], 1) + rng.normal(size=(num, 4)) * Q2
+    xs = np.stack(xs, 1)
+    y = xs[..., :2] + R2 * rng.normal(size=(num, T, 2))
+    init = np.concatenate([y, np.zeros_like(y)], -1)
+    return dc.Sequences(y, np.zeros((num, 4)), initial_states=init)
+
+
+def _calibrate2(level: float) -> dict:
+    """Coefficient per effect for a per-step SNR `level` (nominal states)."""
+    rng = np.random.default_rng(12345)
+    x = rng.normal(size=(2000, 4)) * PRIOR2
+    vs = []
+    for _ in range(T):
+        p, v = x[:, :2], x[:, 2:]
+        vs.append(v)
+        a = -SPRING * p - COUPLING * (p - p[:, ::-1])
+        x = np.concatenate([p + v, v + a], 1) + rng.normal(size=(2000, 4)) * Q2
+    v = np.stack(vs, 1)[:, :-1]
+    drag = float(np.sqrt(np.mean(np.square(_increment2("drag", v))))) / Q2[2]
+    return {"drag": level / drag, "force_y": level * Q2[3]}
+
+
+def two_axis() -> System:
+    model = dc.ChainModel(
+        _dyn2,
+        _meas2,
+        (jnp.asarray(SPRING), jnp.asarray(COUPLING)),
+        Q2,
+        R2,
+        PRIOR2,
+        dc.mechanical_library(
+            [0, 1],
+            [2, 3],
+            4,
+            measured_positions=[0, 1],
+            axis_names=["x", "y"],
+            coulomb_eps=1.0,
+        ),
+    )
+    return System(
+        "two_axis",
+        "two coupled axes, two sensors",
+        model,
+        {"drag": "quadratic drag", "force_y": "constant force [y]"},
+        _simulate2,
+        _calibrate2,
+        0,
+    )
+
+
+# ---------------------------------------------------------------------------
+# A driven oscillator: one axis, a known input force
+# ---------------------------------------------------------------------------
+
+Q1 = np.array([0.05, 0.5])
+R1 = 1.0
+PRIOR1 = np.array([20.0, 4.0])
+COULOMB_EPS = 1.0
+
+
+def _dyn1(x, u, spring):
+    return jnp.stack([x[0] + x[1], x[1] - spring * x[0] + u[0]])
+
+
+def _meas1(x, spring):
+    return x[:1]
+
+
+def _inputs(rng, num: int) -> np.ndarray:
+    """Known input force `(num, T, 1)`: a sinusoid plus a random telegraph."""
+    t = np.arange(T)[None]
+    period = rng.uniform(6.0, 20.0, (num, 1))
+    phase = rng.uniform(0.0, 2 * np.pi, (num, 1))
+    sine = 0.6 * np.sin(2 * np.pi * t / period + phase)
+    flips = rng.random((num, T)) < 0.15
+    sign = np.where(rng.random((num, 1)) < 0.5, -1.0, 1.0)
+    tele = 0.4 * sign * np.cumprod(np.where(flips, -1.0, 1.0), axis=1)
+    return (sine + tele)[..., None]
+
+
+def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Velocity increment of a unit coefficient."""
+    if effect == "gain":
+        return u
+    if effect == "drag":
+        return -v * np.abs(v)
+    if effect == "coulomb":
+        return -np.tanh(v / COULOMB_EPS)
+    if effect == "force":
+        return np.ones_like(v)
+    return np.zeros_like(v)
+
+
+def _trajectories1(rng, effect: str, coef: float, num: int):
+    u = _inputs(rng, num)
+    x = np.stack([rng.normal(0, PRIOR1[0], num), rng.normal(0, PRIOR1[1], num)], 1)
+    xs = []
+    for t in range(T):
+        xs.append(x)
+        p, v = x[:, 0], x[:, 1]
+        a = -SPRING * p + u[:, t, 0] + coef * _increment1(effect, v, u[:, t, 0])
+        x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q1
+    return np.stack(xs, 1), u
+
+
+def _simulate1(rng, effect: str, coef: float, num: int = B):
+    xs, u = _trajectories1(rng, effect, coef, num)
+    y = xs[..., :1] + R1 * rng.normal(size=(num, T, 1))
+    init = np.concatenate([y, np.zeros_like(y)], -1)
+    return dc.Sequences(y, np.zeros((num, 2)), inputs=u, initial_states=init)
+
+
+def _calibrate1(level: float) -> dict:
+    xs, u = _trajectories1(np.random.default_rng(12345), "none", 0.0, 2000)
+    v, u = xs[:, :-1, 1], u[:, :-1, 0]
+    out = {}
+    for effect in ("gain", "drag", "coulomb", "force"):
+        unit = float(np.sqrt(np.mean(np.square(_increment1(effect, v, u))))) / Q1[1]
+        out[effect] = level / unit
+    return out
+
+
+def driven() -> System:
+    model = dc.ChainModel(
+        _dyn1,
+        _meas1,
+        jnp.asarray(SPRING),
+        Q1,
+        np.array([R1]),
+        PRIOR1,
+        dc.mechanical_library(
+            [0], [1], 2, measured_positions=[0], coulomb_eps=COULOMB_EPS, num_inputs=1
+        ),
+    )
+    return System(
+        "driven",
+        "a driven oscillator (one axis, a known input force)",
+        model,
+        {
+            "gain": "actuator gain",
+            "drag": "quadratic drag",
+            "coulomb": "Coulomb friction",
+            "force": "constant force",
+        },
+        _simulate1,
+        _calibrate1,
+        100,
+    )
+
+
+SYSTEMS = {"two_axis": two_axis, "driven": driven}
+
+
+def cell(
+    system: System, effect: str | None, coef: float, seeds: int, tag: int, log
+) -> dict:
+    truth = system.effects.get(effect) if effect is not None else None
+    counts = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
+    detected = unnamed = flagged = crashes = alarm = named_any = 0
+    coefs, times, names = [], [], {}
+    for s in range(seeds):
+        rng = np.random.default_rng(np.random.SeedSequence([2026, 77, tag, s]))
+        data = system.simulate(rng, effect or "none", coef)
+        out = guarded_run(data, system.model, log, f"{effect} seed {s}")
+        if out is None:
+            crashes += 1
+            continue
+        times.append(out["seconds"])
+        flagged += bool(out["flags"])
+        detected += out["detected"]
+        unnamed += out["unnamed"]
+        alarm += any(out["alarms"].values())
+        named_any += bool(out["named"])
+        for nm in out["named"]:
+            names[nm] = names.get(nm, 0) + 1
+        if truth is not None:
+            counts[classify(out, truth)] += 1
+            if truth in out["coefficients"]:
+                coefs.append(out["coefficients"][truth][0])
+        elif out["named"] or any(out["alarms"].values()):
+            log(f"  null seed {s}: verdict {out['verdict']}")
+    n = seeds - crashes
+    rec = {
+        "effect": effect or "none",
+        "truth": truth,
+        "coefficient": coef,
+        "n": n,
+        "crashes": crashes,
+        "flagged": flagged,
+        "detected": rate(detected, n),
+        "unnamed_structure": rate(unnamed, n),
+        "any_alarm": rate(alarm, n),
+        "named_counts": names,
+        "median_s": float(np.median(times)) if times else float("nan"),
+    }
+    if truth is not None:
+        rec.update(
+            {
+                "truth_alone": rate(counts["exact"], n),
+                "truth_in_set": rate(counts["set"], n),
+                "correct": rate(counts["exact"] + counts["set"], n),
+                "truth_plus_extra": rate(counts["extra"], n),
+                "wrong_name": rate(counts["wrong"], n),
+                "nothing_named": rate(counts["none"], n),
+                "coefficient_median_rel_error": float(
+                    np.median(np.abs(np.asarray(coefs) - coef) / coef)
+                )
+                if coefs
+                else None,
+            }
+        )
+    else:
+        rec["anything_named"] = rate(named_any, n)
+    return rec
+
+
+def report(system: System, records, info) -> str:
+    lines = [
+        f"# discover benchmark: {system.title}",
+        "",
+        f"- command: `{info['command']}`",
+        f"- machine: {info['machine']['cores']} cores, {info['machine']['cpu']}; "
+        f"JAX {info['machine']['jax']}",
+        f"- git: {info['git']}"
+        + (f"; uncommitted: {', '.join(info['dirty'])}" if info["dirty"] else ""),
+        f"- library ({len(system.model.names)} candidates): "
+        + ", ".join(system.model.names),
+        f"- wall time {info['total_s'] / 60:.1f} min; first run (compile) "
+        f"{info['first_s']:.0f} s",
+        "",
+        "| data | coef | n | detected | correct (alone + set) | truth alone | "
+        "truth in set | truth + extra | wrong name | median abs. rel. coef. error "
+        "| any alarm | crashes / flagged | median s |",
+        "|" + "---|" * 13,
+    ]
+    for r in records:
+        if r["truth"] is None:
+            continue
+        lines.append(
+            f"| {r['truth']} | {r['coefficient']:.4g} | {r['n']} | "
+            f"{fmt_rate(r['detected'])} | {fmt_rate(r['correct'])} | "
+            f"{fmt_rate(r['truth_alone'])} | {fmt_rate(r['truth_in_set'])} | "
+            f"{fmt_rate(r['truth_plus_extra'])} | {fmt_rate(r['wrong_name'])} | "
+            + (
+                f"{r['coefficient_median_rel_error']:.3f}"
+                if r["coefficient_median_rel_error"] is not None
+                else "–"
+            )
+            + f" | {fmt_rate(r['any_alarm'])} | {r['crashes']} / {r['flagged']} | "
+            f"{r['median_s']:.2f} |"
+        )
+    for r in records:
+        if r["truth"] is None:
+            lines += [
+                "",
+                f"Null data (n = {r['n']}): detected {fmt_rate(r['detected'])}, "
+                f"unnamed structure {fmt_rate(r['unnamed_structure'])}, any alarm "
+                f"{fmt_rate(r['any_alarm'])}, anything named "
+                f"{fmt_rate(r['anything_named'])}; crashes {r['crashes']}, flagged "
+                f"{r['flagged']}; names given: {r['named_counts'] or 'none'}.",
+            ]
+    for r in records:
+        if r["truth"] is not None and r["named_counts"]:
+            lines.append(f"- names given with {r['truth']}: {r['named_counts']}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--system", choices=list(SYSTEMS), default="two_axis")
+    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--null", type=int, default=40)
+    parser.add_argument("--level", type=float, default=0.4)
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown", default=None)
+    args = parser.parse_args(argv)
+    system = SYSTEMS[args.system]()
+    head, dirty = _git()
+    m = machine()
+    start = time.perf_counter()
+    coefs = system.calibrate(args.level)
+    print(f"git {head}; coefficients at SNR {args.level}: {coefs}", flush=True)
+    t0 = time.perf_counter()
+    warm = system.simulate(np.random.default_rng(99), "drag", coefs["drag"])
+    run_workflow(warm, system.model)
+    first_s = time.perf_counter() - t0
+    records = []
+
+    def save():
+        info = {
+            "command": " ".join([Path(sys.executable).name] + sys.argv),
+            "machine": m,
+            "git": head,
+            "dirty": dirty,
+            "system": system.name,
+            "total_s": time.perf_counter() - start,
+            "first_s": first_s,
+        }
+        if args.json:
+            write_json(args.json, records, extra=info)
+        text = report(system, records, info)
+        if args.markdown:
+            Path(args.markdown).write_text(text)
+        return text
+
+    cells = [(None, args.null)] + [(e, args.seeds) for e in system.effects]
+    for index, (effect, count) in enumerate(cells):
+        t0 = time.perf_counter()
+        coef = 0.0 if effect is None else coefs[effect]
+        rec = cell(system, effect, coef, count, system.stream + index, print)
+        records.append(rec)
+        print(f"{rec['effect']}: done in {time.perf_counter() - t0:.0f} s", flush=True)
+        save()
+    print(save())
+
+
+if __name__ == "__main__":
+    main()
