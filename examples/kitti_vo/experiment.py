@@ -357,13 +357,23 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     key = jax.random.key(cfg.model_seed + 1000 * fold)
 
     t0 = time.perf_counter()
+    # Every run of this fold (a first one and any resumed ones) records its
+    # wall time; the fold's total is their sum, work later redone included.
+    run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "git": result["git"]}
+    result.setdefault("runs", []).append(run)
+
+    def save():
+        run["wall_s"] = time.perf_counter() - t0
+        timings["total_s"] = sum(r["wall_s"] for r in result["runs"])
+        _write_json(result_path, result)
+
     print(
         f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
     )
     train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
     valid_trajs = load_trajectories(cfg, spec.valid)
     test_trajs = load_trajectories(cfg, spec.test)
-    timings["load_s"] = time.perf_counter() - t0
+    timings["load_s"] = timings.get("load_s", 0.0) + time.perf_counter() - t0
     if cfg.real_data_dir is None:
         r = test_trajs[0]
         frames = np.arange(min(200, r.num_frames))
@@ -416,7 +426,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         timings["sensor_valid_mse_normalised"] = res.best_valid_loss
         eqx.tree_serialise_leaves(sensor_path, sensor)
         del train_pairs, valid_pairs
-    _write_json(result_path, result)
+    save()
 
     # (2) Cache the frozen sensor's outputs.
     t1 = time.perf_counter()
@@ -438,7 +448,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         first = 0 if role != "train" else int(D.smoother_frames(tr.num_frames)[0])
         caches[tr.name] = trajectory_cache(sensor, tr, first)
         np.savez(path, **caches[tr.name])
-    timings["cache_s"] = time.perf_counter() - t1
+    timings["cache_s"] = timings.get("cache_s", 0.0) + time.perf_counter() - t1
 
     def windows_of(trajs, length, stride, role):
         ws = []
@@ -479,7 +489,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     if "dead_reckoning" not in result["rows"]:
         m, _ = evaluate("dead_reckoning", None, test_w)
         result["rows"]["dead_reckoning"] = _row(m, 0.0, 0.0, None)
-    _write_json(result_path, result)
+    save()
 
     # (3) + (4) Train and score each method.
     models = {}
@@ -505,6 +515,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             checkpoint_every=100,
             log_path=work / f"{method}.jsonl",
             progress=True,
+            on_nonfinite="skip",
         )
         train_s = time.perf_counter() - t1
         models[method] = res.best_model
@@ -518,9 +529,8 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             f"{method}: {result['rows'][method]['trans_m_per_m']:.4f} m/m, "
             f"{result['rows'][method]['rot_deg_per_m']:.4f} deg/m"
         )
-        _write_json(result_path, result)
-    timings["total_s"] = time.perf_counter() - t0
-    _write_json(result_path, result)
+        save()
+    save()
     return {
         "result": result,
         "models": models,
