@@ -268,6 +268,20 @@ def test_surrogate_loss_rejects_non_dict_truth():
         surrogate_loss(_GRAPH, _TRUTH)
 
 
+def test_surrogate_loss_can_start_where_the_estimator_starts():
+    # A nonlinear graph (an SE(2) loop), so the start matters after 3 steps.
+    one_step = eqs.FixedStepGaussNewton(eqs.DenseCholesky(), num_steps=1)
+    truth = {"pose": _SE2_TRUTH}
+    init = _SE2_INIT  # the truth perturbed by 0.2 rad / units
+    from_init = surrogate_loss(_SE2_GRAPH, truth, solver=one_step, init=init)
+    sol = eqs.least_squares(_SE2_GRAPH, init, one_step)
+    np.testing.assert_allclose(
+        float(from_init), float(manifold_mse(truth, sol.value)), rtol=1e-12
+    )
+    from_truth = surrogate_loss(_SE2_GRAPH, truth, solver=one_step)
+    assert abs(float(from_init) - float(from_truth)) > 1e-3 * float(from_truth)
+
+
 def test_stack_trees_batches_graphs_for_vmap():
     from eqsmooth.learn import stack_trees
 
