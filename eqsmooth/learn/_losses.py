@@ -65,11 +65,9 @@ def surrogate_loss(
         runs its own `num_steps`).
     - `throw`: raise if the solve fails (see [`eqsmooth.solve.least_squares`][]).
     - `init`: start the solve here instead of at the truth, e.g. at the
-        estimator's own initialisation (dead reckoning). Starting at the truth
-        rewards a model whose solve does not move from its start: a
-        heteroscedastic noise model can learn to distrust its measurements
-        (the visual odometry experiment saw this); starting where the
-        estimator starts at test time scores what it will do there.
+        estimator's own initialisation (dead reckoning), so that the K steps
+        are the ones the estimator takes at test time. When K steps converge
+        from either start (nearly linear problems) the loss is the same.
 
     **Returns:** a scalar loss.
     """

@@ -292,10 +292,10 @@ def surrogate_loss(
     """K unrolled Gauss-Newton steps, position MSE against the truth.
 
     The solve starts where the smoother starts at test time (dead reckoning
-    from the sensor), or at the truth (`from_truth`, the paper's start). From
-    the truth, the heteroscedastic head learned to distrust nearly every
-    velocity measurement (σ of v at its 20 m/s cap on most frames of fold 0):
-    then the solve barely moves from its start, which the loss rewards.
+    from the sensor), or at the truth (`from_truth`, the paper's start). On
+    fold 0 the two gave the same constant-noise smoother to four digits and
+    heteroscedastic smoothers 0.2356 and 0.2393 m/m apart: with K = 5 the
+    steps converge from either start on this nearly linear chain.
     """
     solver = eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=num_steps)
 
