@@ -187,10 +187,15 @@ def test_summary_and_docs_table_come_from_fold_json(tmp_path):
             "smoother_hetero_e2e": {"trans_m_per_m": trans, "rot_deg_per_m": rot},
             "ekf_hetero": {"trans_m_per_m": 2 * trans, "rot_deg_per_m": 2 * rot},
         }
-        return {"fold": k, "rows": rows, "config": {"quick": False}}
+        methods = list(rows)
+        return {"fold": k, "rows": rows, "config": {"quick": False, "methods": methods}}
 
     for k, (t, r) in enumerate([(0.1, 0.01), (0.3, 0.03)]):
         (tmp_path / f"fold_{k}.json").write_text(json.dumps(fold(k, t, r)))
+    # A fold still running (a row missing) is left out of the summary.
+    running = fold(2, 9.0, 9.0)
+    del running["rows"]["ekf_hetero"]
+    (tmp_path / "fold_2.json").write_text(json.dumps(running))
     table = report.write_summary(tmp_path)
     summary = json.loads((tmp_path / "summary.json").read_text())
     e2e = summary["methods"]["smoother_hetero_e2e"]

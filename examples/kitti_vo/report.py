@@ -57,10 +57,17 @@ def write_summary(out: Path) -> str:
 
     Returns the markdown (also the table `update_docs` puts in the tutorial).
     """
-    folds = sorted(Path(out).glob("fold_*.json"))
-    if not folds:
-        return f"No fold of the KITTI-10 protocol is committed yet ({E.LABEL}).\n"
-    results = [json.loads(p.read_text()) for p in folds]
+    # Only finished folds: every method of the fold's config has its row (a
+    # fold being run writes its JSON after each stage).
+    results = [
+        r
+        for r in (
+            json.loads(p.read_text()) for p in sorted(Path(out).glob("fold_*.json"))
+        )
+        if "config" in r and all(m in r["rows"] for m in r["config"]["methods"])
+    ]
+    if not results:
+        return f"No fold of the KITTI-10 protocol is finished yet ({E.LABEL}).\n"
     summary = {"label": E.LABEL, "folds": [r["fold"] for r in results], "methods": {}}
     for m in ORDER:
         vals = [r["rows"][m] for r in results if m in r["rows"]]
