@@ -159,17 +159,21 @@ class ConstantNoise(eqx.Module):
 
 
 class HeteroscedasticNoise(eqx.Module):
-    """Per-frame square-root precisions from the sensor's features and log σ.
+    """Per-frame square-root precisions from the sensor's own log σ.
 
-    `σ⁻¹ = floor + base · softplus(MLP([features, log σ]) + softplus⁻¹(1))`;
-    the MLP's last layer starts at zero, so training starts from a constant.
+    `σ⁻¹ = floor + base · softplus(MLP(log σ) + softplus⁻¹(1))`, with a small
+    MLP (2 → 16 → 2); its last layer starts at zero, so training starts from
+    a constant. An MLP on the 64 sensor features as well (66 inputs)
+    overfitted the 480 training windows on fold 0: its σ of v sat at the cap
+    on most test frames and the smoother reached 0.2393 m/m, against 0.2077
+    with this head (dead reckoning 0.2061).
     """
 
     mlp: eqx.nn.MLP
     log_base: Float[Array, " 2"]
 
     def __init__(self, sigmas, key: PRNGKeyArray):
-        mlp = eqx.nn.MLP(FEATURES + 2, 2, 32, 2, activation=jax.nn.relu, key=key)
+        mlp = eqx.nn.MLP(2, 2, 16, 1, activation=jax.nn.relu, key=key)
         last = mlp.layers[-1]
         last = eqx.tree_at(
             lambda lin: (lin.weight, lin.bias),
@@ -181,9 +185,9 @@ class HeteroscedasticNoise(eqx.Module):
         self.log_base = jnp.asarray(np.log(np.maximum(sp, 1e-3)))
 
     def __call__(self, features, log_sigma):
-        x = jnp.concatenate([features / 4.0, log_sigma], axis=-1)
-        lead = x.shape[:-1]
-        out = jax.vmap(self.mlp)(x.reshape(-1, x.shape[-1])).reshape(lead + (2,))
+        del features  # see the class docstring
+        lead = log_sigma.shape[:-1]
+        out = jax.vmap(self.mlp)(log_sigma.reshape(-1, 2)).reshape(lead + (2,))
         shift = float(np.log(np.expm1(1.0)))
         return jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(
             self.log_base
