@@ -51,6 +51,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine, write_json  # noqa: E402
 from discover import (  # noqa: E402
+    _effect_term,
     _git,
     classify,
     fmt_rate,
@@ -171,7 +172,7 @@ def two_axis() -> System:
 Q1 = np.array([0.05, 0.5])
 R1 = 1.0
 PRIOR1 = np.array([20.0, 4.0])
-COULOMB_EPS = 1.0
+COULOMB_EPS = 1.0  # as in benchmarks/discover.py, whose effect terms are used
 
 
 def _dyn1(x, u, spring):
@@ -195,16 +196,13 @@ def _inputs(rng, num: int) -> np.ndarray:
 
 
 def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Velocity increment of a unit coefficient."""
+    """Velocity increment of a unit coefficient (the other effects as in
+    `benchmarks/discover.py`)."""
     if effect == "gain":
         return u
-    if effect == "drag":
-        return -v * np.abs(v)
-    if effect == "coulomb":
-        return -np.tanh(v / COULOMB_EPS)
-    if effect == "force":
-        return np.ones_like(v)
-    return np.zeros_like(v)
+    if effect == "none":
+        return np.zeros_like(v)
+    return _effect_term(effect, v)
 
 
 def _trajectories1(rng, effect: str, coef: float, num: int):
