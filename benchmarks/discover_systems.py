@@ -272,6 +272,7 @@ def cell(
     counts = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
     detected = unnamed = flagged = crashes = alarm = named_any = 0
     coefs, times, names = [], [], {}
+    per_alarm: dict[str, int] = {}
     for s in range(seeds):
         rng = np.random.default_rng(np.random.SeedSequence([2026, 77, tag, s]))
         data = system.simulate(rng, effect or "none", coef)
@@ -284,6 +285,8 @@ def cell(
         detected += out["detected"]
         unnamed += out["unnamed"]
         alarm += any(out["alarms"].values())
+        for kind, raised in out["alarms"].items():
+            per_alarm[kind] = per_alarm.get(kind, 0) + bool(raised)
         named_any += bool(out["named"])
         for nm in out["named"]:
             names[nm] = names.get(nm, 0) + 1
@@ -304,6 +307,7 @@ def cell(
         "detected": rate(detected, n),
         "unnamed_structure": rate(unnamed, n),
         "any_alarm": rate(alarm, n),
+        "alarms": {kind: rate(k, n) for kind, k in per_alarm.items()},
         "named_counts": names,
         "median_s": float(np.median(times)) if times else float("nan"),
     }
@@ -373,6 +377,17 @@ def report(system: System, records, info) -> str:
                 f"{fmt_rate(r['anything_named'])}; crashes {r['crashes']}, flagged "
                 f"{r['flagged']}; names given: {r['named_counts'] or 'none'}.",
             ]
+            if r.get("alarms"):
+                worst = max(a["rate"] for a in r["alarms"].values())
+                lines.append(
+                    "- every alarm on null data (target ≤ α = 0.05 each): "
+                    + ", ".join(
+                        f"{kind.replace('_', ' ')} {fmt_rate(a)}"
+                        for kind, a in r["alarms"].items()
+                    )
+                    + f"; largest {worst:.3f}: "
+                    + ("met." if worst <= 0.05 else "MISSED.")
+                )
     for r in records:
         if r["truth"] is not None and r["named_counts"]:
             lines.append(f"- names given with {r['truth']}: {r['named_counts']}")
