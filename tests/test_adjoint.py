@@ -298,14 +298,16 @@ def test_truncated_early_stopping():
     graph, truth, theta, setter = euclid_problem(seed=4)
     start = {"x": truth["x"] + 0.3}
 
-    def run(adjoint, max_steps=12):
+    # 13 steps at most: the stopped phase of TruncatedAdjoint(8) then covers
+    # 13 - 8 = 5 iterations, which a solve of up to 4 steps ends inside.
+    def run(adjoint, max_steps=13):
         return _value_and_grad(
             theta, graph, start, setter, _solvers()["gn"], adjoint, max_steps
         )
 
-    sol = eqs.least_squares(setter(graph, theta), start, _solvers()["gn"], max_steps=12)
+    sol = eqs.least_squares(setter(graph, theta), start, _solvers()["gn"], max_steps=13)
     n = int(sol.stats["num_steps"])
-    assert 2 < n < 8  # stops early: the last iterations come from the ring buffer
+    assert 2 < n <= 4  # stops early: the last iterations come from the ring buffer
     v_unrolled, g_unrolled = run(eqs.UnrolledAdjoint())
     # k >= number of steps taken: restarts from the initial values, = unrolled.
     v_long, g_long = run(eqs.TruncatedAdjoint(8))

@@ -17,7 +17,9 @@ adjoint=...)`. Each implements two loops:
 - `run`, for eqsmooth's driver, which hands it three functions over the loop
     carry `(values, state, cost_history)`: `init(graph, values)`,
     `body(graph, carry)` and `cond(carry)`; it relies on one invariant of the
-    solver states: `state.lin` is the linearisation at `values`;
+    solver states: after the first iteration, `state.lin` is the
+    linearisation at `values` (every iteration linearises the trial point
+    of the step solved in the iteration before, and keeps it if taken);
 - `apply`, optimistix's interface: it receives optimistix's whole solve
     (`primal_fn`) and its `inputs`, and chooses the `while_loop` the solve
     runs with (a masked `lax.scan`, a stopped `lax.while_loop` followed by a
@@ -106,11 +108,17 @@ def _optx_inputs(inputs, who: str) -> tuple:
 
 
 def _iteration_limit(inputs, who: str) -> int:
-    """The static number of iterations a scan must cover for an optimistix solve."""
-    from ._least_squares import AbstractGraphSolver  # it imports this module
+    """The static number of iterations a scan must cover for an optimistix solve.
+
+    optimistix counts every call of the solver's `step` against its
+    `max_steps`, the first iteration of eqsmooth's solvers (which only
+    linearises the initial values) included; a fixed-step solver needs its
+    `num_steps + 1`.
+    """
+    from ._least_squares import AbstractFixedStepSolver  # it imports this module
 
     _, solver, _, _, _, max_steps, *_ = _optx_inputs(inputs, who)
-    if isinstance(solver, AbstractGraphSolver):
+    if isinstance(solver, AbstractFixedStepSolver):
         return solver.iteration_limit(max_steps)
     if max_steps is None:
         raise ValueError(
@@ -118,12 +126,6 @@ def _iteration_limit(inputs, who: str) -> int:
             "optx.least_squares"
         )
     return max_steps
-
-
-def _relinearize(graph: FactorGraph, carry: Carry) -> Carry:
-    values, state, history = carry
-    state = eqx.tree_at(lambda s: s.lin, state, linearize(graph, values))
-    return values, state, history
 
 
 class AbstractAdjoint(optx.AbstractAdjoint):
@@ -203,24 +205,24 @@ class TruncatedAdjoint(AbstractAdjoint):
     """Differentiate through the last `num_steps` iterations only.
 
     The earlier iterations run in a `while_loop` with gradients stopped; the
-    last `num_steps` iterations taken by the solver are differentiated (their
-    linearisations use the live graph), so memory is that of `num_steps`
-    iterations. When the solver stops early (convergence), the last
-    iterations are recomputed from a ring buffer of the loop states, so the
-    forward result is the same as with any other adjoint. If the solve takes
-    at most `num_steps` iterations the gradient equals that of
-    [`eqsmooth.solve.UnrolledAdjoint`][], gradients with respect to the
-    initial values included; otherwise those are zero.
+    last `num_steps + 1` iterations are replayed differentiated: the first
+    of them tries a step computed from stopped quantities, linearises its
+    trial point with the live graph and solves the next step live, so the
+    last `num_steps` steps are differentiated. Memory is that of
+    `num_steps + 1` iterations. When the solver stops early (convergence),
+    the replayed iterations are recomputed from a ring buffer of the loop
+    states, so the forward result is the same as with any other adjoint. If
+    the solve ends within its first `max_steps - num_steps` iterations and
+    takes at most `num_steps` steps (iterations: one more than steps), the
+    gradient equals that of [`eqsmooth.solve.UnrolledAdjoint`][], gradients
+    with respect to the initial values included; otherwise those are zero.
+    For
+    Levenberg-Marquardt, a rejected step among the replayed ones leaves one
+    step fewer differentiated.
 
     `num_steps=1` at a converged solution is the "one Gauss-Newton step from
-    the stopped solution" approximation of the implicit gradient.
-
-    Through `optx.least_squares` it cannot relinearise the solver's state
-    (optimistix's loop carry is private), so it restarts one iteration
-    earlier instead: that iteration's step is computed from stopped
-    quantities, and the linearisation it ends with depends on the live
-    graph. For Gauss-Newton this gives the same gradient; for
-    Levenberg-Marquardt too unless that iteration's step is rejected.
+    the stopped solution" approximation of the implicit gradient. The same
+    loop serves eqsmooth's driver and `optx.least_squares`.
 
     **Arguments:**
 
@@ -237,40 +239,13 @@ class TruncatedAdjoint(AbstractAdjoint):
             )
 
     def run(self, init, body, cond, graph, values, linear_solver, max_steps):
-        k = self.num_steps
-        carry0 = init(graph, values)
-        free = max_steps - k
-        if free <= 0:
-            return _masked_scan(body, cond, graph, carry0, max_steps)
-        stopped_graph = _stop(graph)
-        start0 = _stop(carry0)
-        # A ring buffer of the last k (values, state) pairs, to restart from
-        # k iterations before the end when the solver stops early.
-        ring0 = jax.tree_util.tree_map(
-            lambda x: jnp.broadcast_to(x, (k,) + jnp.shape(x)), start0[:2]
+        return _truncated_loop(
+            cond,
+            lambda c: body(graph, c),
+            init(graph, values),
+            max_steps,
+            self.num_steps,
         )
-
-        def cond1(loop):
-            carry, _ = loop
-            return cond(carry) & (carry[1].step < free)
-
-        def body1(loop):
-            carry, ring = loop
-            slot = carry[1].step % k
-            ring = jax.tree_util.tree_map(
-                lambda r, x: r.at[slot].set(x), ring, carry[:2]
-            )
-            return body(stopped_graph, carry), ring
-
-        carry1, ring = lax.while_loop(cond1, body1, (start0, ring0))
-        n1 = carry1[1].step
-        stopped = ~cond(carry1)
-        restart = jnp.where(stopped, jnp.maximum(n1 - k, 0), n1)
-        from_ring = jax.tree_util.tree_map(lambda r: r[(n1 - k) % k], ring)
-        resumed = tree_where(stopped, from_ring + (carry1[2],), carry1)
-        start = tree_where(restart == 0, carry0, _stop(resumed))
-        start = _relinearize(graph, start)
-        return _masked_scan(body, cond, graph, start, k)
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
@@ -285,7 +260,7 @@ class TruncatedAdjoint(AbstractAdjoint):
 
 
 def _truncated_loop(cond, body, carry0, limit: int, k: int):
-    """The loop of `TruncatedAdjoint.apply`: stopped iterations, then `k + 1`
+    """The loop of `TruncatedAdjoint`: stopped iterations, then `k + 1`
     replayed ones whose first step is computed from stopped quantities.
 
     `body` closes over the live problem; the stopped phase stops its outputs.

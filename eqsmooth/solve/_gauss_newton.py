@@ -12,12 +12,26 @@ from ._least_squares import (
     AbstractFixedStepSolver,
     AbstractGraphSolver,
     graph_of,
-    start,
     to_optx_result,
 )
-from ._linear_solver import solve_normal
-from ._linearization import Linearization, linearize, retract_values
-from ._misc import converged_test, finite_lin, nan_derivative_if, sq_norm, tree_where
+from ._linear_solver import solve_unless
+from ._linearization import (
+    gradient,
+    Linearization,
+    linearize,
+    placeholder_linearization,
+    retract_values,
+    Tangent,
+    zeros_tangent,
+)
+from ._misc import (
+    converged_test,
+    finite_lin,
+    max_abs,
+    nan_derivative_if,
+    sq_norm,
+    tree_where,
+)
 from ._solution import RESULTS
 
 
@@ -25,16 +39,26 @@ class GaussNewtonState(eqx.Module):
     """The state of [`eqsmooth.solve.GaussNewton`][] and
     [`eqsmooth.solve.FixedStepGaussNewton`][].
 
+    Every iteration linearises once: the first at the initial values, each
+    later one at the trial point `x ⊕ δ` of the step solved at the end of the
+    iteration before. So the compiled loop holds a single copy of the
+    linearisation, and the initial state holds a placeholder (zeros) until
+    the first iteration.
+
     **Fields:**
 
-    - `lin`: the linearisation at the current values.
-    - `step`, `num_accepted`: iterations taken and accepted.
+    - `lin`: the linearisation at the current values (after the first
+        iteration).
+    - `delta`: the step to try in the next iteration.
+    - `step`: iterations run, the first (which only linearises) included.
+    - `num_accepted`: steps taken.
     - `done`: converged or failed.
     - `result`: an [`eqsmooth.solve.RESULTS`][] code.
-    - `last_step_norm`: `‖δ‖₂` of the last step (a diagnostic).
+    - `last_step_norm`: `‖δ‖₂` of the last step tried (a diagnostic).
     """
 
     lin: Linearization
+    delta: Tangent
     step: Int[Array, ""]
     num_accepted: Int[Array, ""]
     done: Bool[Array, ""]
@@ -42,52 +66,77 @@ class GaussNewtonState(eqx.Module):
     last_step_norm: Float[Array, ""]
 
 
-def _init(graph, values, gtol: float) -> GaussNewtonState:
-    lin, done, result = start(graph, values, gtol)
+def _init(graph, values) -> GaussNewtonState:
+    lin = placeholder_linearization(graph, values)
     return GaussNewtonState(
         lin=lin,
+        delta=zeros_tangent(lin),
         step=jnp.array(0),
         num_accepted=jnp.array(0),
-        done=done,
-        result=result,
+        done=jnp.array(False),
+        result=RESULTS.successful,
         last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
     )
 
 
-def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
-    """One Gauss-Newton step; `check=False` never stops on convergence."""
-    lin = state.lin
-    linear_solver = linear_solver_for(solver.linear_solver, lin)
-    delta, lres = solve_normal(
-        linear_solver, lin, None, options=options.get("linear_options")
-    )
-    solved = lres == RESULTS.successful
-    new_values = retract_values(values, delta)
-    new_lin = linearize(graph, new_values)
+def _step(
+    solver, graph, values, state: GaussNewtonState, options, check: bool, last=None
+):
+    """One iteration: linearise the trial point, take or refuse it, solve the
+    next step. `check=False` never stops on convergence; `last` (a traced
+    bool) skips the final solve, whose step would never be tried."""
+    first = state.step == 0
+    trial = tree_where(first, values, retract_values(values, state.delta))
+    new_lin = linearize(graph, trial)
     finite = finite_lin(new_lin)
-    ok = solved & finite
     result = RESULTS.where(
-        solved,
-        RESULTS.where(finite, RESULTS.successful, RESULTS.nonlinear_divergence),
-        RESULTS.linear_solve_failed,
+        finite,
+        RESULTS.successful,
+        RESULTS.where(first, RESULTS.nonfinite_problem, RESULTS.nonlinear_divergence),
     )
-    done = ~ok
+    done = ~finite
     if check:
-        converged = converged_test(
-            lin.cost, new_lin, delta, solver.ftol, solver.gtol, solver.xtol
+        converged = jnp.where(
+            first,
+            max_abs(gradient(new_lin)) <= solver.gtol,
+            converged_test(
+                state.lin.cost,
+                new_lin,
+                state.delta,
+                solver.ftol,
+                solver.gtol,
+                solver.xtol,
+            ),
         )
-        done = done | (ok & converged)
+        done = done | (finite & converged)
     # A failed step is not taken, and nothing is differentiable through it.
-    values = nan_derivative_if(~ok, tree_where(ok, new_values, values), lin.cost)
+    failed = ~finite & ~first
+    values = nan_derivative_if(
+        failed, tree_where(finite, trial, values), state.lin.cost
+    )
+    lin = tree_where(finite | first, new_lin, state.lin)
+    skip = done if last is None else done | last
+    delta, solved = solve_unless(
+        skip, linear_solver_for(solver.linear_solver, lin), lin, None, options
+    )
+    result = RESULTS.where(skip | solved, result, RESULTS.linear_solve_failed)
+    # A failed solve ends the solve here: no derivative through its values.
+    values = nan_derivative_if(~solved, values, lin.cost)
     new_state = GaussNewtonState(
-        lin=tree_where(ok, new_lin, lin),
+        lin=lin,
+        delta=delta,
         step=state.step + 1,
-        num_accepted=state.num_accepted + ok.astype(state.num_accepted.dtype),
-        done=done,
+        num_accepted=state.num_accepted
+        + (finite & ~first).astype(state.num_accepted.dtype),
+        done=done | ~solved,
         result=result,
         # Diagnostic only; stopped so that sqrt at a zero step never puts a
         # NaN into masked iterations of an unrolled backward pass.
-        last_step_norm=lax.stop_gradient(jnp.sqrt(sq_norm(delta)).astype(lin.dtype)),
+        last_step_norm=jnp.where(
+            first,
+            jnp.inf,
+            lax.stop_gradient(jnp.sqrt(sq_norm(state.delta))),
+        ).astype(lin.dtype),
     )
     return values, new_state, None
 
@@ -120,7 +169,7 @@ class GaussNewton(AbstractGraphSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, options, f_struct, aux_struct, tags
-        return _init(graph_of(args, "GaussNewton"), y, self.gtol)
+        return _init(graph_of(args, "GaussNewton"), y)
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del fn, tags
@@ -138,8 +187,10 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
     Reaching `num_steps` is success; no tolerance stops it early, so the
     computation (and its gradient under
     [`eqsmooth.solve.UnrolledAdjoint`][]) is the same for every input. Used
-    by the surrogate loss (start at ground truth, K steps). Through
-    `optx.least_squares` give `max_steps >= num_steps`.
+    by the surrogate loss (start at ground truth, K steps). It runs
+    `num_steps + 1` iterations: K linearisations and solves, then one
+    linearisation of the result. Through `optx.least_squares` (which counts
+    iterations) give `max_steps >= num_steps + 1`.
 
     **Arguments:**
 
@@ -162,15 +213,18 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, options, f_struct, aux_struct, tags
-        return _init(graph_of(args, "FixedStepGaussNewton"), y, -1.0)
+        return _init(graph_of(args, "FixedStepGaussNewton"), y)
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del fn, tags
         graph = graph_of(args, "FixedStepGaussNewton")
-        return _step(self, graph, y, state, options, check=False)
+        # The last iteration only linearises the final values.
+        last = state.step >= self.num_steps
+        return _step(self, graph, y, state, options, check=False, last=last)
 
     def terminate(
         self, fn, y, args, options, state: GaussNewtonState, tags
     ) -> tuple[Bool[Array, ""], optx.RESULTS]:
         del fn, y, args, options, tags
-        return state.done | (state.step >= self.num_steps), to_optx_result(state.result)
+        done = state.done | (state.step > self.num_steps)
+        return done, to_optx_result(state.result)

@@ -24,8 +24,6 @@ from jaxtyping import Array, Float, PyTree
 from ..factors import FactorGraph
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._default_solver import default_linear_solver
-from ._linearization import gradient, linearize
-from ._misc import finite_lin, max_abs
 from ._solution import RESULTS, Solution
 
 
@@ -139,14 +137,16 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
     def iteration_limit(self, max_steps: int) -> int:
         """The static iteration limit of a solve called with `max_steps`.
 
-        `max_steps` itself, except for an
+        One iteration more than steps, since the first iteration only
+        linearises the initial values (and solves for the first step):
+        `max_steps + 1`, or `num_steps + 1` for an
         [`eqsmooth.solve.AbstractFixedStepSolver`][], which always runs its
         `num_steps`. [`eqsmooth.solve.UnrolledAdjoint`][] scans this many
         iterations.
         """
         if isinstance(self, AbstractFixedStepSolver):
-            return self.num_steps
-        return max_steps
+            return self.num_steps + 1
+        return max_steps + 1
 
     def at_max_steps(self) -> RESULTS:
         """The result when the iteration limit is reached before convergence
@@ -166,15 +166,6 @@ class AbstractFixedStepSolver(AbstractGraphSolver):
     """
 
     num_steps: eqx.AbstractVar[int]
-
-
-def start(graph: FactorGraph, values: Values, gtol: float):
-    """Linearise at the initial values: `(lin, done, result)` of the first state."""
-    lin = linearize(graph, values)
-    finite = finite_lin(lin)
-    converged = max_abs(gradient(lin)) <= gtol
-    result = RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_problem)
-    return lin, (~finite) | converged, result
 
 
 def least_squares(
@@ -288,7 +279,7 @@ def _check_arguments(values: Values, max_steps: int) -> None:
 
 @eqx.filter_jit
 def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, options):
-    max_steps = solver.iteration_limit(max_steps)
+    limit = solver.iteration_limit(max_steps)
     at_max = solver.at_max_steps()
     linear_solver = solver.linear_solver
     if linear_solver is None:
@@ -302,7 +293,9 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
 
     def init(graph, values):
         state = solver.init(graph_residuals, values, graph, options, None, None, tags)
-        history = jnp.full((max_steps + 1,), state.lin.cost)
+        # Filled by the iterations: entry i is the cost after step i (entry 0
+        # at the initial values, from the first iteration).
+        history = jnp.zeros((limit,), state.lin.cost.dtype)
         return values, state, history
 
     def body(graph, carry):
@@ -311,7 +304,7 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
             graph_residuals, values, graph, options, state, tags
         )
         # Out of steps without converging: stop with the solver's at-max code.
-        out = (new_state.step >= max_steps) & ~new_state.done
+        out = (new_state.step >= limit) & ~new_state.done
         result = RESULTS.where(
             out & (new_state.result == RESULTS.successful), at_max, new_state.result
         )
@@ -321,23 +314,23 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
         if verbose:
             jax.debug.print(
                 "step {step:4d}  cost {cost:.6e}  damping {lam:.2e}  |δ| {dx:.2e}",
-                step=new_state.step,
+                step=new_state.step - 1,
                 cost=new_state.lin.cost,
                 lam=getattr(new_state, "damping", jnp.zeros(())),
                 dx=new_state.last_step_norm,
             )
-        history = history.at[new_state.step].set(new_state.lin.cost)
+        history = history.at[new_state.step - 1].set(new_state.lin.cost)
         return new_values, new_state, history
 
     def cond(carry):
         _, state, _ = carry
-        return ~state.done & (state.step < max_steps)
+        return ~state.done & (state.step < limit)
 
     values, state, history = adjoint.run(
-        init, body, cond, graph, values, linear_solver, max_steps
+        init, body, cond, graph, values, linear_solver, limit
     )
-    steps = state.step
-    history = jnp.where(jnp.arange(max_steps + 1) <= steps, history, state.lin.cost)
+    steps = jnp.maximum(state.step - 1, 0)
+    history = jnp.where(jnp.arange(limit) <= steps, history, state.lin.cost)
     result = state.result
     stats = {
         "num_steps": steps,

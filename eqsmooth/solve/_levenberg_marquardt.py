@@ -7,29 +7,35 @@ import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._default_solver import linear_solver_for
-from ._least_squares import AbstractGraphSolver, graph_of, start, to_optx_result
-from ._linear_solver import solve_normal
+from ._least_squares import AbstractGraphSolver, graph_of, to_optx_result
+from ._linear_solver import solve_unless
 from ._linearization import (
     apply_jacobian,
     block_diagonal,
     gradient,
     Linearization,
     linearize,
+    placeholder_linearization,
     retract_values,
     Tangent,
+    zeros_tangent,
 )
-from ._misc import converged_test, finite_lin, sq_norm, tree_where
+from ._misc import converged_test, finite_lin, max_abs, sq_norm, tree_where
 from ._solution import RESULTS
 
 
 class LevenbergMarquardtState(eqx.Module):
     """The state of [`eqsmooth.solve.LevenbergMarquardt`][].
 
-    **Fields:** those of [`eqsmooth.solve.GaussNewtonState`][], plus
-    `damping` (λ) and `nu` (the factor λ grows by on the next rejection).
+    **Fields:** those of [`eqsmooth.solve.GaussNewtonState`][] (one
+    linearisation per iteration, of the trial point), plus `solved` (whether
+    `delta` came from a successful linear solve), `damping` (λ) and `nu` (the
+    factor λ grows by on the next rejection).
     """
 
     lin: Linearization
+    delta: Tangent
+    solved: Bool[Array, ""]
     step: Int[Array, ""]
     num_accepted: Int[Array, ""]
     damping: Float[Array, ""]
@@ -121,15 +127,17 @@ class LevenbergMarquardt(AbstractGraphSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, options, f_struct, aux_struct, tags
-        lin, done, result = start(graph_of(args, "LevenbergMarquardt"), y, self.gtol)
+        lin = placeholder_linearization(graph_of(args, "LevenbergMarquardt"), y)
         return LevenbergMarquardtState(
             lin=lin,
+            delta=zeros_tangent(lin),
+            solved=jnp.array(True),
             step=jnp.array(0),
             num_accepted=jnp.array(0),
             damping=jnp.asarray(self.initial_damping, lin.dtype),
             nu=jnp.asarray(2.0, lin.dtype),
-            done=done,
-            result=result,
+            done=jnp.array(False),
+            result=RESULTS.successful,
             last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
         )
 
@@ -139,19 +147,18 @@ class LevenbergMarquardt(AbstractGraphSolver):
         values = y
         lin = state.lin
         lam = state.damping
-        damping = marquardt_damping(lin, lam, self.min_diagonal, self.max_diagonal)
-        linear_solver = linear_solver_for(self.linear_solver, lin)
-        delta, lres = solve_normal(
-            linear_solver, lin, damping, options=options.get("linear_options")
-        )
-        solved = lres == RESULTS.successful
-        trial_values = retract_values(values, delta)
+        delta = state.delta
+        first = state.step == 0
+        # The trial point of the step solved in the previous iteration (the
+        # initial values in the first iteration, which are always taken).
+        trial_values = tree_where(first, values, retract_values(values, delta))
         trial_lin = linearize(graph, trial_values)
+        finite = finite_lin(trial_lin)
         predicted = predicted_decrease(lin, delta)
         actual = lin.cost - trial_lin.cost
         gain = actual / jnp.where(predicted > 0, predicted, 1.0)
         accept = (
-            solved & finite_lin(trial_lin) & (predicted > 0) & (gain > self.min_gain)
+            state.solved & finite & (predicted > 0) & (gain > self.min_gain) & ~first
         )
         converged = accept & converged_test(
             lin.cost, trial_lin, delta, self.ftol, self.gtol, self.xtol
@@ -159,28 +166,47 @@ class LevenbergMarquardt(AbstractGraphSolver):
         # Nielsen's damping update.
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
         new_lam = jnp.where(accept, lam * shrink, lam * state.nu)
-        new_lam = jnp.maximum(new_lam, jnp.finfo(lin.dtype).tiny)
+        new_lam = jnp.maximum(new_lam, jnp.finfo(lam.dtype).tiny)
         new_nu = jnp.where(accept, 2.0, 2.0 * state.nu)
         # Nothing left to gain: the model's predicted decrease is at the level of
         # floating-point noise in the cost (or not positive), so no accepted
         # step can be told apart from rounding. This is convergence.
-        eps = jnp.finfo(lin.dtype).eps
-        stalled = solved & (predicted <= 16 * eps * jnp.maximum(lin.cost, 1.0))
-        converged = converged | (stalled & ~accept)
-        gave_up = new_lam > self.max_damping
+        eps = jnp.finfo(lam.dtype).eps
+        stalled = state.solved & (predicted <= 16 * eps * jnp.maximum(lin.cost, 1.0))
+        stalled = stalled & ~first
+        gave_up = (new_lam > self.max_damping) & ~first
         result = RESULTS.where(
             gave_up & ~stalled, RESULTS.linear_solve_failed, RESULTS.successful
         )
-        values = tree_where(accept, trial_values, values)
+        done = converged | stalled | gave_up
+        # The first iteration: the initial values, stopped at once if they
+        # are not finite or already stationary.
+        result = RESULTS.where(first & ~finite, RESULTS.nonfinite_problem, result)
+        done = jnp.where(
+            first, ~finite | (max_abs(gradient(trial_lin)) <= self.gtol), done
+        )
+        new_lam = jnp.where(first, lam, new_lam)
+        new_nu = jnp.where(first, state.nu, new_nu)
+        take = accept | first
+        values = tree_where(take, trial_values, values)
+        lin = tree_where(take, trial_lin, lin)
+        damping = marquardt_damping(lin, new_lam, self.min_diagonal, self.max_diagonal)
+        next_delta, solved = solve_unless(
+            done, linear_solver_for(self.linear_solver, lin), lin, damping, options
+        )
         new_state = LevenbergMarquardtState(
-            lin=tree_where(accept, trial_lin, lin),
+            lin=lin,
+            delta=next_delta,
+            solved=solved,
             step=state.step + 1,
             num_accepted=state.num_accepted + accept.astype(state.num_accepted.dtype),
             damping=new_lam.astype(lam.dtype),
             nu=new_nu.astype(lam.dtype),
-            done=converged | stalled | gave_up,
+            done=done,
             result=result,
-            last_step_norm=jnp.sqrt(sq_norm(delta)).astype(lam.dtype),
+            last_step_norm=jnp.where(first, jnp.inf, jnp.sqrt(sq_norm(delta))).astype(
+                lam.dtype
+            ),
         )
         return values, new_state, None
 

@@ -26,6 +26,7 @@ from ._linearization import (
     Linearization,
     normal_matvec,
     Tangent,
+    zeros_tangent,
 )
 from ._misc import nan_derivative_if
 from ._solution import RESULTS
@@ -298,3 +299,29 @@ def flat_damping(lin: Linearization, damping: Tangent | None) -> Array | None:
     if damping is None:
         return None
     return flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in damping.items()})
+
+
+def solve_unless(
+    skip: Bool[Array, ""],
+    linear_solver: lx.AbstractLinearSolver,
+    lin: Linearization,
+    damping: Tangent | None,
+    options: dict[str, Any],
+) -> tuple[Tangent, Bool[Array, ""]]:
+    """[`eqsmooth.solve.solve_normal`][] for a nonlinear solver's next step,
+    unless `skip` (the solver has stopped): `(δ, solved)`, where a skipped
+    solve gives zeros and `True`. A `lax.cond`, so a stopped solve costs
+    nothing (under `vmap` with a batched `skip` both branches run).
+    `options` are the solver's optimistix options (`"linear_options"` is
+    passed on)."""
+    linear_options = options.get("linear_options")
+
+    def solve(lin, damping):
+        delta, res = solve_normal(linear_solver, lin, damping, options=linear_options)
+        return delta, res == RESULTS.successful
+
+    def skipped(lin, damping):
+        del damping
+        return zeros_tangent(lin), jnp.array(True)
+
+    return jax.lax.cond(skip, skipped, solve, lin, damping)

@@ -71,6 +71,25 @@ def linearize(graph: FactorGraph, values: dict[str, PyTree]) -> Linearization:
     return Linearization(tuple(out), layout, cost)
 
 
+def placeholder_linearization(
+    graph: FactorGraph, values: dict[str, PyTree]
+) -> Linearization:
+    """Zeros shaped like `linearize(graph, values)`, computed from shapes only.
+
+    A solver's initial state holds it until its first iteration linearises,
+    so that the compiled solve contains one copy of the linearisation (in the
+    loop) instead of two (before the loop and in it).
+    """
+    shapes = eqx.filter_eval_shape(linearize, graph, values)
+    return jax.tree_util.tree_map(
+        lambda x: (
+            jnp.zeros(x.shape, x.dtype) if isinstance(x, jax.ShapeDtypeStruct) else x
+        ),
+        shapes,
+        is_leaf=lambda x: isinstance(x, jax.ShapeDtypeStruct),
+    )
+
+
 def _values_dtype(values):
     leaves = jax.tree_util.tree_leaves(values)
     return jnp.result_type(*[leaf.dtype for leaf in leaves])
