@@ -113,7 +113,7 @@ def _iteration_limit(inputs, who: str) -> int:
     optimistix counts every call of the solver's `step` against its
     `max_steps`, the first iteration of eqsmooth's solvers (which only
     linearises the initial values) included; a fixed-step solver needs its
-    `num_steps + 1`.
+    `num_steps`.
     """
     from ._least_squares import AbstractFixedStepSolver  # it imports this module
 
@@ -126,6 +126,16 @@ def _iteration_limit(inputs, who: str) -> int:
             "optx.least_squares"
         )
     return max_steps
+
+
+def _steps_after(inputs, who: str) -> int:
+    """Steps the optimistix solve's solver takes in `postprocess`."""
+    from ._least_squares import AbstractGraphSolver  # it imports this module
+
+    _, solver, *_ = _optx_inputs(inputs, who)
+    if isinstance(solver, AbstractGraphSolver):
+        return solver.steps_after_loop()
+    return 0
 
 
 class AbstractAdjoint(optx.AbstractAdjoint):
@@ -152,6 +162,7 @@ class AbstractAdjoint(optx.AbstractAdjoint):
         values: Values,
         linear_solver: lx.AbstractLinearSolver,
         max_steps: int,
+        steps_after: int = 0,
     ) -> Carry:
         """Run the solve and return the final carry `(values, state, history)`.
 
@@ -164,6 +175,9 @@ class AbstractAdjoint(optx.AbstractAdjoint):
         - `linear_solver`: the solver's linear solver (for the implicit
             adjoint's linear systems).
         - `max_steps`: the static iteration limit.
+        - `steps_after`: how many steps the solver takes after the loop, in
+            its `finish` (1 for [`eqsmooth.solve.FixedStepGaussNewton`][],
+            0 otherwise).
 
         **Returns:** the final carry.
         """
@@ -187,7 +201,10 @@ class UnrolledAdjoint(AbstractAdjoint):
     [`eqsmooth.solve.FixedStepGaussNewton`][]).
     """
 
-    def run(self, init, body, cond, graph, values, linear_solver, max_steps):
+    def run(
+        self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
+    ):
+        del steps_after
         return _masked_scan(body, cond, graph, init(graph, values), max_steps)
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
@@ -216,9 +233,12 @@ class TruncatedAdjoint(AbstractAdjoint):
     takes at most `num_steps` steps (iterations: one more than steps), the
     gradient equals that of [`eqsmooth.solve.UnrolledAdjoint`][], gradients
     with respect to the initial values included; otherwise those are zero.
-    For
-    Levenberg-Marquardt, a rejected step among the replayed ones leaves one
-    step fewer differentiated.
+    For Levenberg-Marquardt, a rejected step among the replayed ones leaves
+    one step fewer differentiated. [`eqsmooth.solve.FixedStepGaussNewton`][]
+    takes its last step after the loop, so `num_steps` iterations are
+    replayed for it: its result is then exactly an unrolled
+    `num_steps`-step solve started at the stopped values after the first
+    `K - num_steps` steps.
 
     `num_steps=1` at a converged solution is the "one Gauss-Newton step from
     the stopped solution" approximation of the implicit gradient. The same
@@ -238,36 +258,42 @@ class TruncatedAdjoint(AbstractAdjoint):
                 f"{self.num_steps!r}"
             )
 
-    def run(self, init, body, cond, graph, values, linear_solver, max_steps):
+    def run(
+        self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
+    ):
         return _truncated_loop(
             cond,
             lambda c: body(graph, c),
             init(graph, values),
             max_steps,
             self.num_steps,
+            steps_after,
         )
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
         limit = _iteration_limit(inputs, "TruncatedAdjoint")
         k = self.num_steps
+        after = _steps_after(inputs, "TruncatedAdjoint")
 
         def while_loop(cond, body, carry, max_steps):
             del max_steps
-            return _truncated_loop(cond, body, carry, limit, k)
+            return _truncated_loop(cond, body, carry, limit, k, after)
 
         return primal_fn(inputs + (while_loop,))
 
 
-def _truncated_loop(cond, body, carry0, limit: int, k: int):
-    """The loop of `TruncatedAdjoint`: stopped iterations, then `k + 1`
+def _truncated_loop(cond, body, carry0, limit: int, k: int, after: int = 0):
+    """The loop of `TruncatedAdjoint`: stopped iterations, then `k + 1 - after`
     replayed ones whose first step is computed from stopped quantities.
 
     `body` closes over the live problem; the stopped phase stops its outputs.
-    A ring buffer of the last `k + 1` loop states lets a solve that stops
-    early restart `k + 1` iterations before its end.
+    A ring buffer of the last `m` loop states lets a solve that stops early
+    restart `m` iterations before its end. A solver that takes `after` of
+    its steps after the loop (the fixed-step solver's last one) needs that
+    many iterations fewer replayed for `k` differentiated steps.
     """
-    m = k + 1
+    m = k + 1 - after
     free = limit - m
     if free <= 0:
         return _scan_while(cond, body, carry0, limit)
@@ -373,7 +399,10 @@ class ImplicitAdjoint(AbstractAdjoint):
                 f"ImplicitAdjoint.max_steps must be >= 1, got {self.max_steps}"
             )
 
-    def run(self, init, body, cond, graph, values, linear_solver, max_steps):
+    def run(
+        self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
+    ):
+        del steps_after  # the fixed point is the same however the steps are split
         stopped_graph = _stop(graph)
         carry = init(stopped_graph, _stop(values))
         carry = lax.while_loop(cond, lambda c: body(stopped_graph, c), carry)

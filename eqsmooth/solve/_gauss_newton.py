@@ -79,12 +79,9 @@ def _init(graph, values) -> GaussNewtonState:
     )
 
 
-def _step(
-    solver, graph, values, state: GaussNewtonState, options, check: bool, last=None
-):
+def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
     """One iteration: linearise the trial point, take or refuse it, solve the
-    next step. `check=False` never stops on convergence; `last` (a traced
-    bool) skips the final solve, whose step would never be tried."""
+    next step. `check=False` never stops on convergence."""
     first = state.step == 0
     trial = tree_where(first, values, retract_values(values, state.delta))
     new_lin = linearize(graph, trial)
@@ -115,11 +112,10 @@ def _step(
         failed, tree_where(finite, trial, values), state.lin.cost
     )
     lin = tree_where(finite | first, new_lin, state.lin)
-    skip = done if last is None else done | last
     delta, solved = solve_unless(
-        skip, linear_solver_for(solver.linear_solver, lin), lin, None, options
+        done, linear_solver_for(solver.linear_solver, lin), lin, None, options
     )
-    result = RESULTS.where(skip | solved, result, RESULTS.linear_solve_failed)
+    result = RESULTS.where(done | solved, result, RESULTS.linear_solve_failed)
     # A failed solve ends the solve here: no derivative through its values.
     values = nan_derivative_if(~solved, values, lin.cost)
     new_state = GaussNewtonState(
@@ -187,10 +183,14 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
     Reaching `num_steps` is success; no tolerance stops it early, so the
     computation (and its gradient under
     [`eqsmooth.solve.UnrolledAdjoint`][]) is the same for every input. Used
-    by the surrogate loss (start at ground truth, K steps). It runs
-    `num_steps + 1` iterations: K linearisations and solves, then one
-    linearisation of the result. Through `optx.least_squares` (which counts
-    iterations) give `max_steps >= num_steps + 1`.
+    by the surrogate loss (start at ground truth, K steps). It runs K
+    iterations, each one linearisation and one solve; the K-th step is
+    taken after the loop (`finish`, or optimistix's `postprocess`), where
+    only the cost of the result is evaluated, not its Jacobians (so
+    `state.lin` is the linearisation before the last step). A non-finite
+    cost there counts as a failed step: the values before it are returned,
+    with `RESULTS.nonlinear_divergence`. Through `optx.least_squares` give
+    `max_steps >= num_steps`.
 
     **Arguments:**
 
@@ -218,13 +218,35 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del fn, tags
         graph = graph_of(args, "FixedStepGaussNewton")
-        # The last iteration only linearises the final values.
-        last = state.step >= self.num_steps
-        return _step(self, graph, y, state, options, check=False, last=last)
+        return _step(self, graph, y, state, options, check=False)
 
     def terminate(
         self, fn, y, args, options, state: GaussNewtonState, tags
     ) -> tuple[Bool[Array, ""], optx.RESULTS]:
         del fn, y, args, options, tags
-        done = state.done | (state.step > self.num_steps)
+        done = state.done | (state.step >= self.num_steps)
         return done, to_optx_result(state.result)
+
+    def finish(self, graph, values, state: GaussNewtonState):
+        # The K-th step, solved in the last iteration: taken here, checked by
+        # its cost only (no Jacobians are needed after it).
+        take = state.result == RESULTS.successful
+        final = retract_values(values, state.delta)
+        cost = graph.cost(final).astype(state.lin.dtype)
+        ok = jnp.isfinite(cost)
+        failed = take & ~ok
+        values = nan_derivative_if(
+            failed, tree_where(take & ok, final, values), state.lin.cost
+        )
+        state = GaussNewtonState(
+            lin=state.lin,
+            delta=zeros_tangent(state.lin),
+            step=state.step + take.astype(state.step.dtype),
+            num_accepted=state.num_accepted + (take & ok).astype(state.step.dtype),
+            done=state.done | failed,
+            result=RESULTS.where(failed, RESULTS.nonlinear_divergence, state.result),
+            last_step_norm=jnp.where(
+                take, lax.stop_gradient(jnp.sqrt(sq_norm(state.delta))), jnp.inf
+            ).astype(state.lin.dtype),
+        )
+        return values, state, jnp.where(take & ok, cost, state.lin.cost)

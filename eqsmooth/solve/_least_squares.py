@@ -124,29 +124,38 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
         return optx.max_norm
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        del fn, args, options, tags, result
-        return (
-            y,
-            aux,
-            {
-                "num_accepted": state.num_accepted,
-                "final_cost": state.lin.cost,
-            },
-        )
+        del fn, options, tags, result
+        y, state, cost = self.finish(graph_of(args, type(self).__name__), y, state)
+        return y, aux, {"num_accepted": state.num_accepted, "final_cost": cost}
+
+    def finish(self, graph: FactorGraph, values: Values, state) -> tuple:
+        """After the last iteration: `(values, state, final_cost)` of the
+        solution. The values and the cost of the last linearisation, except
+        for [`eqsmooth.solve.FixedStepGaussNewton`][], which takes its last
+        step here."""
+        del graph
+        return values, state, state.lin.cost
 
     def iteration_limit(self, max_steps: int) -> int:
         """The static iteration limit of a solve called with `max_steps`.
 
         One iteration more than steps, since the first iteration only
         linearises the initial values (and solves for the first step):
-        `max_steps + 1`, or `num_steps + 1` for an
-        [`eqsmooth.solve.AbstractFixedStepSolver`][], which always runs its
-        `num_steps`. [`eqsmooth.solve.UnrolledAdjoint`][] scans this many
+        `max_steps + 1`. An [`eqsmooth.solve.AbstractFixedStepSolver`][]
+        always runs its `num_steps` iterations (and takes its last step in
+        `finish`). [`eqsmooth.solve.UnrolledAdjoint`][] scans this many
         iterations.
         """
         if isinstance(self, AbstractFixedStepSolver):
-            return self.num_steps + 1
+            return self.num_steps
         return max_steps + 1
+
+    def steps_after_loop(self) -> int:
+        """How many steps `finish` takes after the last iteration: 1 for an
+        [`eqsmooth.solve.AbstractFixedStepSolver`][] (its last step), else 0.
+        [`eqsmooth.solve.TruncatedAdjoint`][] replays that many iterations
+        fewer."""
+        return 1 if isinstance(self, AbstractFixedStepSolver) else 0
 
     def at_max_steps(self) -> RESULTS:
         """The result when the iteration limit is reached before convergence
@@ -280,6 +289,9 @@ def _check_arguments(values: Values, max_steps: int) -> None:
 @eqx.filter_jit
 def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, options):
     limit = solver.iteration_limit(max_steps)
+    steps_cap = (
+        solver.num_steps if isinstance(solver, AbstractFixedStepSolver) else max_steps
+    )
     at_max = solver.at_max_steps()
     linear_solver = solver.linear_solver
     if linear_solver is None:
@@ -295,7 +307,7 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
         state = solver.init(graph_residuals, values, graph, options, None, None, tags)
         # Filled by the iterations: entry i is the cost after step i (entry 0
         # at the initial values, from the first iteration).
-        history = jnp.zeros((limit,), state.lin.cost.dtype)
+        history = jnp.zeros((steps_cap + 1,), state.lin.cost.dtype)
         return values, state, history
 
     def body(graph, carry):
@@ -327,16 +339,18 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
         return ~state.done & (state.step < limit)
 
     values, state, history = adjoint.run(
-        init, body, cond, graph, values, linear_solver, limit
+        init, body, cond, graph, values, linear_solver, limit, solver.steps_after_loop()
     )
+    values, state, final_cost = solver.finish(graph, values, state)
     steps = jnp.maximum(state.step - 1, 0)
-    history = jnp.where(jnp.arange(limit) <= steps, history, state.lin.cost)
+    history = history.at[steps].set(final_cost)
+    history = jnp.where(jnp.arange(steps_cap + 1) <= steps, history, final_cost)
     result = state.result
     stats = {
         "num_steps": steps,
         "num_accepted": state.num_accepted,
         "initial_cost": history[0],
-        "final_cost": state.lin.cost,
+        "final_cost": final_cost,
         "cost_history": history,
     }
     if throw:
