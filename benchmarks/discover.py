@@ -95,6 +95,9 @@ EFFECTS = {
     "coulomb": "Coulomb friction",
     "force": "constant force",
     "bias": "sensor bias",
+    # Out of the library: a sinusoidal force whose period (8-20 steps) and
+    # phase differ per sequence. The right outcome is no confident name.
+    "sine": None,
 }
 LEVELS = (0.05, 0.15, 0.4)
 
@@ -143,13 +146,20 @@ def simulate(
 ):
     """States `(num, T, 2)` and measurements `(num, T, 1)`; effect RMS per step."""
     x = np.stack([rng.normal(0, PRIOR[0], num), rng.normal(0, PRIOR[1], num)], 1)
+    if effect == "sine":  # drawn first: the other effects' streams are unchanged
+        period = rng.uniform(8.0, 20.0, num)
+        phase = rng.uniform(0.0, 2 * np.pi, num)
     xs, contrib = [], []
-    for _ in range(T):
+    for t in range(T):
         xs.append(x.copy())
         p, v = x[:, 0], x[:, 1]
         a = -SPRING * p
         if effect in ("viscous", "drag", "coulomb", "force"):
             d = coef * _effect_term(effect, v)
+            contrib.append(d)
+            a = a + d
+        elif effect == "sine":
+            d = coef * np.sin(2 * np.pi * t / period + phase)
             contrib.append(d)
             a = a + d
         x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q
@@ -178,6 +188,8 @@ def calibrate(levels) -> dict:
     for effect in EFFECTS:
         if effect == "bias":
             unit = SPRING / Q[1]
+        elif effect == "sine":
+            unit = math.sqrt(0.5) / Q[1]
         else:
             unit = float(np.sqrt(np.mean(np.square(_effect_term(effect, v))))) / Q[1]
         out[effect] = {lv: lv / unit for lv in levels}
@@ -339,7 +351,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
     truth = EFFECTS[effect]
     tag = list(EFFECTS).index(effect) + 1
     outcomes = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
-    detected = unnamed = failures = flagged = failed_status = 0
+    detected = unnamed = failures = flagged = failed_status = confident = 0
     truth_named = leftover_after_truth = tentative = 0
     rel, covered, snrs, times, wrong_names = [], 0, [], [], {}
     for s in range(seeds):
@@ -357,6 +369,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
         detected += out["detected"]
         unnamed += out["unnamed"]
         tentative += out["tentative"]
+        confident += bool(out["named"]) and not out["tentative"]
         cls = classify(out, truth)
         outcomes[cls] += 1
         if cls == "exact":
@@ -397,6 +410,9 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
         "flagged": flagged,
         "status_failed": failed_status,
         "tentative": rate(tentative, n),
+        # A name that is not marked tentative (for an effect outside the
+        # library every such name is a wrong, confident one).
+        "named_confidently": rate(confident, n),
         "leftover_after_truth_alone": rate(leftover_after_truth, truth_named),
         "snr_realised_median": float(np.median(snrs)),
         "median_s": statistics.median(times) if times else float("nan"),
@@ -544,6 +560,7 @@ def effect_table(records) -> str:
         "truth in set",
         "truth + extra",
         "wrong name",
+        "named confidently",
         "abs. rel. err. median",
         "abs. rel. err. p90",
         "signed rel. err. median",
@@ -566,6 +583,7 @@ def effect_table(records) -> str:
             fmt_rate(r["truth_in_set"]),
             fmt_rate(r["truth_plus_extra"]),
             fmt_rate(r["wrong_name"]),
+            fmt_rate(r["named_confidently"]) if "named_confidently" in r else "–",
         ]
         if r["coef_n"]:
             cells += [
@@ -586,7 +604,10 @@ def effect_table(records) -> str:
 
 def _row_label(config: dict, key: str) -> str:
     model = config.get("measurement_model", "gaussian")
-    label = str(config.get(key) or "gauss")
+    if key == "truth" and config.get("truth") is None:
+        label = f"{config['effect']} (out of library)"
+    else:
+        label = str(config.get(key) or "gauss")
     return label if model == "gaussian" else f"{label} ({model} model)"
 
 
@@ -686,7 +707,11 @@ def report(records, nulls, info, quick) -> str:
         "reported ambiguous / equivalence set (e.g. {constant force ≡ sensor "
         "bias}: an equivalence-set answer containing the truth counts as correct "
         "naming). `truth + extra` = the truth named unambiguously with a further "
-        "term; `wrong name` = only other names. Rates over all n data sets with "
+        "term; `wrong name` = only other names; `named confidently` = a name "
+        "not marked tentative. A row marked `(out of library)` hides an effect "
+        "no candidate describes (`sine`: a sinusoidal force of period 8-20 "
+        "steps and random phase per sequence); every name there is wrong, and "
+        "the workflow should give none confidently. Rates over all n data sets with "
         "Wilson 95% intervals. Coefficient errors and the coverage of the 95% "
         "coefficient interval are over the data sets in which the truth's own "
         "coefficient was fitted (count in brackets); at low SNR these few are "
@@ -935,7 +960,8 @@ def main(argv=None):
             rec = effect_cell(effect, level, coefs[effect][level], seeds, log, model)
             records.append(rec)
             log(
-                f"{EFFECTS[effect]:17s} SNR {level:<5} n={rec['n']} detected "
+                f"{EFFECTS[effect] or effect + ' (out)':17s} SNR {level:<5} "
+                f"n={rec['n']} detected "
                 f"{fmt_rate(rec['detection'])} "
                 f"correct {fmt_rate(rec['correct_naming'])}"
                 f" wrong {fmt_rate(rec['wrong_name'])} "

@@ -287,9 +287,20 @@ def tank_library(ts: float, x1_levels, x2_levels) -> tuple[dc.Candidate, ...]:
     return tuple(out)
 
 
-def build_model(theta, ts, library, q, r, prior) -> dc.ChainModel:
+def build_model(
+    theta, ts, library, q, r, prior, noise_prior: float | None = None
+) -> dc.ChainModel:
     params = {"k": jnp.exp(jnp.asarray(theta[:3])), "ts": jnp.asarray(ts)}
-    return dc.ChainModel(tank_step, measure_level, params, q, r, prior, library)
+    return dc.ChainModel(
+        tank_step,
+        measure_level,
+        params,
+        q,
+        r,
+        prior,
+        library,
+        noise_scale_prior=noise_prior,
+    )
 
 
 def windows(u, y, xs, length: int) -> dc.Sequences:
@@ -308,7 +319,9 @@ def windows(u, y, xs, length: int) -> dc.Sequences:
 # ---------------------------------------------------------------------------
 
 
-def find_and_name(theta, u, y, ts, quick: bool) -> dict:
+def find_and_name(
+    theta, u, y, ts, quick: bool, noise_prior: float | None = None
+) -> dict:
     """Steps 2-3: the workflow on 128-sample windows of the estimation record."""
     _, xs = _sim(jnp.asarray(theta), jnp.asarray(u), ts, ())
     xs = np.asarray(xs)
@@ -323,10 +336,15 @@ def find_and_name(theta, u, y, ts, quick: bool) -> dict:
         q=np.array([0.05, 0.05]),
         r=np.array([0.05]),
         prior=np.array([1.0, 0.2]),
+        noise_prior=noise_prior,
     )
     data = windows(u, y, xs, WINDOW)
     found = dc.find(model, data)
     print(f"find: {found['status']}, flags {found['flags']}")
+    print(
+        "noise multipliers: "
+        + ", ".join(f"{k} {v:.3g}" for k, v in found["noise_scales"].items())
+    )
     print(
         f"decision test p = {found['score_test']['p_value']:.2g} "
         f"(df {found['score_test']['df']}); detected: {found['detected']}"
@@ -408,6 +426,13 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--out", type=Path, default=REPO / "results/tanks")
     parser.add_argument("--quick", action="store_true", help="smaller library (CI)")
+    parser.add_argument(
+        "--noise-prior",
+        type=float,
+        default=None,
+        help="standard deviation of a normal prior on the log noise multipliers "
+        "(ChainModel.noise_scale_prior); default: none",
+    )
     args = parser.parse_args()
     if not args.data.exists():
         print(
@@ -431,7 +456,7 @@ def main() -> int:
         f"{val_before['rmse']:.3f} V"
     )
     # 2-3. Find and name; 4. add and show.
-    wf = find_and_name(theta, u, y, ts, args.quick)
+    wf = find_and_name(theta, u, y, ts, args.quick, args.noise_prior)
     after = add_and_show(theta, d, wf["xs"], wf["named_candidates"])
     for row in after["stages"]:
         print(
@@ -442,6 +467,7 @@ def main() -> int:
     summary = {
         "seconds": time.perf_counter() - t_start,
         "quick": args.quick,
+        "noise_prior": args.noise_prior,
         "nominal": {
             "k": np.exp(theta[:3]).tolist(),
             "estimation_rmse": nominal["rmse"],

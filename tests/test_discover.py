@@ -361,6 +361,38 @@ def test_fit_is_bounded_and_never_raises(monkeypatch):
     np.testing.assert_array_equal(ev.z, z0)
 
 
+def test_noise_scale_prior_holds_unidentified_scales():
+    import dataclasses
+
+    import eqsmooth.discover._fit as F
+
+    data = _simulate(2)
+    # The measurement sigma three times too large: the evidence alone moves its
+    # log multiplier towards -log 3; a tight prior holds it near 0.
+    model = _model().with_noise_scales(0.0, float(np.log(3.0)), 0.0)
+    K = len(model.candidates)
+    scales = np.ones(K)
+    z0 = F.null_z(model)
+    free = np.arange(K, K + 3)
+    start = F.evaluate(model, data, z0, np.asarray(data.initial_states), scales, free)
+    free_fit = F.fit(model, data, free, z0, start.xhat, scales)
+    sd = 0.01
+    held = dataclasses.replace(model, noise_scale_prior=sd)
+    held_fit = F.fit(held, data, free, z0, start.xhat, scales)
+    assert free_fit.z[K + 1] < -0.5
+    assert np.all(np.abs(held_fit.z[K:]) < 0.2)
+    assert abs(held_fit.z[K + 1]) < 0.5 * abs(free_fit.z[K + 1])
+    # At the penalised optimum the data's score balances the prior's pull.
+    data_grad = np.sum(held_fit.scores, axis=0)[free]
+    prior_grad = -held_fit.z[free] / sd**2
+    assert np.max(np.abs(prior_grad)) > 100.0
+    np.testing.assert_allclose(data_grad, -prior_grad, rtol=0.02, atol=1.0)
+    # The reported evidence is the data's: the unpenalised fit's is higher.
+    assert free_fit.log_marginal > held_fit.log_marginal
+    with pytest.raises(ValueError, match="noise_scale_prior"):
+        dataclasses.replace(model, noise_scale_prior=-1.0)
+
+
 def test_failed_evaluation_is_a_result_not_an_exception(monkeypatch):
     import equinox as eqx
 
@@ -409,6 +441,31 @@ def test_hessian_score_test_drops_near_null_directions():
     assert score_test(ev, np.arange(2), np.array([], int), "hessian")["df"] == 1
     loose = score_test(ev, np.arange(2), np.array([], int), "hessian", rank_cut=1e-8)
     assert loose["df"] == 2 and loose["statistic"] > 100
+
+
+def test_score_test_sees_a_strong_single_candidate_in_a_dropped_direction():
+    # The joint test keeps only the common direction of two collinear
+    # candidates; a large score on each of them with opposite signs lies in
+    # the dropped contrast. The Bonferroni single-candidate part still sees
+    # it, and the combination is at most twice the smaller part.
+    from types import SimpleNamespace
+
+    from eqsmooth.discover import score_test
+
+    info = np.array([[1.0, 0.99], [0.99, 1.0]])
+    scores = np.zeros((B, 2))
+    scores[0] = [4.0, -4.0]
+    ev = SimpleNamespace(scores=scores, hessian=-info)
+    out = score_test(ev, np.arange(2), np.array([], int), "hessian")
+    assert out["df"] == 1 and out["joint_p_value"] > 0.5
+    assert out["largest_z"]["index"] == 0 and out["largest_z"]["z"] == 4.0
+    # Two-sided p of z = 4 is 6.33e-5; times 2 candidates, times 2 parts.
+    np.testing.assert_allclose(out["single_p_value"], 2 * 6.334e-5, rtol=1e-3)
+    np.testing.assert_allclose(out["p_value"], 4 * 6.334e-5, rtol=1e-3)
+    # Weak scores everywhere: neither part rejects.
+    scores[0] = [1.0, 0.5]
+    out = score_test(ev, np.arange(2), np.array([], int), "hessian")
+    assert out["p_value"] > 0.05
 
 
 def test_alarm_calibration_on_a_small_null_batch():

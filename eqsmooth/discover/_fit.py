@@ -141,6 +141,24 @@ def _bounded_step(step, d, free, num_coefficients, radius):
     )
 
 
+def _scale_prior(model: ChainModel, free: np.ndarray):
+    """Log density (up to a constant), gradient and negative Hessian over
+    `free` of the optional normal prior on the log noise multipliers."""
+    sd = model.noise_scale_prior
+    is_scale = (free >= len(model.candidates)).astype(float)
+    if sd is None:
+        is_scale = 0.0 * is_scale
+        sd = 1.0
+
+    def log_prior(z):
+        return -0.5 * float(np.sum(is_scale * (z[free] / sd) ** 2))
+
+    def grad(z):
+        return -is_scale * z[free] / sd**2
+
+    return log_prior, grad, np.diag(is_scale / sd**2)
+
+
 def fit(
     model: ChainModel,
     data: Sequences,
@@ -161,18 +179,22 @@ def fit(
     whose evidence cannot be evaluated (a failed solve, non-finite numbers)
     is rejected like a worse one. Never raises on finite data: if the fit
     cannot go on, it returns the best point reached with `converged=False`.
-    Returns the evaluation at the optimum, with the Hessian over `free` (for
-    confidence intervals).
+    With `model.noise_scale_prior` set, the objective adds that prior on the
+    log noise multipliers (the returned `log_marginal` is still the data's
+    evidence). Returns the evaluation at the optimum, with the Hessian over
+    `free` (for confidence intervals).
     """
     free = np.asarray(free, dtype=int)
     num_coefficients = len(model.candidates)
     z = np.asarray(z0, dtype=float).copy()
+    log_prior, prior_grad, prior_negH = _scale_prior(model, free)
     ev = evaluate(model, data, z, init, scales, free)
     lam, radius = 1e-3, _TRUST_RADIUS[0]
     converged = False
     for _ in range(max_iter):
-        g = np.sum(ev.scores, axis=0)[free]
-        negH = -ev.hessian[np.ix_(free, free)]
+        g = np.sum(ev.scores, axis=0)[free] + prior_grad(z)
+        negH = -ev.hessian[np.ix_(free, free)] + prior_negH
+        objective = ev.log_marginal + log_prior(z)
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(negH))):
             break
         # Newton in coordinates scaled by the curvature diagonal.
@@ -191,9 +213,10 @@ def fit(
             z_new[free] += step
             try:
                 ll_new, _ = log_marginal_at(model, data, z_new, ev.xhat)
+                ll_new += log_prior(z_new)
             except EVALUATION_ERRORS:
                 ll_new = -np.inf
-            if np.isfinite(ll_new) and ll_new >= ev.log_marginal - 1e-9:
+            if np.isfinite(ll_new) and ll_new >= objective - 1e-9:
                 accepted = True
                 break
             lam = max(lam * 10.0, 1e-3)
@@ -205,14 +228,14 @@ def fit(
             break
         lam = max(lam / 10.0, 1e-9)
         radius = min(2.0 * radius, _TRUST_RADIUS[1])
-        gain = ll_new - ev.log_marginal
+        gain = ll_new - objective
         try:
             new_ev = evaluate(model, data, z_new, ev.xhat, scales, free)
         except EVALUATION_ERRORS:
             break
         z, ev = z_new, new_ev
         if (
-            gain < tol * max(1.0, abs(ev.log_marginal))
+            gain < tol * max(1.0, abs(ev.log_marginal + log_prior(z)))
             and np.max(np.abs(step * d)) < 1e-3
         ):
             converged = True

@@ -145,6 +145,14 @@ class ChainModel(eqx.Module):
     - `coefficients`: `(K,)` coefficients (default zeros).
     - `measurement_dof`: `None` (Gaussian measurement noise) or the degrees
         of freedom `ν > 2` of Student-t measurement noise.
+    - `noise_scale_prior`: `None` (the default: noise multipliers are fitted
+        by the Laplace evidence alone) or the standard deviation `s` of a
+        weak zero-mean normal prior on each log noise multiplier (`0` is the
+        nominal sigma). The workflow's fits then maximise the evidence plus
+        `-½ Σ (log multiplier / s)²`, so a multiplier the data cannot
+        identify stays near its nominal value instead of running off towards
+        zero or infinity; with `s = 5` a multiplier of `e^{±5}` (×150) costs
+        half a nat. Reported evidences stay those of the data.
     """
 
     dynamics: Callable = eqx.field(static=True)
@@ -156,6 +164,7 @@ class ChainModel(eqx.Module):
     candidates: tuple[Candidate, ...] = eqx.field(static=True)
     coefficients: Float[Array, " K"]
     measurement_dof: float | None = eqx.field(static=True)
+    noise_scale_prior: float | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -168,6 +177,7 @@ class ChainModel(eqx.Module):
         candidates: Sequence[Candidate] = (),
         coefficients: Float[ArrayLike, " K"] | None = None,
         measurement_dof: float | None = None,
+        noise_scale_prior: float | None = None,
     ):
         self.dynamics = dynamics
         self.measurement = measurement
@@ -182,6 +192,9 @@ class ChainModel(eqx.Module):
         self.measurement_dof = (
             None if measurement_dof is None else float(measurement_dof)
         )
+        self.noise_scale_prior = (
+            None if noise_scale_prior is None else float(noise_scale_prior)
+        )
 
     def __check_init__(self):
         dof = self.measurement_dof
@@ -189,6 +202,12 @@ class ChainModel(eqx.Module):
             raise ValueError(
                 "ChainModel.measurement_dof must be None (Gaussian) or degrees of "
                 f"freedom ν > 2 (the diagnostics need a finite variance), got {dof}"
+            )
+        s = self.noise_scale_prior
+        if s is not None and not (np.isfinite(s) and s > 0):
+            raise ValueError(
+                "ChainModel.noise_scale_prior must be None or a positive, finite "
+                f"standard deviation of the log noise multipliers, got {s}"
             )
         for c in self.candidates:
             if not isinstance(c, Candidate):
