@@ -561,6 +561,7 @@ def effect_table(records) -> str:
         "truth + extra",
         "wrong name",
         "named confidently",
+        "unnamed structure",
         "abs. rel. err. median",
         "abs. rel. err. p90",
         "signed rel. err. median",
@@ -584,6 +585,7 @@ def effect_table(records) -> str:
             fmt_rate(r["truth_plus_extra"]),
             fmt_rate(r["wrong_name"]),
             fmt_rate(r["named_confidently"]) if "named_confidently" in r else "–",
+            fmt_rate(r["unnamed_structure"]),
         ]
         if r["coef_n"]:
             cells += [
