@@ -176,6 +176,10 @@ class GaussNewton(AbstractGraphSolver):
         del fn, y, args, options, tags
         return state.done, to_optx_result(state.result)
 
+    def finish(self, graph, values, state: GaussNewtonState):
+        del graph
+        return values, state, state.lin.cost
+
 
 class FixedStepGaussNewton(AbstractFixedStepSolver):
     """Exactly `num_steps` Gauss-Newton steps (the paper's unrolled solver).

@@ -11,6 +11,7 @@ adds eqsmooth's adjoints (unrolled, truncated, implicit in tangent
 coordinates) and cost statistics.
 """
 
+import abc
 from typing import Any
 
 import equinox as eqx
@@ -128,13 +129,14 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
         y, state, cost = self.finish(graph_of(args, type(self).__name__), y, state)
         return y, aux, {"num_accepted": state.num_accepted, "final_cost": cost}
 
+    @abc.abstractmethod
     def finish(self, graph: FactorGraph, values: Values, state) -> tuple:
         """After the last iteration: `(values, state, final_cost)` of the
-        solution. The values and the cost of the last linearisation, except
-        for [`eqsmooth.solve.FixedStepGaussNewton`][], which takes its last
-        step here."""
-        del graph
-        return values, state, state.lin.cost
+        solution. [`eqsmooth.solve.GaussNewton`][] and
+        [`eqsmooth.solve.LevenbergMarquardt`][] return the values and the
+        cost of their last linearisation; [`eqsmooth.solve.FixedStepGaussNewton`][]
+        takes its last step here (see
+        [`eqsmooth.solve.AbstractGraphSolver.steps_after_loop`][])."""
 
     def iteration_limit(self, max_steps: int) -> int:
         """The static iteration limit of a solve called with `max_steps`.

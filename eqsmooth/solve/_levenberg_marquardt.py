@@ -213,3 +213,7 @@ class LevenbergMarquardt(AbstractGraphSolver):
     def terminate(self, fn, y, args, options, state: LevenbergMarquardtState, tags):
         del fn, y, args, options, tags
         return state.done, to_optx_result(state.result)
+
+    def finish(self, graph, values, state: LevenbergMarquardtState):
+        del graph
+        return values, state, state.lin.cost
