@@ -347,7 +347,7 @@ def _model_config(model: dc.ChainModel) -> str:
     return "gaussian" if nu is None else f"student-t({nu:g})"
 
 
-def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
+def effect_cell(effect, level, coef, seeds, log, model=MODEL, num=B) -> dict:
     truth = EFFECTS[effect]
     tag = list(EFFECTS).index(effect) + 1
     outcomes = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
@@ -355,7 +355,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
     truth_named = leftover_after_truth = tentative = 0
     rel, covered, snrs, times, wrong_names = [], 0, [], [], {}
     for s in range(seeds):
-        _, y, snr = simulate(rng_for(tag, level, s), effect, coef)
+        _, y, snr = simulate(rng_for(tag, level, s), effect, coef, num)
         snrs.append(snr)
         out = guarded_run(sequences(y), model, log, f"{effect} level {level} seed {s}")
         if out is None:
@@ -395,7 +395,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
             "measurement_model": _model_config(model),
             "snr_target": level,
             "coefficient": coef,
-            "B": B,
+            "B": num,
             "T": T,
             "spring": SPRING,
             "process_sigma": Q.tolist(),
@@ -436,7 +436,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL) -> dict:
     return rec
 
 
-def null_cell(num, log, noise="gauss", model=MODEL) -> dict:
+def null_cell(num, log, noise="gauss", model=MODEL, sequences_per_set=B) -> dict:
     counts = dict.fromkeys(
         (
             "rejected",
@@ -459,7 +459,7 @@ def null_cell(num, log, noise="gauss", model=MODEL) -> dict:
     for s in range(num):
         # Gaussian null data keep their historical stream (tag 0).
         rng = rng_for(0, 0, s) if tag == 0 else rng_for(100 + tag, 0, s)
-        _, y, _ = simulate(rng, "none", 0.0, noise=noise)
+        _, y, _ = simulate(rng, "none", 0.0, sequences_per_set, noise=noise)
         out = guarded_run(sequences(y), model, log, f"null ({noise}) seed {s}")
         if out is None:
             counts["failures"] += 1
@@ -500,7 +500,7 @@ def null_cell(num, log, noise="gauss", model=MODEL) -> dict:
             "noise_description": NOISES[noise],
             "measurement_model": _model_config(model),
             "truth": None,
-            "B": B,
+            "B": sequences_per_set,
             "T": T,
             "spring": SPRING,
             "process_sigma": Q.tolist(),
@@ -687,14 +687,14 @@ def report(records, nulls, info, quick) -> str:
             if info["dirty"]
             else "; no uncommitted changes under eqsmooth/ or in this script"
         ),
-        f"- data: B = {B} sequences × T = {T} steps per data set; oscillator "
+        f"- data: B = {info['B']} sequences × T = {T} steps per data set; oscillator "
         f"k = {SPRING}, process noise std {Q.tolist()}, measurement std {R}, "
         f"first-state prior std {PRIOR.tolist()}",
         f"- library ({len(MODEL.names)} candidates, all distractors): "
         + ", ".join(MODEL.names),
         '- decision: score test at α = 0.05 (`covariance="auto"`, which with '
-        "24 sequences is the conservative observed-information form); naming: "
-        "forward selection with the Bonferroni-gated likelihood-ratio test",
+        f"{info['B']} sequences is the conservative observed-information form); "
+        "naming: forward selection with the Bonferroni-gated likelihood-ratio test",
         f"- wall time: {info['total_s'] / 60:.1f} min in all; compile (first "
         f"workflow run minus a repeat on the same data): {info['compile_s']:.1f} s; "
         "`median s` = median wall time of one find + name + add run",
@@ -822,6 +822,7 @@ def render(path, markdown=None) -> None:
         "dirty": payload.get("git_dirty", []),
         "compile_s": payload["compile_s"],
         "total_s": payload["total_s"],
+        "B": recs[0]["config"]["B"] if recs else B,
     }
     nulls = [r for r in recs if r["config"]["effect"] == "none"]
     effects = [r for r in recs if r["config"]["effect"] != "none"]
@@ -852,6 +853,14 @@ def main(argv=None):
         help="measurement noise of the null data sets",
     )
     parser.add_argument("--levels", type=float, nargs="*", default=None)
+    parser.add_argument(
+        "--sequences",
+        type=int,
+        default=B,
+        metavar="B",
+        help=f"sequences per data set (default {B}; a data-size sweep reruns "
+        "with larger B)",
+    )
     parser.add_argument(
         "--measurement-dof",
         type=float,
@@ -897,7 +906,9 @@ def main(argv=None):
 
     # Compile once (strong drag, a seed outside the Monte Carlo), then repeat
     # the same data set for the steady-state time.
-    _, y, _ = simulate(rng_for(99, 0, 0), "drag", coefs["drag"][max(levels)])
+    _, y, _ = simulate(
+        rng_for(99, 0, 0), "drag", coefs["drag"][max(levels)], args.sequences
+    )
     warm = sequences(y)
     first = run_workflow(warm, model)
     again = run_workflow(warm, model)
@@ -917,6 +928,7 @@ def main(argv=None):
             "dirty": dirty,
             "compile_s": compile_s,
             "total_s": time.perf_counter() - start,
+            "B": args.sequences,
         }
         for r in records + nulls:
             r["compile_s"] = compile_s
@@ -946,7 +958,7 @@ def main(argv=None):
         count = num_null
         if noise != "gauss" and args.null_other is not None:
             count = args.null_other
-        null = null_cell(count, log, noise, model)
+        null = null_cell(count, log, noise, model, args.sequences)
         nulls.append(null)
         fd = null["false_discovery"]
         log(
@@ -959,7 +971,9 @@ def main(argv=None):
     for effect in effects if seeds else ():
         for level in levels:
             t0 = time.perf_counter()
-            rec = effect_cell(effect, level, coefs[effect][level], seeds, log, model)
+            rec = effect_cell(
+                effect, level, coefs[effect][level], seeds, log, model, args.sequences
+            )
             records.append(rec)
             log(
                 f"{EFFECTS[effect] or effect + ' (out)':17s} SNR {level:<5} "
