@@ -347,7 +347,9 @@ def _model_config(model: dc.ChainModel) -> str:
     return "gaussian" if nu is None else f"student-t({nu:g})"
 
 
-def effect_cell(effect, level, coef, seeds, log, model=MODEL, num=B) -> dict:
+def effect_cell(
+    effect, level, coef, seeds, log, model=MODEL, sequences_per_set=B
+) -> dict:
     truth = EFFECTS[effect]
     tag = list(EFFECTS).index(effect) + 1
     outcomes = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
@@ -355,7 +357,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL, num=B) -> dict:
     truth_named = leftover_after_truth = tentative = 0
     rel, covered, snrs, times, wrong_names = [], 0, [], [], {}
     for s in range(seeds):
-        _, y, snr = simulate(rng_for(tag, level, s), effect, coef, num)
+        _, y, snr = simulate(rng_for(tag, level, s), effect, coef, sequences_per_set)
         snrs.append(snr)
         out = guarded_run(sequences(y), model, log, f"{effect} level {level} seed {s}")
         if out is None:
@@ -395,7 +397,7 @@ def effect_cell(effect, level, coef, seeds, log, model=MODEL, num=B) -> dict:
             "measurement_model": _model_config(model),
             "snr_target": level,
             "coefficient": coef,
-            "B": num,
+            "B": sequences_per_set,
             "T": T,
             "spring": SPRING,
             "process_sigma": Q.tolist(),
@@ -878,6 +880,8 @@ def main(argv=None):
         help="only re-render the report of a saved run (to --markdown or stdout)",
     )
     args = parser.parse_args(argv)
+    if args.sequences < 2:
+        parser.error(f"--sequences must be at least 2, got {args.sequences}")
     if args.render:
         render(args.render, args.markdown)
         return
