@@ -10,6 +10,25 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _unoptimised_code_generation(request):
+    """Compile with LLVM's optimisation passes off, unless the module is
+    marked `optimised_code`.
+
+    Compilation is most of this suite's time and LLVM's passes about a fifth
+    of it (tests/test_filters.py alone on one core: 126 s with them, 93 s
+    without), while the tests' shapes are too small for optimised code to
+    pay that back. This changes code generation only, not the HLO program or
+    its numerics. Modules that run their compiled programs many times
+    (test_discover.py alone on one core: 252 s without, 181 s with) are marked
+    `optimised_code`; the examples, which CI runs, cover optimised code too.
+    """
+    optimise = request.node.get_closest_marker("optimised_code") is not None
+    jax.config.update("jax_disable_most_optimizations", not optimise)
+    yield
+    jax.config.update("jax_disable_most_optimizations", False)
+
+
 @pytest.fixture
 def getkey():
     """Return a function producing fresh PRNG keys (deterministic per test)."""

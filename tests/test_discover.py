@@ -9,6 +9,9 @@ import numpy as np
 import pytest
 
 
+pytestmark = pytest.mark.optimised_code
+
+
 B, T = 24, 40
 SPRING = 0.05
 Q = np.array([0.05, 0.5])

@@ -203,6 +203,9 @@ def test_summary_and_docs_table_come_from_fold_json(tmp_path):
     np.testing.assert_allclose(e2e["trans_m_per_m"], 0.2)
     np.testing.assert_allclose(e2e["trans_m_per_m_sem"], 0.1)  # std 0.1414 / √2
     assert "| smoother_hetero_e2e | 0.2000 ± 0.1000 |" in table
+    # The per-fold criterion, ours from these folds, the paper's from its release.
+    assert "| ekf_hetero | 2/2 | 8/10 (not 5, 8) |" in table
+    assert "| smoother_const_e2e | — | 10/10 |" in table
     page = tmp_path / "page.md"
     page.write_text(f"intro\n{report.DOCS_START}\nSTALE\n{report.DOCS_END}\ntail\n")
     report.update_docs(page, table)

@@ -94,6 +94,28 @@ def test_nan_measurement_gives_result_code():
     assert int(sol.stats["num_steps"]) == 0
 
 
+def test_throw_inside_jit_and_with_closed_over_arguments():
+    """`throw=True` under `jit`: the graph traced, or closed over (concrete
+    arrays inside a traced function, which once failed converting the
+    result code on the host)."""
+    from helpers import random_chain
+
+    import eqsmooth as eqs
+
+    graph, init, _ = random_chain(4)
+    solver = eqs.GaussNewton(eqs.BlockTridiagonal())
+    ok = eqs.least_squares(graph, init, solver).value
+    closed = jax.jit(lambda: eqs.least_squares(graph, init, solver).value)()
+    traced = jax.jit(lambda g: eqs.least_squares(g, init, solver).value)(graph)
+    for got in (closed, traced):
+        np.testing.assert_allclose(got["x"], ok["x"], rtol=1e-12)
+    # (Under plain jax.jit the same error arrives wrapped in a JaxRuntimeError.)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="maximum number of steps"):
+        eqx.filter_jit(lambda g: eqs.least_squares(g, init, solver, max_steps=1).value)(
+            graph
+        )
+
+
 def test_max_steps_and_fixed_steps():
     from helpers import random_chain
 

@@ -233,34 +233,33 @@ def least_squares(
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
     _check_arguments(values, max_steps)
-    # Called outside any JAX transformation, `throw` is checked here, after
-    # the program has run, rather than by an `eqx.error_if` inside it: that is
-    # a host callback, and JAX neither writes a program with host callbacks to
-    # its persistent compilation cache nor reads one from it, so a second
-    # process would compile the whole solve again (benchmarks/first_call.py).
-    on_host = throw and not _is_traced((graph, values, solver, options))
     sol = _least_squares(
-        graph,
-        values,
-        solver,
-        max_steps,
-        adjoint,
-        throw and not on_host,
-        verbose,
-        options or {},
+        graph, values, solver, max_steps, adjoint, verbose, options or {}
     )
-    if on_host:
-        code = int(sol.result._value)  # pyright: ignore[reportAttributeAccessIssue]
-        if code != int(RESULTS.successful._value):  # pyright: ignore
-            raise eqx.EquinoxRuntimeError(
-                RESULTS._index_to_message[code]  # pyright: ignore
-            )
+    if throw:
+        sol = _raise_unless_successful(sol)
     return sol
 
 
-def _is_traced(tree) -> bool:
-    """Whether any leaf is a JAX tracer (called inside jit, vmap, grad, ...)."""
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+def _raise_unless_successful(sol: Solution) -> Solution:
+    """`throw=True`, applied after the compiled solve rather than inside it.
+
+    Called outside any JAX transformation, the result code is a concrete
+    array and is checked here on the host. Under `jit`, `vmap` or `grad` (the
+    arguments traced, or closed over by a traced function) it is a tracer,
+    and an `eqx.error_if` on the solution joins the caller's program. The
+    solve's own program is then the same with and without `throw`, and has
+    no host callback: JAX neither writes a program with host callbacks to
+    its persistent compilation cache nor reads one from it, so a second
+    process would compile the whole solve again (benchmarks/first_call.py).
+    """
+    code = sol.result._value  # pyright: ignore[reportAttributeAccessIssue]
+    if isinstance(code, jax.core.Tracer):
+        value = sol.result.error_if(sol.value, sol.result != RESULTS.successful)
+        return eqx.tree_at(lambda s: s.value, sol, value)
+    if int(code) != int(RESULTS.successful._value):  # pyright: ignore
+        raise eqx.EquinoxRuntimeError(RESULTS._index_to_message[int(code)])  # pyright: ignore
+    return sol
 
 
 _SOLVER_DTYPES = (jnp.float32, jnp.float64)
@@ -289,7 +288,7 @@ def _check_arguments(values: Values, max_steps: int) -> None:
 
 
 @eqx.filter_jit
-def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, options):
+def _least_squares(graph, values, solver, max_steps, adjoint, verbose, options):
     limit = solver.iteration_limit(max_steps)
     steps_cap = (
         solver.num_steps if isinstance(solver, AbstractFixedStepSolver) else max_steps
@@ -355,8 +354,6 @@ def _least_squares(graph, values, solver, max_steps, adjoint, throw, verbose, op
         "final_cost": final_cost,
         "cost_history": history,
     }
-    if throw:
-        values = result.error_if(values, result != RESULTS.successful)
     return Solution(value=values, result=result, stats=stats, state=state)
 
 
