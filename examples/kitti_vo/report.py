@@ -182,8 +182,8 @@ def criterion_lines(results: list[dict]) -> list[str]:
         return {f["fold"]: f["m_per_m"] for f in row["folds"]} if row else {}
 
     lines = [
-        f"Per-fold m/m: {lead} below the other method on how many folds "
-        "(the folds where it is not in brackets).",
+        f"Per-fold m/m: on how many folds {lead} is below the other method "
+        "(in brackets, the folds where it is not).",
         "",
         "| against | these folds | paper's code release |",
         "|---|---|---|",
