@@ -25,7 +25,7 @@ from jaxtyping import Array, Float, PyTree
 from ..factors import FactorGraph
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._default_solver import default_linear_solver
-from ._solution import RESULTS, Solution
+from ._solution import raise_unless_successful, RESULTS, Solution
 
 
 Values = dict[str, PyTree]
@@ -237,28 +237,7 @@ def least_squares(
         graph, values, solver, max_steps, adjoint, verbose, options or {}
     )
     if throw:
-        sol = _raise_unless_successful(sol)
-    return sol
-
-
-def _raise_unless_successful(sol: Solution) -> Solution:
-    """`throw=True`, applied after the compiled solve rather than inside it.
-
-    Called outside any JAX transformation, the result code is a concrete
-    array and is checked here on the host. Under `jit`, `vmap` or `grad` (the
-    arguments traced, or closed over by a traced function) it is a tracer,
-    and an `eqx.error_if` on the solution joins the caller's program. The
-    solve's own program is then the same with and without `throw`, and has
-    no host callback: JAX neither writes a program with host callbacks to
-    its persistent compilation cache nor reads one from it, so a second
-    process would compile the whole solve again (benchmarks/first_call.py).
-    """
-    code = sol.result._value  # pyright: ignore[reportAttributeAccessIssue]
-    if isinstance(code, jax.core.Tracer):
-        value = sol.result.error_if(sol.value, sol.result != RESULTS.successful)
-        return eqx.tree_at(lambda s: s.value, sol, value)
-    if int(code) != int(RESULTS.successful._value):  # pyright: ignore
-        raise eqx.EquinoxRuntimeError(RESULTS._index_to_message[int(code)])  # pyright: ignore
+        sol = raise_unless_successful(sol)
     return sol
 
 

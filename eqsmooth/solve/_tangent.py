@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, PyTree
 from ..factors import FactorGraph
 from ._least_squares import graph_residuals
 from ._linearization import retract_values, Tangent
-from ._solution import RESULTS, Solution
+from ._solution import raise_unless_successful, RESULTS, Solution
 
 
 Values = dict[str, PyTree]
@@ -89,14 +89,15 @@ def tangent_least_squares(
         )
     if not isinstance(num_charts, int) or num_charts < 1:
         raise ValueError(f"num_charts must be an int >= 1, got {num_charts!r}")
-    return _tangent_least_squares(
-        graph, values, solver, max_steps, num_charts, adjoint, options, throw
+    sol = _tangent_least_squares(
+        graph, values, solver, max_steps, num_charts, adjoint, options
     )
+    return raise_unless_successful(sol) if throw else sol
 
 
 @eqx.filter_jit
 def _tangent_least_squares(
-    graph, values, solver, max_steps, num_charts, adjoint, options, throw
+    graph, values, solver, max_steps, num_charts, adjoint, options
 ):
     layout = graph.validate(values)
     leaves = jax.tree_util.tree_leaves(values)
@@ -121,8 +122,6 @@ def _tangent_least_squares(
         num_steps = num_steps + sol.stats["num_steps"]
     assert sol is not None
     result = RESULTS.promote(sol.result)
-    if throw:
-        base = result.error_if(base, result != RESULTS.successful)
     stats = {
         "num_steps": num_steps,
         "initial_cost": initial_cost,
