@@ -320,6 +320,8 @@ def main(argv=None):
         import sksparse.cholmod  # noqa: F401  (maps CHOLMOD's BLAS)
 
         m["blas"] = loaded_blas()
+    if args.solver == "sparsax":
+        m["blas"] = [eqs.solve.sparsax_blas()]  # "mkl" or "bundled" (ATLAS)
     records = []
     for name, pg in problems:
         rec = bench_one(name, pg, args, solver, solver_name, have_gtsam)

@@ -38,8 +38,9 @@ import numpy as np  # noqa: E402
 from _common import loaded_blas, machine, markdown_table, write_json  # noqa: E402
 
 from eqsmooth.io import load_g2o  # noqa: E402
+from eqsmooth.solve._linear_solver import NormalOperator  # noqa: E402
 from eqsmooth.solve._linearization import linearize  # noqa: E402
-from eqsmooth.solve._sparse import _host_csc, _pattern  # noqa: E402
+from eqsmooth.solve._sparse import _host_csc, assemble_sparse  # noqa: E402
 
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "g2o"
@@ -51,15 +52,9 @@ def normal_matrix(path: Path):
         warnings.simplefilter("ignore", UserWarning)  # cubicle's repairs
         pg = load_g2o(path, invalid_information="block_diagonal")
     lin = jax.jit(linearize)(pg.graph, pg.values)
-    pattern = _pattern(lin.layout, tuple(fl.variables for fl in lin.factors))
-    vals = []
-    for fl in lin.factors:
-        jac = jnp.concatenate(fl.jacobians, axis=2)
-        vals.append(jnp.einsum("nmi,nmj->nij", jac, jac).reshape(-1))
-    vals.append(jnp.full((pattern.size,), 1e-3))
-    data = jax.ops.segment_sum(
-        jnp.concatenate(vals), pattern.slot, num_segments=pattern.nnz
-    )
+    damping = {g.name: jnp.full((g.count, g.dim), 1e-3) for g in lin.layout}
+    state = assemble_sparse(NormalOperator(lin, damping))
+    pattern, data = state.pattern, state.data
     return _host_csc(pattern, data)
 
 

@@ -241,6 +241,68 @@ def _closure_lin(seed):
     return _linearize(*closure_problem(seed))
 
 
+def _mixed(x, p, data, params):
+    # A 3-vector and a 2-vector, coupled nonlinearly (every block nonzero).
+    return jnp.concatenate([jnp.sin(x[:2]) * p + data, jnp.reshape(x[2] * p[0], (1,))])
+
+
+def test_sparse_assembly_matches_dense_normal_matrix():
+    """The block-wise CSC assembly equals JᵀJ + diag(damping) entry for entry:
+    blocks of two shapes (3×3, 3×2, 2×2), variable pairs in both orders, the
+    same variable in both slots of a row, and a variable no factor touches."""
+    import eqsmooth as eqs
+    from eqsmooth.solve._linear_solver import NormalOperator
+    from eqsmooth.solve._sparse import _host_csc, assemble_sparse
+
+    rng = np.random.default_rng(0)
+    a, b = np.array([0, 2, 3, 1, 2]), np.array([1, 0, 3, 3, 2])  # 2→0; 3,3; 2,2
+    xs, ls = np.array([0, 3, 1, 2]), np.array([1, 0, 0, 2])
+    graph = eqs.FactorGraph(
+        [
+            eqs.BetweenFactor(
+                eqs.Var("x", a),
+                eqs.Var("x", b),
+                jnp.asarray(rng.normal(size=(5, 3))),
+                eqs.IsotropicNoise(sqrt_precision=2.0),
+            ),
+            eqs.FunctionFactor(
+                _mixed,
+                (eqs.Var("x", xs), eqs.Var("l", ls)),
+                eqs.IsotropicNoise(sqrt_precision=1.5),
+                data=jnp.asarray(rng.normal(size=(4, 2))),
+            ),
+        ]
+    )
+    values = {  # x: 5 variables (x[4] untouched), l: 3
+        "x": jnp.asarray(rng.normal(size=(5, 3))),
+        "l": jnp.asarray(rng.normal(size=(3, 2))),
+    }
+
+    @jax.jit
+    def normal(values, damping):
+        lin = _linearize(graph, values)
+        return lin, assemble_sparse(NormalOperator(lin, damping)).data
+
+    lin = jax.eval_shape(_linearize, graph, values)
+    damping = {
+        g.name: jnp.asarray(rng.uniform(0.5, 1.0, (g.count, g.dim))) for g in lin.layout
+    }
+    lin, data = normal(values, damping)
+    state = assemble_sparse(NormalOperator(lin, damping))  # the pattern
+    got = _host_csc(state.pattern, data).toarray()
+    J = np.asarray(_dense_jacobian(lin)[0])
+    want = J.T @ J + np.diag(flat(lin, damping))
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+    # The pattern holds whole blocks: those of variable pairs sharing a row,
+    # and every variable's diagonal block.
+    var = np.repeat(np.arange(3 + 5), [2] * 3 + [3] * 5)  # layout: l, then x
+    touch = np.zeros((J.shape[0], 8), bool)
+    np.logical_or.at(touch, (slice(None), var), J != 0)
+    blocks = (touch.T.astype(int) @ touch.astype(int) > 0) | np.eye(8, dtype=bool)
+    stored = _host_csc(state.pattern, np.ones(state.pattern.nnz)).toarray() != 0
+    np.testing.assert_array_equal(stored, blocks[var][:, var])
+
+
 # ---------------------------------------------------------------------------
 # Agreement with the reference
 # ---------------------------------------------------------------------------
@@ -670,6 +732,38 @@ def test_sparsax_not_positive_definite_raises():
     lin = _gauge_free_chain()
     with pytest.raises(Exception, match="not positive definite"):
         jax.block_until_ready(eqs.solve.solve_normal(eqs.solve.SparsaxCholesky(), lin))
+
+
+def _have_mkl() -> bool:
+    from eqsmooth.solve._sparsax import _mkl_runtime
+
+    return _mkl_runtime() is not None
+
+
+@pytest.mark.skipif(
+    not (_HAVE_SPARSAX and _have_mkl()), reason="sparsax or the mkl wheel is missing"
+)
+def test_sparsax_runs_on_mkl_when_installed():
+    """With the `mkl` wheel installed, CHOLMOD's BLAS calls go to MKL: after a
+    supernodal factorisation MKL has loaded its compute kernels."""
+    import re
+    from pathlib import Path
+
+    import eqsmooth as eqs
+    from eqsmooth.solve._sparsax import _import_sparsax
+
+    assert eqs.solve.sparsax_blas() == "mkl"
+    sparsax = _import_sparsax()
+    # Dense enough that CHOLMOD picks its supernodal (BLAS) factorisation.
+    n = 150
+    m = np.random.default_rng(0).normal(size=(n, n))
+    a = m @ m.T + n * np.eye(n)
+    rows, cols = np.triu_indices(n)
+    b = np.arange(n, dtype=np.float64)
+    x = sparsax.solve(rows, cols, jnp.asarray(a[rows, cols]), jnp.asarray(b))
+    np.testing.assert_allclose(a @ np.asarray(x), b, rtol=1e-10, atol=1e-10)
+    maps = Path("/proc/self/maps").read_text()
+    assert re.search(r"libmkl_(avx\d*|def|mc3)\.so", maps), "MKL computed nothing"
 
 
 def test_sparsax_missing_says_so(monkeypatch):

@@ -58,6 +58,7 @@ from ._pcg import (
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
 from ._sparsax import (
+    sparsax_blas as sparsax_blas,
     SparsaxCholesky as SparsaxCholesky,
     SparsaxFactorization as SparsaxFactorization,
 )

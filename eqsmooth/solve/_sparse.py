@@ -1,7 +1,7 @@
 """Sparse direct solves of the normal equations on the host (SuperLU or CHOLMOD)."""
 
 import functools as ft
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -20,12 +20,35 @@ from ._linear_solver import (
 from ._linearization import flatten_layout, unflatten_layout
 
 
-class _Pattern:
-    """The static sparsity pattern of `JᵀJ + diag(damping)` in CSC form.
+class _Term(NamedTuple):
+    """One block product of a factor stack, added to a class of canonical blocks.
 
-    `slot[e]` says which stored entry the `e`-th block-product entry (all
-    stacks' `(n, K, K)` products flattened, then the `N` diagonal entries)
-    is added to; duplicates are summed. Built once per graph structure.
+    Rows `rows` of stack `stack` add their `J_kᵀ J_l` block (rows and columns
+    `rsl`, `csl` of the stack's `(n, K, K)` product) to block `segments[i]`
+    of shape class `shape`.
+    """
+
+    stack: int
+    rows: np.ndarray | None  # None: every row
+    rsl: tuple[int, int]
+    csl: tuple[int, int]
+    shape: tuple[int, int]
+    segments: np.ndarray
+
+
+class _Pattern:
+    """The static sparsity pattern of `JᵀJ + diag(damping)` in CSC form, and
+    how its values are assembled.
+
+    The values are summed block by block: every factor row adds its `J_kᵀ J_l`
+    products to canonical blocks, one per pair of touched variables (the
+    block whose first scalar row is not after its first column; the other
+    triangle is read from it transposed), plus a diagonal block for every
+    variable. A block sum is one windowed segment sum per block shape, which
+    XLA runs far faster than a scalar scatter of every product entry. The
+    stored CSC entries are then gathered from the blocks (`gather`), and the
+    damping added on the diagonal (`diagonal`). Built once per graph
+    structure.
     """
 
     def __init__(self, layout, variables):
@@ -35,32 +58,96 @@ class _Pattern:
             offsets[g.name] = start
             start += g.count * g.dim
         dims = {g.name: g.dim for g in layout}
-        rows, cols = [], []
-        for vars_ in variables:
+        # Block products: (stack, rows, row slice, column slice, shape, first
+        # scalar row and column of the canonical block, per row).
+        raw: list = []
+        for g in layout:  # every variable's diagonal block, touched or not
+            starts = offsets[g.name] + np.arange(g.count) * g.dim
+            raw.append((None, None, None, None, (g.dim, g.dim), starts, starts))
+        for stack, vars_ in enumerate(variables):
             if not vars_ or len(np.asarray(vars_[0].ids)) == 0:
                 continue
-            c = np.concatenate(
-                [
-                    offsets[v.group]
-                    + np.asarray(v.ids)[:, None] * dims[v.group]
-                    + np.arange(dims[v.group])[None]
-                    for v in vars_
-                ],
-                axis=1,
+            starts = [
+                offsets[v.group] + np.asarray(v.ids) * dims[v.group] for v in vars_
+            ]
+            vdims = [dims[v.group] for v in vars_]
+            col0 = np.concatenate([[0], np.cumsum(vdims)]).astype(int)
+            sl = [(int(col0[k]), int(col0[k + 1])) for k in range(len(vars_))]
+            for k in range(len(vars_)):
+                for j in range(k, len(vars_)):
+                    if k == j:
+                        shape = (vdims[k], vdims[k])
+                        raw.append(
+                            (stack, None, sl[k], sl[k], shape, starts[k], starts[k])
+                        )
+                        continue
+                    # Rows where k's block comes first add J_kᵀJ_j to (k, j);
+                    # the others add J_jᵀJ_k to (j, k). Both when k and j are
+                    # the same variable (its diagonal block gets both).
+                    for a, b, mask in (
+                        (k, j, starts[k] <= starts[j]),
+                        (j, k, starts[j] <= starts[k]),
+                    ):
+                        rows = np.nonzero(mask)[0]
+                        if len(rows) == 0:
+                            continue
+                        every = len(rows) == len(mask)
+                        raw.append(
+                            (
+                                stack,
+                                None if every else rows,
+                                sl[a],
+                                sl[b],
+                                (vdims[a], vdims[b]),
+                                starts[a][rows],
+                                starts[b][rows],
+                            )
+                        )
+        # Number the distinct blocks of each shape.
+        shapes = list(dict.fromkeys(t[4] for t in raw))
+        tables, segments = [], {}
+        for shape in shapes:
+            idx = [i for i, t in enumerate(raw) if t[4] == shape]
+            keys = np.concatenate(
+                [raw[i][5].astype(np.int64) * N + raw[i][6] for i in idx]
             )
-            K = c.shape[1]
-            rows.append(np.broadcast_to(c[:, :, None], (c.shape[0], K, K)).ravel())
-            cols.append(np.broadcast_to(c[:, None, :], (c.shape[0], K, K)).ravel())
-        rows.append(np.arange(N))
-        cols.append(np.arange(N))
-        rows, cols = np.concatenate(rows), np.concatenate(cols)
-        key = cols.astype(np.int64) * N + rows
-        unique, slot = np.unique(key, return_inverse=True)
+            unique, inverse = np.unique(keys, return_inverse=True)
+            tables.append((shape, unique // N, unique % N))
+            for i, part in zip(
+                idx, np.split(inverse, np.cumsum([len(raw[i][5]) for i in idx])[:-1])
+            ):
+                segments[i] = part.astype(np.int32)
+        terms = [
+            _Term(t[0], t[1], t[2], t[3], t[4], segments[i])
+            for i, t in enumerate(raw)
+            if t[0] is not None
+        ]
+        self.shapes: tuple[tuple[tuple[int, int], int], ...] = tuple(
+            (shape, len(r0)) for shape, r0, _ in tables
+        )
+        # Every scalar entry of every block, in both triangles: its key
+        # (column * N + row) and its position in the concatenated blocks.
+        keys, positions, base = [], [], 0
+        for (dr, dc), r0, c0 in tables:
+            r = r0[:, None, None] + np.arange(dr)[None, :, None]
+            c = c0[:, None, None] + np.arange(dc)[None, None, :]
+            r, c = np.broadcast_arrays(r, c)
+            pos = base + np.arange(r.size).reshape(r.shape)
+            keys.append((c * N + r).ravel())
+            positions.append(pos.ravel())
+            off = r0 != c0  # the other triangle, read transposed
+            keys.append((r[off] * N + c[off]).ravel())
+            positions.append(pos[off].ravel())
+            base += r.size
+        keys, positions = np.concatenate(keys), np.concatenate(positions)
+        unique, first = np.unique(keys, return_index=True)
         self.size = N
         self.nnz = len(unique)
-        self.slot = slot.astype(np.int32)
+        self.terms = tuple(terms)
+        self.gather = positions[first].astype(np.int32)
         self.indices = (unique % N).astype(np.int32)
         self.indptr = np.searchsorted(unique // N, np.arange(N + 1)).astype(np.int32)
+        self.diagonal = np.searchsorted(unique, np.arange(N) * (N + 1)).astype(np.int32)
         # Host-side state reused across solves of this pattern (e.g. CHOLMOD's
         # symbolic analysis).
         self.cache: dict = {}
@@ -144,20 +231,36 @@ class SparseNormalState(eqx.Module):
 
 def assemble_sparse(op: NormalOperator) -> SparseNormalState:
     """`JᵀJ + diag(damping)` in CSC form: the pattern is computed once per graph
-    structure, the values with one segment sum."""
+    structure; the values are summed block by block (one segment sum per
+    block shape), gathered into the stored entries, and damped."""
     lin = op.lin
     pattern = _pattern(lin.layout, tuple(fl.variables for fl in lin.factors))
-    values = []
-    for fl in lin.factors:
+    products = {}
+    for i, fl in enumerate(lin.factors):
         if fl.residual.shape[0] == 0:
             continue
         jac = jnp.concatenate(fl.jacobians, axis=2)
-        values.append(jnp.einsum("nmi,nmj->nij", jac, jac).reshape(-1))
+        products[i] = jnp.einsum("nmi,nmj->nij", jac, jac)
+    parts: dict[tuple[int, int], list] = {shape: [] for shape, _ in pattern.shapes}
+    for t in pattern.terms:
+        prod = products[t.stack]
+        if t.rows is not None:
+            prod = prod[t.rows]
+        block = prod[:, t.rsl[0] : t.rsl[1], t.csl[0] : t.csl[1]]
+        parts[t.shape].append((block.reshape(block.shape[0], -1), t.segments))
+    stored = []
+    for shape, count in pattern.shapes:
+        if parts[shape]:
+            values = jnp.concatenate([v for v, _ in parts[shape]])
+            segments = np.concatenate([seg for _, seg in parts[shape]])
+            sums = jax.ops.segment_sum(values, segments, num_segments=count)
+        else:
+            sums = jnp.zeros((count, shape[0] * shape[1]), lin.dtype)
+        stored.append(sums.reshape(-1))
+    data = jnp.concatenate(stored)[pattern.gather]
     damp = flat_damping(lin, op.damping)
-    values.append(jnp.zeros((pattern.size,), lin.dtype) if damp is None else damp)
-    data = jax.ops.segment_sum(
-        jnp.concatenate(values), pattern.slot, num_segments=pattern.nnz
-    )
+    if damp is not None:
+        data = data.at[pattern.diagonal].add(damp, unique_indices=True)
     return SparseNormalState(data, pattern, lin.layout)
 
 
