@@ -17,6 +17,7 @@ from . import (
 )
 from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 from .factors import (
+    AbstractAnalyticFactor as AbstractAnalyticFactor,
     AbstractFactor as AbstractFactor,
     AbstractNoiseModel as AbstractNoiseModel,
     AbstractRobustNoise as AbstractRobustNoise,

@@ -6,6 +6,7 @@ from ._builtin import (
     PriorFactor as PriorFactor,
 )
 from ._factor import (
+    AbstractAnalyticFactor as AbstractAnalyticFactor,
     AbstractFactor as AbstractFactor,
     per_row_fields as per_row_fields,
     shared_field as shared_field,

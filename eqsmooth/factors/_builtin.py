@@ -8,13 +8,16 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..manifold import is_group, local, tangent_dim
-from ._factor import AbstractFactor, shared_field
+from ._factor import AbstractAnalyticFactor, AbstractFactor, shared_field
 from ._noise import AbstractNoiseModel
 from ._variables import Var
 
 
-class PriorFactor(AbstractFactor):
+class PriorFactor(AbstractAnalyticFactor):
     """Prior on any state: residual `x ⊖ value` (tangent coordinates).
+
+    Its Jacobian is given in closed form: `Jr⁻¹(e)` for a group leaf with
+    residual `e`, the identity for an array leaf.
 
     **Arguments:**
 
@@ -35,6 +38,38 @@ class PriorFactor(AbstractFactor):
     def residual(self, x: PyTree) -> Float[Array, " m"]:
         check_like_state("PriorFactor", "value", self.value, x)
         return local(self.value, x)
+
+    def residual_and_jacobians(
+        self, x: PyTree
+    ) -> tuple[Float[Array, " m"], tuple[Float[Array, "m d"]]]:
+        check_like_state("PriorFactor", "value", self.value, x)
+        pieces, jac = [], []
+        for mean, leaf in zip(_leaves(self.value), _leaves(x)):
+            if is_group(leaf):
+                e = (mean.inverse() @ leaf).log()
+                pieces.append(e)
+                jac.append(type(leaf).right_jacobian_inv(e))
+            else:
+                e = (jnp.asarray(leaf) - jnp.asarray(mean)).reshape(-1)
+                pieces.append(e)
+                jac.append(jnp.eye(e.shape[0], dtype=e.dtype))
+        return jnp.concatenate(pieces), (_block_diagonal(jac),)
+
+
+def _leaves(x: PyTree) -> list:
+    return jax.tree_util.tree_leaves(x, is_leaf=is_group)
+
+
+def _block_diagonal(blocks: list[Array]) -> Array:
+    """One state's Jacobian from its leaves' blocks (residual pieces and tangent
+    slices both follow the leaves' flattening order)."""
+    if len(blocks) == 1:
+        return blocks[0]
+    total, start, rows = sum(b.shape[1] for b in blocks), 0, []
+    for b in blocks:
+        rows.append(jnp.pad(b, ((0, 0), (start, total - start - b.shape[1]))))
+        start += b.shape[1]
+    return jnp.concatenate(rows, axis=0)
 
 
 def check_like_state(factor: str, field: str, given: PyTree, state: PyTree) -> None:
@@ -80,11 +115,15 @@ def _between(a: PyTree, b: PyTree) -> PyTree:
     return jax.tree_util.tree_map(leaf, a, b, is_leaf=is_group)
 
 
-class BetweenFactor(AbstractFactor):
+class BetweenFactor(AbstractAnalyticFactor):
     """Relative measurement between two states: residual `(a⁻¹ b) ⊖ measurement`.
 
     For group leaves `a⁻¹ b` is the relative transform; for array leaves it is
     the difference `b − a`. The classic pose-graph edge.
+
+    Its Jacobians are given in closed form: for a group leaf with
+    `X = a⁻¹ b` and residual `e = log(measurement⁻¹ X)`, `∂e/∂δ_b = Jr⁻¹(e)`
+    and `∂e/∂δ_a = −Jr⁻¹(e) Ad(X⁻¹)`; for an array leaf, `−I` and `I`.
 
     **Arguments:**
 
@@ -106,6 +145,28 @@ class BetweenFactor(AbstractFactor):
         check_like_state("BetweenFactor", "variables", a, b)
         check_like_state("BetweenFactor", "measurement", self.measurement, a)
         return local(self.measurement, _between(a, b))
+
+    def residual_and_jacobians(
+        self, a: PyTree, b: PyTree
+    ) -> tuple[Float[Array, " m"], tuple[Float[Array, "m d"], Float[Array, "m d"]]]:
+        check_like_state("BetweenFactor", "variables", a, b)
+        check_like_state("BetweenFactor", "measurement", self.measurement, a)
+        pieces, ja, jb = [], [], []
+        for mean, u, v in zip(_leaves(self.measurement), _leaves(a), _leaves(b)):
+            if is_group(u):
+                x = u.inverse() @ v
+                e = (mean.inverse() @ x).log()
+                jr_inv = type(u).right_jacobian_inv(e)
+                pieces.append(e)
+                ja.append(-(jr_inv @ x.inverse().adjoint()))
+                jb.append(jr_inv)
+            else:
+                e = (jnp.asarray(v) - jnp.asarray(u) - jnp.asarray(mean)).reshape(-1)
+                eye = jnp.eye(e.shape[0], dtype=e.dtype)
+                pieces.append(e)
+                ja.append(-eye)
+                jb.append(eye)
+        return jnp.concatenate(pieces), (_block_diagonal(ja), _block_diagonal(jb))
 
 
 # code object -> [weak reference to the last function seen with it, count of
