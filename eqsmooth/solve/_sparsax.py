@@ -114,13 +114,8 @@ def _upper_coo(pattern: _Pattern) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pattern (sparsax reads a symmetric matrix from its upper triangle)."""
     cached = pattern.cache.get("sparsax_upper")
     if cached is None:
-        cols = np.repeat(np.arange(pattern.size), np.diff(pattern.indptr))
-        keep = np.nonzero(pattern.indices <= cols)[0]
-        cached = (
-            pattern.indices[keep].astype(np.int32),
-            cols[keep].astype(np.int32),
-            keep.astype(np.int32),
-        )
+        keep = np.nonzero(pattern.indices <= pattern.columns)[0]
+        cached = (pattern.indices[keep], pattern.columns[keep], keep.astype(np.int32))
         pattern.cache["sparsax_upper"] = cached
     return cached
 
@@ -256,13 +251,11 @@ class SparsaxCholesky(AbstractNormalSolver):
 
 
 def _identity_data(pattern: _Pattern, dtype) -> Array:
-    cols = np.repeat(np.arange(pattern.size), np.diff(pattern.indptr))
-    return jnp.asarray(pattern.indices == cols, dtype)
+    return jnp.zeros((pattern.nnz,), dtype).at[pattern.diagonal].set(1)
 
 
 def _csc_matvec(state: SparsaxFactorization, x: Array) -> Array:
     p = state.pattern
-    cols = np.repeat(np.arange(p.size), np.diff(p.indptr))
     return jax.ops.segment_sum(
-        state.data.astype(x.dtype) * x[cols], p.indices, num_segments=p.size
+        state.data.astype(x.dtype) * x[p.columns], p.indices, num_segments=p.size
     )

@@ -145,8 +145,9 @@ class _Pattern:
         self.nnz = len(unique)
         self.terms = tuple(terms)
         self.gather = positions[first].astype(np.int32)
-        self.indices = (unique % N).astype(np.int32)
-        self.indptr = np.searchsorted(unique // N, np.arange(N + 1)).astype(np.int32)
+        self.indices = (unique % N).astype(np.int32)  # row of each stored entry
+        self.columns = (unique // N).astype(np.int32)  # its column
+        self.indptr = np.searchsorted(self.columns, np.arange(N + 1)).astype(np.int32)
         self.diagonal = np.searchsorted(unique, np.arange(N) * (N + 1)).astype(np.int32)
         # Host-side state reused across solves of this pattern (e.g. CHOLMOD's
         # symbolic analysis).
