@@ -43,15 +43,18 @@ on): JAX neither writes such a program to the persistent cache nor finds it
 there (jax `_src/compiler.py`, `_cache_write`), and `eqx.error_if` is a host
 callback (a `jax.pure_callback` inside a `lax.cond`).
 
-`--trees LABEL=PATH ...` runs every case with `PYTHONPATH=PATH` per label (for
-example the main branch in a git worktree as `before`, this tree as
+`--trees LABEL=PATH ...` runs every case with `PYTHONPATH=PATH` per label
+(for example the main branch in a git worktree as `before`, this tree as
 `after`), alternating labels, so that before and after are measured in the
-same command.
+same command. `--xla-flags LABEL=FLAGS ...` does the same for `XLA_FLAGS`
+settings (an empty value: XLA's defaults), labelled in the `tree` column.
 
     python benchmarks/first_call.py                      # all cases, this tree
     python benchmarks/first_call.py --cases pose2        # one case
     python benchmarks/first_call.py --trees before=/tmp/main after=. \\
         --json benchmarks/results/first_call.json
+    python benchmarks/first_call.py --cases pose2 --xla-flags default= \\
+        fast=--xla_cpu_use_fusion_emitters=false
     python benchmarks/first_call.py --parts   # pieces of the pose2 solve
 """
 
@@ -421,6 +424,14 @@ def main(argv=None):
         help="NAME=VALUE environment settings for the children, e.g. "
         "EQX_ON_ERROR=nan (no host callbacks)",
     )
+    parser.add_argument(
+        "--xla-flags",
+        nargs="*",
+        default=None,
+        help="LABEL=FLAGS: XLA_FLAGS for the children, one setting per label "
+        "(e.g. default= fast=--xla_cpu_use_fusion_emitters=false), each run "
+        "with every tree in turn",
+    )
     parser.add_argument("--repeats", type=int, default=1, help="cold/warm pairs")
     parser.add_argument(
         "--staged",
@@ -452,20 +463,30 @@ def main(argv=None):
 
     trees = dict(t.split("=", 1) for t in (args.trees or [f"this={HERE.parent}"]))
     env_extra = dict(e.split("=", 1) for e in args.env)
+    flag_sets = dict(f.split("=", 1) for f in (args.xla_flags or []))
+    # (label, tree, environment) per variant: every tree with every flag set.
+    variants = []
+    for tree_label, tree in trees.items():
+        if not flag_sets:
+            variants.append((tree_label, tree, env_extra))
+        for flag_label, flags in flag_sets.items():
+            env = {**env_extra, "XLA_FLAGS": flags}
+            label = flag_label if len(trees) == 1 else f"{tree_label}/{flag_label}"
+            variants.append((label, tree, env))
     records = []
     for case in args.cases:
         for rep in range(args.repeats):
-            for label, tree in trees.items():
+            for label, tree, env in variants:
                 with tempfile.TemporaryDirectory(prefix="eqs_jax_cache_") as cache:
                     for state in ("cold", "warm"):
-                        rec = run_child(case, cache, tree, env_extra, args.staged)
+                        rec = run_child(case, cache, tree, env, args.staged)
                         rec.update(
                             benchmark="first_call",
                             config={
                                 "case": case,
                                 "tree": label,
                                 "process": state,
-                                "env": env_extra,
+                                "env": env,
                                 "staged": args.staged,
                             },
                             tree=label,

@@ -1,8 +1,39 @@
 import gc
+import os
 import random
+import subprocess
+import sys
 
-import jax
-import pytest
+
+# XLA:CPU's MLIR fusion emitters compile about a third slower than its
+# earlier emitters, and compilation is most of this suite's time
+# (tests/test_filters.py and tests/test_lineax_optimistix.py on one core:
+# 144 s with them, 97 s without; docs/performance.md, "The test suite").
+# XLA reads XLA_FLAGS when JAX starts its backend, so the flag is set here,
+# before any test runs; pytest-xdist's workers inherit it. XLA aborts the
+# process on a flag it does not know, so a jaxlib without this one is probed
+# for in a subprocess first; a flag the user set is left alone.
+_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def _set_fast_compile_flag() -> None:
+    current = os.environ.get("XLA_FLAGS", "")
+    if _FAST_COMPILE_FLAG.split("=")[0] in current:
+        return
+    flags = f"{current} {_FAST_COMPILE_FLAG}".strip()
+    probe = subprocess.run(
+        [sys.executable, "-c", "import jax; jax.devices('cpu')"],
+        env={**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"},
+        capture_output=True,
+    )
+    if probe.returncode == 0:
+        os.environ["XLA_FLAGS"] = flags
+
+
+_set_fast_compile_flag()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 
 jax.config.update("jax_enable_x64", True)
