@@ -1,8 +1,10 @@
-"""An opt-in XLA:CPU setting: `eqsmooth.set_xla_cpu_flags()`.
+"""Opt-in XLA:CPU settings: `eqsmooth.set_xla_cpu_flags()`.
 
 `import eqsmooth` changes no environment variable. Call
 `set_xla_cpu_flags()` before the first JAX computation to turn off XLA's
-concurrency-optimised CPU scheduler; the history below says why one might.
+concurrency-optimised CPU scheduler (the history below says why one might),
+and `set_xla_cpu_flags(fast_compile=True)` to compile with XLA's earlier
+fusion emitters (the end of this docstring says what that gains).
 
 jaxlib 0.10's CPU runtime can wait forever for the result of a program that
 has many independent operations, such as the levels of block cyclic
@@ -39,29 +41,76 @@ The scheduler only reorders independent operations, so turning it off
 changes no result. XLA reads `XLA_FLAGS` when JAX first starts its backend,
 so the function takes effect only if called before the first JAX
 computation. A flag the user has set already is left alone.
+
+Compile time. XLA:CPU compiles fused element-wise kernels with MLIR-based
+emitters by default; `--xla_cpu_use_fusion_emitters=false` selects its
+earlier LLVM IR emitters. On the project machine (jaxlib 0.10.2, 2 cores;
+`benchmarks/first_call.py --xla-flags`, two cold processes each) the first
+answer of the 5-pose SE(2) solve went from 3.1 s to 2.3 s (XLA's part 2.0
+-> 1.2 s), the SE(2)+velocity chain at T = 10⁴ from 15-17 s to 10-13 s, and
+the T = 200 training step from 11 s to 9-10 s, with run times within the
+machine's noise; the test suite runs in 509 s instead of 858 s. XLA aborts
+the process on a flag it does not know, so the flag is added only after a
+subprocess has started JAX's CPU backend with it.
 """
 
 import os
+import subprocess
+import sys
 
 
-_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false",)
+_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
-def set_xla_cpu_flags() -> str:
-    """Turn off XLA:CPU's concurrency-optimised scheduler (opt-in).
+def _known_to_xla(flags: str) -> bool:
+    """Whether JAX's CPU backend starts with `XLA_FLAGS=flags` (XLA aborts the
+    process on an unknown flag, so this asks a subprocess)."""
+    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
+    probe = subprocess.run(
+        [sys.executable, "-c", "import jax; jax.devices('cpu')"],
+        env=env,
+        capture_output=True,
+    )
+    return probe.returncode == 0
 
-    Appends `--xla_cpu_enable_concurrency_optimized_scheduler=false` to the
-    `XLA_FLAGS` environment variable unless that flag is set already. XLA
-    reads the variable when JAX starts its backend, so call this before the
-    first JAX computation. It lowers the odds of a jaxlib 0.10 CPU hang in
-    programs that run several batched LAPACK kernels concurrently (see
-    "Running on CPU" in the getting-started guide); eqsmooth's own chain
-    solver no longer needs it. Results do not change.
+
+def set_xla_cpu_flags(
+    *, serial_scheduler: bool = True, fast_compile: bool = False
+) -> str:
+    """Append opt-in XLA:CPU flags to the `XLA_FLAGS` environment variable.
+
+    XLA reads the variable when JAX starts its backend, so call this before
+    the first JAX computation. A flag the user has set already (to either
+    value) is left alone.
+
+    **Arguments:**
+
+    - `serial_scheduler`: add
+        `--xla_cpu_enable_concurrency_optimized_scheduler=false`. It lowers
+        the odds of a jaxlib 0.10 CPU hang in programs that run several
+        batched LAPACK kernels concurrently (see "Running on CPU" in the
+        getting-started guide); eqsmooth's own chain solver no longer needs
+        it. Results do not change.
+    - `fast_compile`: add `--xla_cpu_use_fusion_emitters=false`, XLA's
+        earlier fusion emitters, which compile about a third faster (the
+        5-pose SE(2) solve's first answer 3.1 -> 2.3 s on the project
+        machine; docs/performance.md). Added only if a subprocess starts
+        JAX's CPU backend with it, since XLA aborts on an unknown flag.
 
     **Returns:** the new value of `XLA_FLAGS`.
     """
     current = os.environ.get("XLA_FLAGS", "")
-    extra = [f for f in _FLAGS if f.split("=")[0] not in current]
-    if extra:
-        os.environ["XLA_FLAGS"] = " ".join([current, *extra]).strip()
+    wanted = [_SCHEDULER_FLAG] if serial_scheduler else []
+    if fast_compile:
+        wanted.append(_FAST_COMPILE_FLAG)
+    for flag in wanted:
+        if flag.split("=")[0] in current:
+            continue
+        candidate = f"{current} {flag}".strip()
+        if flag == _FAST_COMPILE_FLAG and not _known_to_xla(candidate):
+            continue
+        current = candidate
+    if current:
+        os.environ["XLA_FLAGS"] = current
     return os.environ.get("XLA_FLAGS", "")

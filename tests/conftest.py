@@ -1,36 +1,17 @@
 import gc
-import os
 import random
-import subprocess
-import sys
+
+import eqsmooth as eqs
 
 
 # XLA:CPU's MLIR fusion emitters compile about a third slower than its
-# earlier emitters, and compilation is most of this suite's time
-# (tests/test_filters.py and tests/test_lineax_optimistix.py on one core:
-# 144 s with them, 97 s without; docs/performance.md, "The test suite").
-# XLA reads XLA_FLAGS when JAX starts its backend, so the flag is set here,
-# before any test runs; pytest-xdist's workers inherit it. XLA aborts the
-# process on a flag it does not know, so a jaxlib without this one is probed
-# for in a subprocess first; a flag the user set is left alone.
-_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
-
-
-def _set_fast_compile_flag() -> None:
-    current = os.environ.get("XLA_FLAGS", "")
-    if _FAST_COMPILE_FLAG.split("=")[0] in current:
-        return
-    flags = f"{current} {_FAST_COMPILE_FLAG}".strip()
-    probe = subprocess.run(
-        [sys.executable, "-c", "import jax; jax.devices('cpu')"],
-        env={**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"},
-        capture_output=True,
-    )
-    if probe.returncode == 0:
-        os.environ["XLA_FLAGS"] = flags
-
-
-_set_fast_compile_flag()
+# earlier emitters, and compilation is most of this suite's time (the whole
+# suite with 2 workers: 858 s with them, 509 s without; docs/performance.md,
+# "The test suite"). XLA reads XLA_FLAGS when JAX starts its backend, which
+# no test has done yet; pytest-xdist's workers set it the same way. (The
+# jaxtyping hook is installed before conftest files load, so importing
+# eqsmooth here keeps its runtime type checks.)
+eqs.set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -2,10 +2,12 @@ import os
 import subprocess
 import sys
 
+import eqsmooth._xla_flags as xla_flags
 from eqsmooth._xla_flags import set_xla_cpu_flags
 
 
 FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler"
+FAST = "--xla_cpu_use_fusion_emitters"
 
 
 def test_flag_added_to_existing_flags(monkeypatch):
@@ -35,3 +37,26 @@ def test_import_leaves_xla_flags_alone():
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "None"
+
+
+def test_fast_compile_flag_added_when_xla_knows_it(monkeypatch):
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    flags = set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
+    assert flags == f"{FAST}=false"
+    # Both, in order; a second call adds nothing.
+    monkeypatch.delenv("XLA_FLAGS")
+    set_xla_cpu_flags(fast_compile=True)
+    assert set_xla_cpu_flags(fast_compile=True).split() == [
+        f"{FLAG}=false",
+        f"{FAST}=false",
+    ]
+
+
+def test_flag_unknown_to_xla_is_not_added(monkeypatch):
+    # XLA aborts a process whose XLA_FLAGS names a flag it does not know: the
+    # probe subprocess fails and the flag is left out.
+    monkeypatch.setattr(xla_flags, "_FAST_COMPILE_FLAG", "--xla_cpu_no_such_flag=1")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    assert not xla_flags._known_to_xla("--xla_cpu_no_such_flag=1")
+    flags = set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
+    assert flags == "--xla_cpu_multi_thread_eigen=false"
