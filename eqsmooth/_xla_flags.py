@@ -57,6 +57,7 @@ subprocess has started JAX's CPU backend with it.
 import os
 import subprocess
 import sys
+import warnings
 
 
 _SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
@@ -65,13 +66,21 @@ _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 def _known_to_xla(flags: str) -> bool:
     """Whether JAX's CPU backend starts with `XLA_FLAGS=flags` (XLA aborts the
-    process on an unknown flag, so this asks a subprocess)."""
+    process on an unknown flag, so this asks a subprocess); warns if not."""
     env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
     probe = subprocess.run(
         [sys.executable, "-c", "import jax; jax.devices('cpu')"],
         env=env,
         capture_output=True,
+        text=True,
     )
+    if probe.returncode != 0:
+        warnings.warn(
+            f"set_xla_cpu_flags: JAX's CPU backend did not start with "
+            f"XLA_FLAGS={flags!r}, so the flag was not added (this jaxlib may "
+            f"not know it). The probe's last output: {probe.stderr[-300:]!r}",
+            stacklevel=3,
+        )
     return probe.returncode == 0
 
 
@@ -96,7 +105,8 @@ def set_xla_cpu_flags(
         earlier fusion emitters, which compile about a third faster (the
         5-pose SE(2) solve's first answer 3.1 -> 2.3 s on the project
         machine; docs/performance.md). Added only if a subprocess starts
-        JAX's CPU backend with it, since XLA aborts on an unknown flag.
+        JAX's CPU backend with it, since XLA aborts on an unknown flag; a
+        `UserWarning` says when it was left out.
 
     **Returns:** the new value of `XLA_FLAGS`.
     """
