@@ -1,9 +1,25 @@
 """Tiny problems shared by the tests (import inside tests, after the hook)."""
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+def child_env(extra_xla_flags: str = "") -> dict[str, str]:
+    """The environment of a test's child Python process: CPU only, compiled
+    the way this suite compiles (tests/conftest.py): its `XLA_FLAGS` (XLA's
+    earlier fusion emitters) plus `extra_xla_flags`, and LLVM's optimisation
+    passes off (`JAX_DISABLE_MOST_OPTIMIZATIONS`)."""
+    flags = f"{os.environ.get('XLA_FLAGS', '')} {extra_xla_flags}".strip()
+    return dict(
+        os.environ,
+        JAX_PLATFORMS="cpu",
+        XLA_FLAGS=flags,
+        JAX_DISABLE_MOST_OPTIMIZATIONS="1",
+    )
 
 
 def tree_allclose(x, y, *, rtol=1e-7, atol=1e-9):

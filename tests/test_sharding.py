@@ -1,7 +1,6 @@
 """Data parallelism: a step sharded over 2 (virtual CPU) devices equals one device."""
 
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -12,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import child_env
 
 from eqsmooth.learn import (
     initialize_distributed,
@@ -158,11 +158,7 @@ _SCRIPT = textwrap.dedent(
 def two_device_result(tmp_path_factory):
     path = tmp_path_factory.mktemp("sharding") / "sharded_step.py"
     path.write_text(_SCRIPT)
-    env = dict(
-        os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=2",
-        JAX_PLATFORMS="cpu",
-    )
+    env = child_env("--xla_force_host_platform_device_count=2")
     proc = subprocess.run(
         [sys.executable, str(path)],
         env=env,
@@ -244,8 +240,7 @@ def test_multi_process_training_matches_single_process(tmp_path):
     # collectives): the multi-host path of shard_batch / replicate / train.
     script = tmp_path / "multi.py"
     script.write_text(_MULTI)
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
+    env = child_env()
     port = str(_free_port())
     dirs = {"multi": tmp_path / "multi", "single": tmp_path / "single"}
     for d in dirs.values():

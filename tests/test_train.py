@@ -1,7 +1,6 @@
 """Training utilities: optimiser, loop, model selection, checkpoints, resume."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import child_env
 
 from eqsmooth.learn import (
     atomic_write,
@@ -392,7 +392,7 @@ def _run(tmp_path, name, sleep):
         str(d / "out.eqx"),
         str(sleep),
     ]
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env = child_env()
     with open(d / "stderr.txt", "ab") as err:
         return subprocess.Popen(args, env=env, stderr=err), d
 
