@@ -205,3 +205,35 @@ def test_changing_data_does_not_recompile():
     n = len(_TRACES)
     eqs.least_squares(graph(1), init, solver)
     assert len(_TRACES) == n
+
+
+def test_array_arguments_dispatch_through_jax_jit_with_the_same_result():
+    import eqsmooth as eqs
+    from eqsmooth.solve import _least_squares as L
+
+    t = np.arange(4)
+    data = np.random.default_rng(3).normal(size=(4, 2))
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _meas_only,
+                (eqs.Var("x", t),),
+                eqs.IsotropicNoise(sqrt_precision=2.0),
+                data=jnp.asarray(data),
+            )
+        ]
+    )
+    solver = eqs.GaussNewton(eqs.DenseCholesky())
+    fast_before = L._least_squares_of_arrays._cache_size()
+    # Every leaf a JAX array: the C++ `jax.jit` dispatch.
+    a = eqs.least_squares(graph, {"x": jnp.zeros((4, 2))}, solver)
+    assert L._least_squares_of_arrays._cache_size() == fast_before + 1
+    # A numpy leaf: `eqx.filter_jit`, which keeps non-array leaves static.
+    b = eqs.least_squares(graph, {"x": np.zeros((4, 2))}, solver)
+    assert L._least_squares_of_arrays._cache_size() == fast_before + 1
+    np.testing.assert_allclose(a.value["x"], b.value["x"], rtol=1e-12)
+    np.testing.assert_allclose(a.value["x"], data, rtol=1e-12)
+
+
+def _meas_only(x, data, params):
+    return x - data
