@@ -1,20 +1,20 @@
 import gc
 import random
 
+import jax
+import pytest
+
 import eqsmooth as eqs
 
 
 # XLA:CPU's MLIR fusion emitters compile about a third slower than its
 # earlier emitters, and compilation is most of this suite's time (the whole
 # suite with 2 workers: 858 s with them, 509 s without; docs/performance.md,
-# "The test suite"). XLA reads XLA_FLAGS when JAX starts its backend, which
-# no test has done yet; pytest-xdist's workers set it the same way. (The
-# jaxtyping hook is installed before conftest files load, so importing
-# eqsmooth here keeps its runtime type checks.)
+# "The test suite"). XLA reads XLA_FLAGS when JAX starts its backend (not
+# when it is imported), which no test has done yet; pytest-xdist's workers
+# set it the same way. (The jaxtyping hook is installed before conftest
+# files load, so importing eqsmooth here keeps its runtime type checks.)
 eqs.set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
-
-import jax  # noqa: E402
-import pytest  # noqa: E402
 
 
 jax.config.update("jax_enable_x64", True)

@@ -5,6 +5,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.scipy.linalg import block_diag
 from jaxtyping import Array, Float, PyTree
 
 from ..manifold import is_group, local, tangent_dim
@@ -53,23 +54,11 @@ class PriorFactor(AbstractAnalyticFactor):
                 e = (jnp.asarray(leaf) - jnp.asarray(mean)).reshape(-1)
                 pieces.append(e)
                 jac.append(jnp.eye(e.shape[0], dtype=e.dtype))
-        return jnp.concatenate(pieces), (_block_diagonal(jac),)
+        return jnp.concatenate(pieces), (block_diag(*jac),)
 
 
 def _leaves(x: PyTree) -> list:
     return jax.tree_util.tree_leaves(x, is_leaf=is_group)
-
-
-def _block_diagonal(blocks: list[Array]) -> Array:
-    """One state's Jacobian from its leaves' blocks (residual pieces and tangent
-    slices both follow the leaves' flattening order)."""
-    if len(blocks) == 1:
-        return blocks[0]
-    total, start, rows = sum(b.shape[1] for b in blocks), 0, []
-    for b in blocks:
-        rows.append(jnp.pad(b, ((0, 0), (start, total - start - b.shape[1]))))
-        start += b.shape[1]
-    return jnp.concatenate(rows, axis=0)
 
 
 def check_like_state(factor: str, field: str, given: PyTree, state: PyTree) -> None:
@@ -166,7 +155,7 @@ class BetweenFactor(AbstractAnalyticFactor):
                 pieces.append(e)
                 ja.append(-eye)
                 jb.append(eye)
-        return jnp.concatenate(pieces), (_block_diagonal(ja), _block_diagonal(jb))
+        return jnp.concatenate(pieces), (block_diag(*ja), block_diag(*jb))
 
 
 # code object -> [weak reference to the last function seen with it, count of

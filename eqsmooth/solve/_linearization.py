@@ -79,8 +79,7 @@ def _whiten_jacobians(noise, jacs: tuple[Array, ...]) -> tuple[Array, ...]:
     if len(jacs) == 1:
         return (noise.whiten(jacs[0]),)
     whole = noise.whiten(jnp.concatenate(jacs, axis=2))
-    ends = np.cumsum([j.shape[2] for j in jacs])
-    return tuple(whole[:, :, e - j.shape[2] : e] for j, e in zip(jacs, ends))
+    return tuple(jnp.split(whole, np.cumsum([j.shape[2] for j in jacs])[:-1], axis=2))
 
 
 def placeholder_linearization(
