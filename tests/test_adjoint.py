@@ -148,6 +148,9 @@ _value_and_grad = eqx.filter_jit(jax.value_and_grad(_loss))
 
 def _fd_check(problem, solver, adjoint, max_steps=20, seed=0, rtol=1e-6):
     graph, truth, theta, setter = problem
+    # Strongly typed leaves: `theta ± EPS * u` below is strongly typed, and a
+    # weakly typed `theta` would compile the loss a second time.
+    theta = jax.tree_util.tree_map(lambda x: jnp.asarray(x, x.dtype), theta)
     args = (graph, truth, setter, solver, adjoint, max_steps)
     _, grad = _value_and_grad(theta, *args)
     for leaf in jax.tree_util.tree_leaves(grad):
@@ -228,8 +231,10 @@ def test_implicit_exact_matches_finite_differences_of_argmin(kind):
     # The forward solve really is at a stationary point.
     sol = eqs.least_squares(setter(graph, theta), truth, _solvers()["conv"])
     name = next(iter(truth))
-    g = jax.grad(
-        lambda d: setter(graph, theta).cost({name: eqs.retract(sol.value[name], d)})
+    g = jax.jit(
+        jax.grad(
+            lambda d: setter(graph, theta).cost({name: eqs.retract(sol.value[name], d)})
+        )
     )(jnp.zeros((T, sum(eqs.manifold.tangent_dims(truth[name], 1)))))
     assert float(jnp.max(jnp.abs(g))) < 1e-10
     _fd_check(problem, _solvers()["conv"], eqs.ImplicitAdjoint())

@@ -3,6 +3,7 @@ residual values against hand computations, Jacobians against float64 central
 finite differences in tangent coordinates, and behaviour at the singular
 points (zero distance, angles across ±π)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,6 +20,11 @@ def _se3(key):
     import eqsmooth as eqs
 
     return eqs.SE3.exp(0.7 * jax.random.normal(key, (1, 6)))
+
+
+@eqx.filter_jit
+def _residual(factor, *states):
+    return factor.residual(*states)
 
 
 def _fd_jacobians(factor, states, h=1e-6):
@@ -38,21 +44,23 @@ def _fd_jacobians(factor, states, h=1e-6):
             minus = list(states)
             plus[k] = retract(x, e)
             minus[k] = retract(x, -e)
-            rp = factor.residual(
-                *[jax.tree_util.tree_map(lambda a: a[0], s) for s in plus]
+            rp = _residual(
+                factor, *[jax.tree_util.tree_map(lambda a: a[0], s) for s in plus]
             )
-            rm = factor.residual(
-                *[jax.tree_util.tree_map(lambda a: a[0], s) for s in minus]
+            rm = _residual(
+                factor, *[jax.tree_util.tree_map(lambda a: a[0], s) for s in minus]
             )
             cols.append((rp - rm) / (2 * h))
-        out.append(np.stack([np.asarray(c) for c in cols], axis=-1))
+        out.append(jnp.stack(cols, axis=-1))
     return out
 
 
 def _check_jacobians(factor, states, atol=1e-6):
     from eqsmooth.factors._factor import linearize_rows
 
-    r, jacs = linearize_rows(factor, tuple(states))
+    # Both sides compiled: op by op, each new factor type costs hundreds of
+    # small compilations.
+    r, jacs = eqx.filter_jit(linearize_rows)(factor, tuple(states))
     assert np.all(np.isfinite(np.asarray(r)))
     ref = _fd_jacobians(factor, states)
     for j, jr in zip(jacs, ref):
@@ -113,7 +121,7 @@ def test_range_at_zero_distance_is_finite():
     f = eqs.RangeFactor(
         eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.array([1.0]), _noise(1)
     )
-    r, (jx, jl) = linearize_rows(f, (pose, point))
+    r, (jx, jl) = eqx.filter_jit(linearize_rows)(f, (pose, point))
     np.testing.assert_allclose(np.asarray(r), [[-1.0]])
     assert np.all(np.isfinite(np.asarray(jx))) and np.all(np.isfinite(np.asarray(jl)))
     # Reverse mode through the residual at zero distance is finite too.
@@ -160,7 +168,7 @@ def test_3d_bearing_at_measured_direction():
     f = eqs.BearingFactor(
         eqs.Var("x", [0]), eqs.Var("l", [0]), jnp.array([[0.0, 0.0, 1.0]]), _noise(2)
     )
-    r, jacs = linearize_rows(f, (pose, point))
+    r, jacs = eqx.filter_jit(linearize_rows)(f, (pose, point))
     np.testing.assert_allclose(np.asarray(r), 0.0, atol=1e-15)
     ref = _fd_jacobians(f, [pose, point])
     for j, jr in zip(jacs, ref):

@@ -559,14 +559,16 @@ def test_cyclic_reduction_levels_and_tail(tail):
     diag, upper = _random_blocks(T, D, 5)
     dense = np.asarray(bt.BlockTridiagonalOperator(diag, upper).as_matrix())
     b = np.random.default_rng(2).normal(size=(T, D))
-    state = bt.cyclic_reduction_factor(diag, upper, tail)
+    # Compiled, not op by op (hundreds of small compilations otherwise).
+    factor = eqx.filter_jit(bt.cyclic_reduction_factor)
+    state = factor(diag, upper, tail)
     assert len(state.levels) == len(bt._level_sizes(T, tail))
     assert 1 <= state.tail.chol_inv.shape[0] <= tail
     assert bool(state.ok)
-    x = np.asarray(bt.cyclic_reduction_solve(state, jnp.asarray(b)))
+    x = np.asarray(eqx.filter_jit(bt.cyclic_reduction_solve)(state, jnp.asarray(b)))
     np.testing.assert_allclose(x.ravel(), np.linalg.solve(dense, b.ravel()), atol=1e-12)
     inv = np.linalg.inv(dense).reshape(T, D, T, D)
-    cov, cross = bt.cyclic_reduction_inverse_blocks(state, T)
+    cov, cross = eqx.filter_jit(bt.cyclic_reduction_inverse_blocks)(state, T)
     t = np.arange(T)
     np.testing.assert_allclose(np.asarray(cov), inv[t, :, t, :], atol=1e-12)
     np.testing.assert_allclose(
@@ -575,7 +577,7 @@ def test_cyclic_reduction_levels_and_tail(tail):
     # An indefinite matrix is reported, wherever its bad pivot falls.
     bad = np.array(diag)
     bad[T - 1] = -bad[T - 1]
-    assert not bool(bt.cyclic_reduction_factor(jnp.asarray(bad), upper).ok)
+    assert not bool(factor(jnp.asarray(bad), upper).ok)
 
 
 @pytest.mark.parametrize("D", [1, 4, 9])  # 9: above SMALL_BLOCK_LIMIT, LAPACK

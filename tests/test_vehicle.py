@@ -1,5 +1,6 @@
 """The planar vehicle state and its dynamics / velocity factors."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -90,14 +91,14 @@ def test_jacobians_match_finite_differences():
         eqs.DiagonalNoise(sqrt_precision=jnp.ones((3, 2))),
     )
     a, b = x[:2], x[1:]
-    _, (Ja, Jb) = linearize_rows(dyn, (a, b))
+    _, (Ja, Jb) = eqx.filter_jit(linearize_rows)(dyn, (a, b))
     for k in range(2):
         ak, bk = a[k], b[k]
         na = _num_jac(lambda d: dyn.residual(eqs.retract(ak, d), bk), 5)
         nb = _num_jac(lambda d: dyn.residual(ak, eqs.retract(bk, d)), 5)
         np.testing.assert_allclose(Ja[k], na, atol=1e-6)
         np.testing.assert_allclose(Jb[k], nb, atol=1e-6)
-    _, (Jm,) = linearize_rows(meas, (x,))
+    _, (Jm,) = eqx.filter_jit(linearize_rows)(meas, (x,))
     expected = np.concatenate([np.zeros((2, 3)), np.eye(2)], axis=1)
     np.testing.assert_allclose(Jm, np.broadcast_to(expected, (3, 2, 5)), atol=1e-9)
 
