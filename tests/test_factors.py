@@ -241,6 +241,36 @@ def test_linearisation_matches_autodiff_on_se2():
     np.testing.assert_allclose(r, r_ref, atol=1e-12)
 
 
+def test_eager_linearize_is_one_compiled_program():
+    """`eqs.linearize` called outside `jit` compiles one program (not one per
+    JAX operation), and gives what the solvers' uncompiled copy gives."""
+    from helpers import se2_loop
+    from jax import monitoring
+
+    import eqsmooth as eqs
+    from eqsmooth.solve._linearization import linearize_graph
+
+    graph, init, _ = se2_loop(1, N=3)
+    names = []
+
+    def on_duration(event, secs, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            names.append(kwargs.get("fun_name"))
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        lin = eqs.linearize(graph, init)
+    finally:
+        monitoring.unregister_event_duration_listener(on_duration)
+    # One program (none if an earlier test compiled this graph structure).
+    assert names in ([], ["jit(linearize)"])
+    eqns = jax.make_jaxpr(eqs.linearize)(graph, init).eqns
+    assert len(eqns) == 1 and eqns[0].params["name"] == "linearize"
+    ref = eqx.filter_jit(linearize_graph)(graph, init)
+    for a, b in zip(jax.tree_util.tree_leaves(lin), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def _random_state(kind, n, rng, scale=1.0):
     import eqsmooth as eqs
 

@@ -14,12 +14,11 @@ from ..solve import (
     BlockTridiagonal,
     GaussNewton,
     least_squares,
-    linearize,
     normal_log_det,
     solve_normal,
 )
 from ..solve._default_solver import linear_solver_for
-from ..solve._linearization import gradient, retract_values
+from ..solve._linearization import gradient, linearize_graph, retract_values
 
 
 Values = dict[str, PyTree]
@@ -116,14 +115,14 @@ def laplace_at_map(
     """
     x_hat = jax.lax.stop_gradient(map_values)
     frozen = jax.lax.stop_gradient(graph)
-    lin_frozen = linearize(frozen, x_hat)
-    lin = linearize(graph, x_hat)
+    lin_frozen = linearize_graph(frozen, x_hat)
+    lin = linearize_graph(graph, x_hat)
     g = gradient(lin)
     rhs = {k: -v for k, v in g.items()}
     linear_solver = linear_solver_for(linear_solver, lin_frozen)
     delta, _ = solve_normal(linear_solver, lin_frozen, None, rhs)
     x_tilde = retract_values(x_hat, delta)
-    lin_t = linearize(_fisher_curvature(graph), x_tilde)
+    lin_t = linearize_graph(_fisher_curvature(graph), x_tilde)
     log_det = normal_log_det(lin_t, linear_solver)
     nll = graph.negative_log_likelihood(x_tilde)
     N = lin_t.num_tangent

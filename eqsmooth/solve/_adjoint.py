@@ -42,7 +42,7 @@ from jaxtyping import Array, Bool, PyTree
 from ..factors import FactorGraph
 from ._default_solver import linear_solver_for
 from ._linear_solver import solve_normal
-from ._linearization import Linearization, linearize, retract_values, Tangent
+from ._linearization import Linearization, linearize_graph, retract_values, Tangent
 from ._misc import preconditioned_cg, tree_where
 from ._solution import RESULTS
 
@@ -430,7 +430,7 @@ class ImplicitAdjoint(AbstractAdjoint):
             )
         x_star, residual = primal_fn(_stop(inputs) + (_lax_while,))
         x_star, residual = _stop((x_star, residual))
-        lin = linearize(_stop(graph), x_star)
+        lin = linearize_graph(_stop(graph), x_star)
         own = solver.linear_solver if isinstance(solver, AbstractGraphSolver) else None
         linear_solver = linear_solver_for(own, lin)
         # optimistix does not hand the solve's result code to an adjoint; a

@@ -18,7 +18,7 @@ from ._linear_solver import solve_unless
 from ._linearization import (
     gradient,
     Linearization,
-    linearize,
+    linearize_graph,
     placeholder_linearization,
     retract_values,
     Tangent,
@@ -84,7 +84,7 @@ def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
     next step. `check=False` never stops on convergence."""
     first = state.step == 0
     trial = tree_where(first, values, retract_values(values, state.delta))
-    new_lin = linearize(graph, trial)
+    new_lin = linearize_graph(graph, trial)
     finite = finite_lin(new_lin)
     result = RESULTS.where(
         finite,

@@ -14,7 +14,7 @@ from ._linearization import (
     block_diagonal,
     gradient,
     Linearization,
-    linearize,
+    linearize_graph,
     placeholder_linearization,
     retract_values,
     Tangent,
@@ -152,7 +152,7 @@ class LevenbergMarquardt(AbstractGraphSolver):
         # The trial point of the step solved in the previous iteration (the
         # initial values in the first iteration, which are always taken).
         trial_values = tree_where(first, values, retract_values(values, delta))
-        trial_lin = linearize(graph, trial_values)
+        trial_lin = linearize_graph(graph, trial_values)
         finite = finite_lin(trial_lin)
         predicted = predicted_decrease(lin, delta)
         actual = lin.cost - trial_lin.cost

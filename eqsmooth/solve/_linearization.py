@@ -49,8 +49,20 @@ class Linearization(eqx.Module):
         return sum(g.count * g.dim for g in self.layout)
 
 
+@eqx.filter_jit
 def linearize(graph: FactorGraph, values: dict[str, PyTree]) -> Linearization:
-    """Linearise `graph` at `values` (whitened, robust-weighted Jacobian blocks)."""
+    """Linearise `graph` at `values` (whitened, robust-weighted Jacobian blocks).
+
+    Compiled as one program (`eqx.filter_jit`), so an eager call costs one
+    compilation per graph structure rather than one per JAX operation.
+    Inside `jit`, it is traced into the caller's program.
+    """
+    return linearize_graph(graph, values)
+
+
+def linearize_graph(graph: FactorGraph, values: dict[str, PyTree]) -> Linearization:
+    """[`eqsmooth.solve.linearize`][] without its own `jit`: what the solvers
+    trace inside their programs."""
     layout = graph.validate(values)
     out = []
     cost = jnp.zeros((), dtype=_values_dtype(values))
@@ -91,7 +103,7 @@ def placeholder_linearization(
     so that the compiled solve contains one copy of the linearisation (in the
     loop) instead of two (before the loop and in it).
     """
-    shapes = eqx.filter_eval_shape(linearize, graph, values)
+    shapes = eqx.filter_eval_shape(linearize_graph, graph, values)
     return jax.tree_util.tree_map(
         lambda x: (
             jnp.zeros(x.shape, x.dtype) if isinstance(x, jax.ShapeDtypeStruct) else x
