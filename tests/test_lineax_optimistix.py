@@ -113,7 +113,7 @@ def test_lineax_solvers_give_the_same_step(name, damped):
     from eqsmooth.solve._linearization import flatten_tangent, gradient
 
     graph, values = _problems()[name]
-    lin = eqx.filter_jit(eqs.solve.linearize)(graph, values)
+    lin = eqs.solve.linearize(graph, values)
     damping = {g.name: jnp.full((g.count, g.dim), 0.5) for g in lin.layout}
     for damp in [damping if damped else None]:
         out, H, diag, Hx = _steps(lin, damp)
@@ -145,7 +145,7 @@ def test_normal_operator_rules():
     import eqsmooth as eqs
 
     graph, values = _problems()["se2"]
-    op = eqs.solve.NormalOperator(eqx.filter_jit(eqs.solve.linearize)(graph, values))
+    op = eqs.solve.NormalOperator(eqs.solve.linearize(graph, values))
     assert lx.is_symmetric(op) and lx.is_positive_semidefinite(op)
     assert not lx.is_diagonal(op) and not lx.is_tridiagonal(op)
     assert op.transpose() is op
