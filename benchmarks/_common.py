@@ -54,6 +54,7 @@ def machine() -> dict:
         "python": platform.python_version(),
         "jax": jax.__version__,
         "backend": jax.default_backend(),
+        "devices": sorted({d.device_kind for d in jax.devices()}),
         "git": git,
         "eqsmooth": str(lib_dir),
         "eqsmooth_git": lib_git,
