@@ -234,6 +234,20 @@ def _run(data, spring=SPRING, prior=PRIOR, fit_noise=True):
     return found, named, added
 
 
+_SIMULATED_RUNS = {}
+
+
+def _simulated_run(seed, effect, coef, spring=SPRING):
+    """Data of `_simulate(seed, effect, coef, spring)` and its `_run`, computed
+    once per module (both are deterministic, and the tests only read them):
+    a whole find / name / add takes about 6 s."""
+    key = (seed, effect, coef, spring)
+    if key not in _SIMULATED_RUNS:
+        data = _simulate(seed, effect, coef, spring)
+        _SIMULATED_RUNS[key] = (data, *_run(data, spring))
+    return _SIMULATED_RUNS[key]
+
+
 @pytest.mark.parametrize(
     "effect, coef, spring, expected",
     [
@@ -244,8 +258,7 @@ def _run(data, spring=SPRING, prior=PRIOR, fit_noise=True):
     ],
 )
 def test_hidden_effect_is_named(effect, coef, spring, expected):
-    data = _simulate(1, effect, coef, spring)
-    found, named, added = _run(data, spring)
+    data, found, named, added = _simulated_run(1, effect, coef, spring)
     assert found["detected"]
     assert named["named"][:1] == [expected], named["verdict"]
     assert named["verdict"] == expected
@@ -330,8 +343,8 @@ def test_constant_force_with_spring_is_detected():
 def test_bootstrap_stability_of_a_strong_effect():
     import eqsmooth.discover as dc
 
-    data = _simulate(1, "viscous", 0.1)
-    found, named, _ = _run(data)
+    # The same data and run as test_hidden_effect_is_named's viscous case.
+    data, found, named, _ = _simulated_run(1, "viscous", 0.1)
     stab = dc.bootstrap(found, data, named=named, num_resamples=2, seed=0)
     assert stab["num_resamples"] == 2
     assert stab["detected_rate"] == 1.0
@@ -376,6 +389,8 @@ def test_fit_is_bounded_and_never_raises(monkeypatch):
 def test_noise_scale_prior_holds_unidentified_scales():
     import dataclasses
 
+    from jax import monitoring
+
     import eqsmooth.discover._fit as F
 
     data = _simulate(2)
@@ -390,7 +405,21 @@ def test_noise_scale_prior_holds_unidentified_scales():
     free_fit = F.fit(model, data, free, z0, start.xhat, scales)
     sd = 0.01
     held = dataclasses.replace(model, noise_scale_prior=sd)
-    held_fit = F.fit(held, data, free, z0, start.xhat, scales)
+    compiled = []
+
+    def on_duration(event, secs, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            compiled.append(kwargs.get("fun_name"))
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        held_fit = F.fit(held, data, free, z0, start.xhat, scales)
+    finally:
+        monitoring.unregister_event_duration_listener(on_duration)
+    # The prior steers the fit outside compiled code: the MAP, evidence and
+    # score programs compiled for `model` serve `held` too.
+    programs = {"jit(map_states)", "jit(batch_scores)", "jit(batch_log_marginal)"}
+    assert not programs & set(compiled), compiled
     assert free_fit.z[K + 1] < -0.5
     assert np.all(np.abs(held_fit.z[K:]) < 0.2)
     assert abs(held_fit.z[K + 1]) < 0.5 * abs(free_fit.z[K + 1])

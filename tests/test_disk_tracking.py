@@ -130,30 +130,48 @@ def test_model_shapes_and_noise_heads():
     import jax.numpy as jnp
     from disk_tracking import models as M
 
-    key = jax.random.key(0)
-    sensor = M.VirtualSensor(key)
+    @eqx.filter_jit  # one program for the models' set-up and one for their outputs
+    def build(key):
+        return (
+            M.VirtualSensor(key),
+            M.HeteroscedasticNoise(4.0, key),
+            M.HeatmapSensor(key, channels=4),
+            M.LstmTracker(key, bidirectional=True, num_features=4, hidden=8),
+        )
+
+    @eqx.filter_jit
+    def outputs(models, img, counts):
+        sensor, het, fast, lstm = models
+        big = eqx.tree_at(lambda s: s.background, fast, jnp.array([-50.0, 0.0, 0.0]))
+        return {
+            "features": sensor.features(img),
+            "sensor": sensor(img),
+            "const": M.ConstantNoise(4.0)(counts),
+            "het": het(counts),
+            "fast": fast.outputs(img),
+            "fast_features": fast.features(img),
+            "big": big(img),
+            "lstm": lstm(jnp.zeros((3, 4)), jnp.zeros(4)),
+        }
+
     img = jnp.zeros((120, 120, 3), dtype=jnp.uint8)
-    assert sensor.features(img).shape == (240,)
-    assert sensor(img).shape == (2,)
     counts = jnp.array([0.0, 50.0, 149.0], dtype=jnp.float32)
-    const = M.ConstantNoise(4.0)
-    np.testing.assert_allclose(const(counts), 0.25, rtol=1e-6)
-    het = M.HeteroscedasticNoise(4.0, key)
+    out = outputs(build(jax.random.key(0)), img, counts)
+    assert out["features"].shape == (240,)
+    assert out["sensor"].shape == (2,)
+    np.testing.assert_allclose(out["const"], 0.25, rtol=1e-6)
     # Starts constant at 1/sigma (zero last layer), positive everywhere.
-    np.testing.assert_allclose(het(counts), 0.25, rtol=1e-5)
-    fast = M.HeatmapSensor(key, channels=4)
-    pos, vis = fast.outputs(img)
-    assert pos.shape == (2,) and vis.shape == () and fast.features(img).shape == (3,)
+    np.testing.assert_allclose(out["het"], 0.25, rtol=1e-5)
+    pos, vis = out["fast"]
+    assert pos.shape == (2,) and vis.shape == ()
+    assert out["fast_features"].shape == (3,)
     # Nothing to see in a black image: the heat map is flat, and the
     # "not visible" outcome starts as heavy as the whole map.
     assert abs(float(vis)) < 1.0
     # Without the "not visible" outcome the read-out is a mean of cell centres,
     # which lie inside the image.
-    big = eqx.tree_at(lambda s: s.background, fast, jnp.array([-50.0, 0.0, 0.0]))
-    assert np.all(np.abs(np.asarray(big(img))) <= 60)
-    lstm = M.LstmTracker(key, bidirectional=True, num_features=4, hidden=8)
-    out = lstm(jnp.zeros((3, 4)), jnp.zeros(4))
-    assert out.shape == (3, 2)
+    assert np.all(np.abs(np.asarray(out["big"])) <= 60)
+    assert out["lstm"].shape == (3, 2)
 
 
 def test_smoother_beats_its_measurements():
