@@ -271,6 +271,36 @@ def test_eager_linearize_is_one_compiled_program():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_eager_cost_and_nll_are_one_compiled_program_each():
+    """`FactorGraph.cost` and `.negative_log_likelihood` called outside `jit`
+    compile one program each, and equal their uncompiled forms."""
+    from helpers import se2_loop
+    from jax import monitoring
+
+    from eqsmooth.factors._graph import graph_cost, graph_negative_log_likelihood
+
+    graph, init, _ = se2_loop(2, N=3)
+    names = []
+
+    def on_duration(event, secs, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            names.append(kwargs.get("fun_name"))
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        cost = graph.cost(init)
+        nll = graph.negative_log_likelihood(init)
+    finally:
+        monitoring.unregister_event_duration_listener(on_duration)
+    assert set(names) <= {"jit(graph_cost)", "jit(graph_negative_log_likelihood)"}
+    assert len(names) <= 2, names
+    ref = jax.jit(lambda g, v: (graph_cost(g, v), graph_negative_log_likelihood(g, v)))
+    ref_cost, ref_nll = ref(graph, init)
+    np.testing.assert_allclose(float(cost), float(ref_cost), rtol=1e-14)
+    np.testing.assert_allclose(float(nll), float(ref_nll), rtol=1e-14)
+    assert float(cost) > 0
+
+
 def _random_state(kind, n, rng, scale=1.0):
     import eqsmooth as eqs
 

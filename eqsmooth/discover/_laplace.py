@@ -9,6 +9,7 @@ import lineax as lx
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph, StudentTNoise
+from ..factors._graph import graph_negative_log_likelihood
 from ..solve import (
     AbstractGraphSolver,
     BlockTridiagonal,
@@ -124,7 +125,7 @@ def laplace_at_map(
     x_tilde = retract_values(x_hat, delta)
     lin_t = linearize_graph(_fisher_curvature(graph), x_tilde)
     log_det = normal_log_det(lin_t, linear_solver)
-    nll = graph.negative_log_likelihood(x_tilde)
+    nll = graph_negative_log_likelihood(graph, x_tilde)
     N = lin_t.num_tangent
     log_ml = -nll + 0.5 * N * math.log(2 * math.pi) - 0.5 * log_det
     return jnp.asarray(log_ml)

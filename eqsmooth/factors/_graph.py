@@ -131,12 +131,13 @@ class FactorGraph(eqx.Module):
         return tuple(out)
 
     def cost(self, values: Values) -> Float[Array, ""]:
-        """Total cost `½ Σ ρ(‖R r‖²)` (Gaussian factors: half the squared norm)."""
-        total = 0.0
-        for f, rw in zip(self.factors, self.whitened_residuals(values)):
-            rho, _ = f.noise.rho(jnp.sum(rw * rw, axis=1))
-            total = total + 0.5 * jnp.sum(rho)
-        return jnp.asarray(total)
+        """Total cost `½ Σ ρ(‖R r‖²)` (Gaussian factors: half the squared norm).
+
+        Compiled (`eqx.filter_jit`): called outside `jit` it costs one
+        program per graph structure and value shapes, not one per JAX
+        operation.
+        """
+        return _compiled_cost(self, values)
 
     def negative_log_likelihood(self, values: Values) -> Float[Array, ""]:
         """Negative log-likelihood at `values`: cost − Σ log normaliser.
@@ -146,10 +147,35 @@ class FactorGraph(eqx.Module):
         [`eqsmooth.factors.StudentTNoise`][] factor contributes its exact
         Student-t density; the robust kernels (Huber, Cauchy, ...) contribute
         their loss with their base model's Gaussian constant (see
-        [`eqsmooth.factors.AbstractNoiseModel.log_normalizer`][]).
+        [`eqsmooth.factors.AbstractNoiseModel.log_normalizer`][]). Compiled,
+        like [`eqsmooth.factors.FactorGraph.cost`][].
         """
-        total = self.cost(values)
-        for f, rw in zip(self.factors, self.whitened_residuals(values)):
-            n, m = rw.shape
-            total = total - f.noise.log_normalizer(n, m)
-        return total
+        return _compiled_negative_log_likelihood(self, values)
+
+
+# The uncompiled forms, for code that is itself traced (solvers, losses): their
+# programs stay free of nested calls. The methods above are the compiled ones.
+
+
+def graph_cost(graph: FactorGraph, values: Values) -> Float[Array, ""]:
+    """`FactorGraph.cost`, uncompiled."""
+    total = 0.0
+    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
+        rho, _ = f.noise.rho(jnp.sum(rw * rw, axis=1))
+        total = total + 0.5 * jnp.sum(rho)
+    return jnp.asarray(total)
+
+
+def graph_negative_log_likelihood(
+    graph: FactorGraph, values: Values
+) -> Float[Array, ""]:
+    """`FactorGraph.negative_log_likelihood`, uncompiled."""
+    total = graph_cost(graph, values)
+    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
+        n, m = rw.shape
+        total = total - f.noise.log_normalizer(n, m)
+    return total
+
+
+_compiled_cost = eqx.filter_jit(graph_cost)
+_compiled_negative_log_likelihood = eqx.filter_jit(graph_negative_log_likelihood)

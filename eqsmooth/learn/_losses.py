@@ -3,6 +3,7 @@
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
+from ..factors._graph import graph_negative_log_likelihood
 from ..manifold import manifold_mse
 from ..solve import (
     AbstractAdjoint,
@@ -111,7 +112,7 @@ def joint_nll(
             f"joint_nll: reduction must be 'mean' or 'sum', got {reduction!r}"
         )
     layout = graph.validate(truth)
-    total = graph.negative_log_likelihood(truth)
+    total = graph_negative_log_likelihood(graph, truth)
     if reduction == "sum":
         return total
     return total / sum(g.count for g in layout)

@@ -40,6 +40,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, PyTree
 
 from ..factors import FactorGraph
+from ..factors._graph import graph_cost
 from ._default_solver import linear_solver_for
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize_graph, retract_values, Tangent
@@ -454,7 +455,7 @@ def _zeros(lin: Linearization) -> Tangent:
 
 def _tangent_gradient(graph: FactorGraph, x_star: Values, delta: Tangent) -> Tangent:
     """`∇_δ C(x* ⊕ δ)`: gradient of the true (robust) cost in tangent coordinates."""
-    return jax.grad(lambda d: graph.cost(retract_values(x_star, d)))(delta)
+    return jax.grad(lambda d: graph_cost(graph, retract_values(x_star, d)))(delta)
 
 
 @eqx.filter_custom_vjp

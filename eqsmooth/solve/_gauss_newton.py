@@ -7,6 +7,7 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ..factors._graph import graph_cost
 from ._default_solver import linear_solver_for
 from ._least_squares import (
     AbstractFixedStepSolver,
@@ -236,7 +237,7 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
         # its cost only (no Jacobians are needed after it).
         take = state.result == RESULTS.successful
         final = retract_values(values, state.delta)
-        cost = graph.cost(final).astype(state.lin.dtype)
+        cost = graph_cost(graph, final).astype(state.lin.dtype)
         ok = jnp.isfinite(cost)
         failed = take & ~ok
         values = nan_derivative_if(

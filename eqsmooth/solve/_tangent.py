@@ -16,6 +16,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
+from ..factors._graph import graph_cost
 from ._least_squares import graph_residuals
 from ._linearization import retract_values, Tangent
 from ._solution import raise_unless_successful, RESULTS, Solution
@@ -102,7 +103,7 @@ def _tangent_least_squares(
     layout = graph.validate(values)
     leaves = jax.tree_util.tree_leaves(values)
     dtype = jnp.result_type(*[x.dtype for x in leaves])
-    initial_cost = graph.cost(values)
+    initial_cost = graph_cost(graph, values)
     base = values
     num_steps = jnp.array(0)
     sol = None
@@ -125,6 +126,6 @@ def _tangent_least_squares(
     stats = {
         "num_steps": num_steps,
         "initial_cost": initial_cost,
-        "final_cost": graph.cost(base),
+        "final_cost": graph_cost(graph, base),
     }
     return Solution(value=base, result=result, stats=stats, state=sol.state)
