@@ -268,29 +268,34 @@ def test_se2_prediction_and_jacobians():
 
     trans, meas, truth = _se2_problem(1.0, 1.0)
     mean0, cov0 = _se2_initial(truth)
-    sol = eqs.filters.ekf(trans, [meas], mean0, cov0)
+
+    @jax.jit  # one program, not the Lie-group operations one by one
+    def run(trans, meas, truth, mean0, cov0):
+        sol = eqs.filters.ekf(trans, [meas], mean0, cov0)
+        pose, vel = sol.mean["pose"][: T - 1], sol.mean["vel"][: T - 1]
+        pred = pose @ eqs.SE2.exp(DT * vel)
+        checks = {
+            "pred": eqs.local(pred, sol.predicted_mean["pose"][1:], batch_ndim=1),
+            "vel": vel,
+            "adjoint": eqs.SE2.exp(-DT * vel).adjoint(),
+            "jr": DT * eqs.SE2.right_jacobian(DT * vel),
+            "err": eqs.local(truth, sol.mean, batch_ndim=1),
+        }
+        return sol, eqs.filters.rts_smoother(sol), checks
+
+    sol, rts, c = run(trans, meas, truth, mean0, cov0)
     assert np.all(np.isfinite(sol.covariance))
     # One Newton step is exact for b ⊖ f(a): x_{t+1|t} = f(x_{t|t}).
-    pose, vel = sol.mean["pose"][: T - 1], sol.mean["vel"][: T - 1]
-    pred = pose @ eqs.SE2.exp(DT * vel)
-    np.testing.assert_allclose(
-        eqs.local(pred, sol.predicted_mean["pose"][1:], batch_ndim=1), 0.0, atol=1e-12
-    )
-    np.testing.assert_allclose(sol.predicted_mean["vel"][1:], vel, atol=1e-12)
+    np.testing.assert_allclose(c["pred"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(sol.predicted_mean["vel"][1:], c["vel"], atol=1e-12)
     # F = [[Ad(exp(v dt)⁻¹), Jr(v dt) dt], [0, I]] for right perturbations.
     F = np.asarray(sol.transition_jacobian)
-    np.testing.assert_allclose(
-        F[:, :3, :3], eqs.SE2.exp(-DT * vel).adjoint(), atol=1e-10
-    )
-    np.testing.assert_allclose(
-        F[:, :3, 3:], DT * eqs.SE2.right_jacobian(DT * vel), atol=1e-10
-    )
+    np.testing.assert_allclose(F[:, :3, :3], c["adjoint"], atol=1e-10)
+    np.testing.assert_allclose(F[:, :3, 3:], c["jr"], atol=1e-10)
     np.testing.assert_allclose(F[:, 3:, :3], 0.0, atol=1e-12)
     np.testing.assert_allclose(F[:, 3:, 3:], np.broadcast_to(np.eye(3), (T - 1, 3, 3)))
     # The filter tracks the truth better than the raw measurements' noise.
-    err = eqs.local(truth, sol.mean, batch_ndim=1)
-    assert np.sqrt(np.mean(np.asarray(err[:, :2]) ** 2)) < 0.1
-    rts = eqs.filters.rts_smoother(sol)
+    assert np.sqrt(np.mean(np.asarray(c["err"][:, :2]) ** 2)) < 0.1
     # Positive definite beliefs.
     assert np.all(np.linalg.eigvalsh(np.asarray(sol.covariance)) > 0)
     assert np.all(np.linalg.eigvalsh(np.asarray(rts.covariance)) > 0)
