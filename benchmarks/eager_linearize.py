@@ -6,6 +6,9 @@ first one), alternating between the trees given, for `--rounds` rounds:
 - `eager`: `eqs.linearize(graph, values)` on the 5-pose SE(2) graph of
   `first_call.py`'s `pose2` case, called outside `jit`: the first call
   (seconds, and how many XLA programs it compiled) and the second (ms);
+- `cost`: `graph.cost(values)` then `graph.negative_log_likelihood(values)`
+  on that graph, outside `jit`: first calls (seconds, XLA programs) and
+  second calls (ms);
 - `solve`: that graph's `LevenbergMarquardt` solve staged with
   `jax.jit(...).trace / .lower() / .compile()` (seconds each), the median of
   300 runs of the compiled program, and its HLO size.
@@ -14,6 +17,8 @@ first one), alternating between the trees given, for `--rounds` rounds:
 git worktree add /tmp/before <commit>
 python benchmarks/eager_linearize.py --trees before=/tmp/before after=. \\
     --json benchmarks/results/eager_linearize.json
+python benchmarks/eager_linearize.py --trees before=/tmp/before after=. \\
+    --what cost --json benchmarks/results/eager_cost.json
 ```
 """
 
@@ -60,6 +65,19 @@ def child(root: str, what: str) -> dict:
             "first_programs": programs[0],
             "second_ms": (time.perf_counter() - t) * 1e3,
         }
+    if what == "cost":
+        t = time.perf_counter()
+        jax.block_until_ready(graph.cost(values))
+        jax.block_until_ready(graph.negative_log_likelihood(values))
+        first = time.perf_counter() - t
+        t = time.perf_counter()
+        jax.block_until_ready(graph.cost(values))
+        jax.block_until_ready(graph.negative_log_likelihood(values))
+        return {
+            "first_s": first,
+            "first_programs": programs[0],
+            "second_ms": (time.perf_counter() - t) * 1e3,
+        }
     t0 = time.perf_counter()
     traced = jax.jit(fn).trace(graph, values)
     t1 = time.perf_counter()
@@ -87,6 +105,12 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trees", nargs="+", default=[f"this={HERE.parent}"])
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument(
+        "--what",
+        nargs="+",
+        default=["eager", "solve"],
+        choices=["eager", "cost", "solve"],
+    )
     parser.add_argument("--json")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -97,7 +121,7 @@ def main(argv=None) -> None:
     results = []
     for r in range(args.rounds):
         for label, root in trees.items():
-            for what in ("eager", "solve"):
+            for what in args.what:
                 out = subprocess.run(
                     [sys.executable, __file__, "--child", root, what],
                     capture_output=True,

@@ -153,7 +153,9 @@ class ChainModel(eqx.Module):
         `-½ Σ (log multiplier / s)²`, so a multiplier the data cannot
         identify stays near its nominal value instead of running off towards
         zero or infinity; with `s = 5` a multiplier of `e^{±5}` (×150) costs
-        half a nat. Reported evidences stay those of the data.
+        half a nat. Reported evidences stay those of the data. The prior
+        acts in the fits only, outside compiled code: models that differ
+        in it share the compiled MAP, evidence and score programs.
     """
 
     dynamics: Callable = eqx.field(static=True)
