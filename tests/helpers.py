@@ -1,5 +1,6 @@
 """Tiny problems shared by the tests (import inside tests, after the hook)."""
 
+import contextlib
 import os
 
 import equinox as eqx
@@ -20,6 +21,25 @@ def child_env(extra_xla_flags: str = "") -> dict[str, str]:
         XLA_FLAGS=flags,
         JAX_DISABLE_MOST_OPTIMIZATIONS="1",
     )
+
+
+@contextlib.contextmanager
+def compiled_programs():
+    """Collect the names (`jit(f)`) of the XLA programs compiled inside the
+    `with` block, in order."""
+    from jax import monitoring
+
+    names = []
+
+    def on_duration(event, secs, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            names.append(kwargs.get("fun_name"))
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        yield names
+    finally:
+        monitoring.unregister_event_duration_listener(on_duration)
 
 
 def tree_allclose(x, y, *, rtol=1e-7, atol=1e-9):

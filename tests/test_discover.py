@@ -389,7 +389,7 @@ def test_fit_is_bounded_and_never_raises(monkeypatch):
 def test_noise_scale_prior_holds_unidentified_scales():
     import dataclasses
 
-    from jax import monitoring
+    from helpers import compiled_programs
 
     import eqsmooth.discover._fit as F
 
@@ -405,17 +405,8 @@ def test_noise_scale_prior_holds_unidentified_scales():
     free_fit = F.fit(model, data, free, z0, start.xhat, scales)
     sd = 0.01
     held = dataclasses.replace(model, noise_scale_prior=sd)
-    compiled = []
-
-    def on_duration(event, secs, **kwargs):
-        if event.endswith("backend_compile_duration"):
-            compiled.append(kwargs.get("fun_name"))
-
-    monitoring.register_event_duration_secs_listener(on_duration)
-    try:
+    with compiled_programs() as compiled:
         held_fit = F.fit(held, data, free, z0, start.xhat, scales)
-    finally:
-        monitoring.unregister_event_duration_listener(on_duration)
     # The prior steers the fit outside compiled code: the MAP, evidence and
     # score programs compiled for `model` serve `held` too.
     programs = {"jit(map_states)", "jit(batch_scores)", "jit(batch_log_marginal)"}

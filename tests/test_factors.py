@@ -244,24 +244,14 @@ def test_linearisation_matches_autodiff_on_se2():
 def test_eager_linearize_is_one_compiled_program():
     """`eqs.linearize` called outside `jit` compiles one program (not one per
     JAX operation), and gives what the solvers' uncompiled copy gives."""
-    from helpers import se2_loop
-    from jax import monitoring
+    from helpers import compiled_programs, se2_loop
 
     import eqsmooth as eqs
     from eqsmooth.solve._linearization import linearize_graph
 
     graph, init, _ = se2_loop(1, N=3)
-    names = []
-
-    def on_duration(event, secs, **kwargs):
-        if event.endswith("backend_compile_duration"):
-            names.append(kwargs.get("fun_name"))
-
-    monitoring.register_event_duration_secs_listener(on_duration)
-    try:
+    with compiled_programs() as names:
         lin = eqs.linearize(graph, init)
-    finally:
-        monitoring.unregister_event_duration_listener(on_duration)
     # One program (none if an earlier test compiled this graph structure).
     assert names in ([], ["jit(linearize)"])
     eqns = jax.make_jaxpr(eqs.linearize)(graph, init).eqns
@@ -274,24 +264,14 @@ def test_eager_linearize_is_one_compiled_program():
 def test_eager_cost_and_nll_are_one_compiled_program_each():
     """`FactorGraph.cost` and `.negative_log_likelihood` called outside `jit`
     compile one program each, and equal their uncompiled forms."""
-    from helpers import se2_loop
-    from jax import monitoring
+    from helpers import compiled_programs, se2_loop
 
     from eqsmooth.factors._graph import graph_cost, graph_negative_log_likelihood
 
     graph, init, _ = se2_loop(2, N=3)
-    names = []
-
-    def on_duration(event, secs, **kwargs):
-        if event.endswith("backend_compile_duration"):
-            names.append(kwargs.get("fun_name"))
-
-    monitoring.register_event_duration_secs_listener(on_duration)
-    try:
+    with compiled_programs() as names:
         cost = graph.cost(init)
         nll = graph.negative_log_likelihood(init)
-    finally:
-        monitoring.unregister_event_duration_listener(on_duration)
     assert set(names) <= {"jit(graph_cost)", "jit(graph_negative_log_likelihood)"}
     assert len(names) <= 2, names
     ref = jax.jit(lambda g, v: (graph_cost(g, v), graph_negative_log_likelihood(g, v)))
