@@ -159,22 +159,27 @@ class FactorGraph(eqx.Module):
 
 def graph_cost(graph: FactorGraph, values: Values) -> Float[Array, ""]:
     """`FactorGraph.cost`, uncompiled."""
-    total = 0.0
-    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
-        rho, _ = f.noise.rho(jnp.sum(rw * rw, axis=1))
-        total = total + 0.5 * jnp.sum(rho)
-    return jnp.asarray(total)
+    return _cost_of(graph, graph.whitened_residuals(values))
 
 
 def graph_negative_log_likelihood(
     graph: FactorGraph, values: Values
 ) -> Float[Array, ""]:
     """`FactorGraph.negative_log_likelihood`, uncompiled."""
-    total = graph_cost(graph, values)
-    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
+    whitened = graph.whitened_residuals(values)  # traced once, for both terms
+    total = _cost_of(graph, whitened)
+    for f, rw in zip(graph.factors, whitened):
         n, m = rw.shape
         total = total - f.noise.log_normalizer(n, m)
     return total
+
+
+def _cost_of(graph: FactorGraph, whitened) -> Float[Array, ""]:
+    total = 0.0
+    for f, rw in zip(graph.factors, whitened):
+        rho, _ = f.noise.rho(jnp.sum(rw * rw, axis=1))
+        total = total + 0.5 * jnp.sum(rho)
+    return jnp.asarray(total)
 
 
 _compiled_cost = eqx.filter_jit(graph_cost)
