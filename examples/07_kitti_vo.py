@@ -30,6 +30,8 @@ budgeted at 90 minutes.
 
     python examples/07_kitti_vo.py --quick --out /tmp/kitti_quick
     python examples/07_kitti_vo.py --folds 0 1 --out results/kitti
+    python examples/07_kitti_vo.py --variant reliability --folds 0 \
+        --out results/kitti_variant   # the pre-declared data variant
 """
 
 import argparse
@@ -66,7 +68,14 @@ def parse_args(argv=None):
         "--real-data-dir",
         help="the preprocessed KITTI-10 release ({seq}/image_2, {seq}_image1.txt ...)",
     )
-    p.add_argument("--data-seed", type=int)
+    p.add_argument(
+        "--variant",
+        choices=sorted(D.VARIANTS),
+        help="a pre-declared data variant of the rendered views (its own data "
+        "seed; see docs/tutorial/visual-odometry.md), e.g. --out "
+        "results/kitti_variant",
+    )
+    p.add_argument("--data-seed", type=int, help="default 0, or the variant's seed")
     p.add_argument("--model-seed", type=int)
     p.add_argument("--sensor-steps", type=int)
     p.add_argument("--steps", type=int, help="smoother / EKF training steps")
@@ -86,6 +95,12 @@ def parse_args(argv=None):
     )
     args = p.parse_args(argv)
     cfg = E.quick_config() if args.quick else E.Config()
+    if args.variant is not None:
+        if args.real_data_dir:
+            p.error("--variant changes the rendered views; not with --real-data-dir")
+        cfg = dataclasses.replace(
+            cfg, variant=args.variant, data_seed=D.VARIANTS[args.variant]
+        )
     updates = {
         "methods": tuple(args.methods) if args.methods else None,
         "poses_dir": args.poses_dir,

@@ -101,6 +101,30 @@ def test_renderer_is_deterministic_and_nuisances_vary():
     assert np.any(nz["occluded"]) and np.any(nz["low_texture"])
 
 
+def test_reliability_variant_is_deterministic_and_differs_from_default():
+    xyt = _toy_path(200)
+    frames = np.arange(0, 200, 3)
+    a = D.Renderer(xyt, seed=33, seq=4, variant="reliability")
+    b = D.Renderer(xyt, seed=33, seq=4, variant="reliability")
+    default = D.Renderer(xyt, seed=33, seq=4).images("image_2", frames)
+    np.testing.assert_array_equal(
+        a.images("image_2", frames), b.images("image_2", frames)
+    )
+    assert np.any(a.images("image_2", frames) != default)
+    nz, nz0 = (
+        a.nuisances(np.arange(200)),
+        D.Renderer(xyt, 33, 4).nuisances(np.arange(200)),
+    )
+    assert np.any(nz["misframed"]) and not np.any(nz0["misframed"])
+    assert np.all(nz["blur"] >= nz0["blur"]) and np.any(nz["gain"] != nz0["gain"])
+    # A repeated frame slot shows the previous capture: the pair sees no motion.
+    f = int(np.nonzero(a.world.source == np.arange(200) - 1)[0][0])
+    pair = a.images("image_3", [f - 1, f])
+    np.testing.assert_array_equal(pair[0], pair[1])
+    with pytest.raises(ValueError, match="unknown variant"):
+        D.Renderer(xyt, seed=33, seq=4, variant="nope")
+
+
 def test_folds_and_splits():
     seen = set()
     for f in range(D.NUM_FOLDS):
@@ -127,6 +151,9 @@ def test_metric_on_known_trajectory():
     trans, rot = D.window_metrics(est, truth)
     assert trans == pytest.approx(0.01)
     assert rot == pytest.approx(0.02)
+    # Whole-window: the same errors averaged over the 101 states (one is off).
+    trans, rot = D.whole_window_metrics(est, truth)
+    assert trans == pytest.approx(0.01 / 101) and rot == pytest.approx(0.02 / 101)
 
 
 def test_velocities_match_the_library_state():
@@ -213,6 +240,31 @@ def test_summary_and_docs_table_come_from_fold_json(tmp_path):
     assert "STALE" not in text and table in text and text.endswith("tail\n")
     with pytest.raises(ValueError, match="kitti-results"):
         report.update_docs(tmp_path / "fold_0.json", table)
+
+
+def test_declared_criterion_of_a_variant(tmp_path):
+    import json
+
+    from kitti_vo import report
+
+    keys = ("trans_m_per_m", "rot_deg_per_m", "trans_m_per_m_whole")
+    keys += ("rot_deg_per_m_whole",)
+    config = {"methods": ["smoother_hetero_e2e", "ekf_hetero"], "variant": "x"}
+    config.update(cameras=["image_2"], mirror=True, validate=True)
+    for k in range(10):
+        d = -0.01 if k < 8 else 0.005  # the smoother below the EKF on 8 folds
+        rows = {}
+        for m, v in (("smoother_hetero_e2e", 0.1 + d), ("ekf_hetero", 0.1)):
+            rows[m] = {key: v for key in keys}
+            rows[m].update({key + "_windows": [v] * 4 for key in keys})
+        fold = {"fold": k, "rows": rows, "config": config, "label": "variant x"}
+        (tmp_path / f"fold_{k}.json").write_text(json.dumps(fold))
+    table = report.write_summary(tmp_path)
+    c = json.loads((tmp_path / "summary.json").read_text())["declared_criterion"]
+    assert c["complete"] and c["target_1_met"] and c["target_2_met"]
+    assert c["trans_m_per_m"]["folds_below_0"] == 8
+    np.testing.assert_allclose(c["trans_m_per_m"]["mean"], -0.007)
+    assert "variant x" in table and "Target 1" in table and "**met**" in table
 
 
 @pytest.mark.slow

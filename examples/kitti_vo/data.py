@@ -13,7 +13,9 @@ Two sources of 50 x 150 RGB views feed the same experiment:
   markings along the driven path, vertical structures beside it) with
   per-frame nuisances (brightness changes, motion blur, passing occluders,
   stretches with little texture, pixel noise). Rendering is deterministic
-  from `(seed, sequence)` and done on demand, about 0.3 ms per frame.
+  from `(seed, sequence)` and done on demand, about 0.3 ms per frame. A
+  pre-declared data variant (`VARIANTS`, `reliability_variant`) adds
+  per-frame faults of real driving video.
 
 Both give `Trajectory` objects (2-D ground-truth poses plus an image
 source), which the folds, splits and metrics below use alike. The 2-D
@@ -257,6 +259,10 @@ class World:
     blur: np.ndarray  # (N,) horizontal motion-blur width (px)
     noise: np.ndarray  # (N,) pixel-noise std (0-255 scale)
     occluder: np.ndarray  # (N, 4): centre column, half width, top row, shade
+    # Variants only (see `reliability_variant`): the frame whose capture each
+    # frame slot shows, and whether occluders carry a texture moving with them.
+    source: np.ndarray | None = None
+    striped: bool = False
 
 
 def _stamp(mask, ci, cj, rad):
@@ -411,6 +417,47 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
     return World(lo, ground, objects, low, gain, blur, noise, occ)
 
 
+# Pre-declared data variants (docs/tutorial/visual-odometry.md): name -> seed.
+VARIANTS = {"reliability": 33}
+BLUR_PX_PER_RAD_S = 20.0  # yaw-rate motion blur: about 8 px at 0.4 rad/s
+EXPOSURE_PER_RAD_S = 0.4  # auto-exposure step std per frame, per rad/s of yaw
+
+
+def reliability_variant(world: World, xyt: np.ndarray, seed: int, seq: int) -> World:
+    """The "reliability" variant: per-frame faults that real driving video has.
+
+    - Repeated and dropped frames: 3% of the frame slots show the previous
+      capture again (the pair before them sees no motion, the pair after
+      them two frames' motion) and 2% show the next capture early.
+    - Motion blur tied to the yaw rate: `BLUR_PX_PER_RAD_S * |ω|` pixels
+      (the larger of it and the world's own blur).
+    - Exposure changes tied to the yaw rate: the log brightness follows
+      `x_t = 0.8 x_{t-1} + EXPOSURE_PER_RAD_S |ω_t| ε_t` (the camera turning
+      towards and away from the light), on top of the world's gain.
+    - Moving occluders that bias the flow: each passing occluder carries
+      stripes that move with it, so its own motion reads as image motion.
+    """
+    rng = np.random.default_rng([seed, seq, 17])
+    N = xyt.shape[0]
+    yaw = np.abs(velocities(xyt)[:, 1])
+    source = np.arange(N)
+    u = rng.random(N)
+    repeat, drop = (u < 0.03) & (source > 0), (u > 0.98) & (source < N - 1)
+    source[repeat] -= 1
+    source[drop] += 1
+    step = EXPOSURE_PER_RAD_S * yaw * rng.standard_normal(N)
+    x = np.zeros(N)
+    for t in range(1, N):
+        x[t] = 0.8 * x[t - 1] + step[t]
+    return dataclasses.replace(
+        world,
+        gain=world.gain * np.exp(x),
+        blur=np.maximum(world.blur, np.round(BLUR_PX_PER_RAD_S * yaw)),
+        source=source,
+        striped=True,
+    )
+
+
 # Per-pixel ground rays, in the camera's frame (forward, left), fixed.
 _ROWS = np.arange(H, dtype=np.float64)[:, None] + 0.5
 _COLS = np.arange(W, dtype=np.float64)[None, :] + 0.5
@@ -484,16 +531,21 @@ class Renderer:
 
     - `xyt`: `(N, 3)` planar camera-0 poses of the sequence.
     - `seed`, `seq`: fix the world and the nuisances.
+    - `variant`: `None` (the default world) or a name in `VARIANTS`.
 
     `images(camera, frames)` renders the views of `camera` (`"image_2"` or
     `"image_3"`) at `frames`; `nuisances(frames)` returns the per-frame
     nuisance levels (for plots).
     """
 
-    def __init__(self, xyt: np.ndarray, seed: int, seq: int):
+    def __init__(self, xyt: np.ndarray, seed: int, seq: int, variant=None):
         self.xyt = np.asarray(xyt, np.float64)
         self.seed, self.seq = int(seed), int(seq)
         self.world = build_world(self.xyt, seed, seq)
+        if variant is not None:
+            if variant not in VARIANTS:
+                raise ValueError(f"unknown variant {variant!r}: not in {VARIANTS}")
+            self.world = reliability_variant(self.world, self.xyt, seed, seq)
         self._levels = _mip_levels(self.world.ground, MAP_LEVELS)
         rng = np.random.default_rng([seed, seq, 13])
         self._noise = rng.standard_normal((_NOISE_BANK, H, W + 17, 3), np.float32)
@@ -507,10 +559,15 @@ class Renderer:
             "noise": w.noise[frames],
             "occluded": w.occluder[frames, 1] > 0,
             "low_texture": w.low_texture[frames],
+            "misframed": (w.source[frames] != frames)
+            if w.source is not None
+            else np.zeros(frames.shape, bool),
         }
 
     def images(self, camera: str, frames) -> np.ndarray:
         frames = np.atleast_1d(np.asarray(frames))
+        if self.world.source is not None:  # repeated / dropped frames
+            frames = self.world.source[frames]
         poses = offset_camera(self.xyt[frames], CAMERA_OFFSETS[camera])
         cam = CAMERAS.index(camera)
         return np.stack([self.render(p, int(f), cam) for p, f in zip(poses, frames)])
@@ -545,7 +602,11 @@ class Renderer:
             c0 = int(np.clip(oc[0] - oc[1], 0, W))
             c1 = int(np.clip(oc[0] + oc[1], 0, W))
             r0 = int(np.clip(np.ceil(oc[2]), 0, H))
-            img[r0:, c0:c1] = oc[3] * _OCCLUDER_TINT
+            shade = oc[3] * _OCCLUDER_TINT
+            if w.striped:  # stripes that move with the occluder
+                stripes = 0.6 + 0.4 * ((_COLS[0, c0:c1] - oc[0]) // 10 % 2)
+                shade = shade * stripes[:, None]
+            img[r0:, c0:c1] = shade
         # Motion blur along rows (box filter by cumulative sums).
         b = int(w.blur[frame])
         if b > 1:
@@ -610,9 +671,13 @@ class Renderer:
 
 
 def rendered_sequence(
-    seq: int, seed: int = 0, poses_dir: str | Path = DEFAULT_POSES_DIR
+    seq: int,
+    seed: int = 0,
+    poses_dir: str | Path = DEFAULT_POSES_DIR,
+    variant: str | None = None,
 ) -> list[Trajectory]:
-    """The two camera trajectories of a sequence, with rendered views."""
+    """The two camera trajectories of a sequence, with rendered views
+    (of the default world, or of a data variant in `VARIANTS`)."""
     path = Path(poses_dir) / f"{seq:02d}.txt"
     if not path.exists():
         raise FileNotFoundError(
@@ -621,7 +686,7 @@ def rendered_sequence(
             "'ground truth poses' download)"
         )
     xyt = poses_to_2d(read_poses(path))
-    renderer = Renderer(xyt, seed, seq)
+    renderer = Renderer(xyt, seed, seq, variant)
     return [
         Trajectory(seq, cam, False, offset_camera(xyt, CAMERA_OFFSETS[cam]), renderer)
         for cam in CAMERAS
@@ -692,3 +757,15 @@ def window_metrics(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     trans = float(np.linalg.norm(est[-1, :2] - truth[-1, :2])) / length
     dth = np.angle(np.exp(1j * (est[-1, 2] - truth[-1, 2])))
     return trans, float(np.degrees(abs(dth))) / length
+
+
+def whole_window_metrics(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """Whole-window errors: like `window_metrics`, averaged over all T states.
+
+    **Returns:** `(mean_t |p̂_t − p_t| / L, mean_t |θ̂_t − θ_t| (deg) / L)`.
+    """
+    length = float(np.sum(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1)))
+    length = max(length, 1e-6)
+    trans = float(np.mean(np.linalg.norm(est[:, :2] - truth[:, :2], axis=1))) / length
+    dth = np.angle(np.exp(1j * (est[:, 2] - truth[:, 2])))
+    return trans, float(np.mean(np.degrees(np.abs(dth)))) / length

@@ -46,6 +46,7 @@ METHODS = (
 @dataclasses.dataclass
 class Config:
     data_seed: int = 0
+    variant: str | None = None  # a pre-declared data variant (D.VARIANTS)
     model_seed: int = 0
     poses_dir: str = str(D.DEFAULT_POSES_DIR)
     real_data_dir: str | None = None  # the preprocessed KITTI-10 release, if any
@@ -102,6 +103,10 @@ def quick_config() -> Config:
     )
 
 
+def label(cfg: Config) -> str:
+    return LABEL + (f", data variant {cfg.variant!r}" if cfg.variant else "")
+
+
 def train_sequences(cfg: Config, spec: D.FoldSpec) -> tuple[int, ...]:
     if cfg.max_train_sequences is None:
         return spec.train
@@ -143,7 +148,7 @@ def load_trajectories(cfg: Config, seq: int) -> list[D.Trajectory]:
     if cfg.real_data_dir is not None:
         trajs = D.load_kitti10_sequence(cfg.real_data_dir, seq)
     else:
-        trajs = D.rendered_sequence(seq, cfg.data_seed, cfg.poses_dir)
+        trajs = D.rendered_sequence(seq, cfg.data_seed, cfg.poses_dir, cfg.variant)
     trajs = [t for t in trajs if t.camera in cfg.cameras]
     return D.with_mirrors(trajs) if cfg.mirror else trajs
 
@@ -317,7 +322,8 @@ def _batched_estimator(method: str):
 
 
 def evaluate(method: str, model, windows: dict, batch: int = 8):
-    """Per-window (m/m, deg/m) and estimated planar poses."""
+    """Per-window (m/m, deg/m; final step, then whole window) and estimated
+    planar poses."""
     fn = _batched_estimator(method)
     n = windows["z"].shape[0]
     est = []
@@ -330,7 +336,12 @@ def evaluate(method: str, model, windows: dict, batch: int = 8):
     truth = _planar(
         eqs.factors.VehicleState(eqs.SE2(windows["pose"]), windows["velocity"])
     )
-    metrics = np.array([D.window_metrics(e, t) for e, t in zip(est, truth)])
+    metrics = np.array(
+        [
+            D.window_metrics(e, t) + D.whole_window_metrics(e, t)
+            for e, t in zip(est, truth)
+        ]
+    )
     return metrics, est
 
 
@@ -353,7 +364,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     result_path = out / f"fold_{fold}.json"
     result = json.loads(result_path.read_text()) if result_path.exists() else {}
     result.update(
-        label=LABEL,
+        label=label(cfg),
         fold=fold,
         test_sequence=spec.test,
         valid_sequence=spec.valid,
@@ -558,6 +569,10 @@ def _row(metrics: np.ndarray, train_s: float, eval_s: float, best_step) -> dict:
         "rot_deg_per_m": float(np.mean(metrics[:, 1])),
         "trans_m_per_m_windows": metrics[:, 0].tolist(),
         "rot_deg_per_m_windows": metrics[:, 1].tolist(),
+        "trans_m_per_m_whole": float(np.mean(metrics[:, 2])),
+        "rot_deg_per_m_whole": float(np.mean(metrics[:, 3])),
+        "trans_m_per_m_whole_windows": metrics[:, 2].tolist(),
+        "rot_deg_per_m_whole_windows": metrics[:, 3].tolist(),
         "train_s": train_s,
         "eval_s": eval_s,
         "best_step": best_step,
