@@ -12,7 +12,10 @@ therefore what reverse-mode autodiff differentiates:
 
 They are `optimistix.AbstractAdjoint`s, so they also serve
 `optx.least_squares(eqs.solve.graph_residuals, solver, values, args=graph,
-adjoint=...)`. Each implements two loops:
+adjoint=...)`; there they find the eqsmooth solver and graph in
+optimistix's inputs by type and take the iteration limit from the
+`max_steps` optimistix hands to the loop, so they do not depend on the
+layout of those inputs. Each implements two loops:
 
 - `run`, for eqsmooth's driver, which hands it three functions over the loop
     carry `(values, state, cost_history)`: `init(graph, values)`,
@@ -42,9 +45,11 @@ from jaxtyping import Array, Bool, PyTree
 from ..factors import FactorGraph
 from ..factors._graph import graph_cost
 from ._default_solver import linear_solver_for
+from ._derivatives import checked_derivative, recomputed, refuse_derivative
+from ._graph_solver import AbstractGraphSolver
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize_graph, retract_values, Tangent
-from ._misc import preconditioned_cg, tree_where
+from ._misc import preconditioned_cg, stationary, tree_where
 from ._solution import RESULTS
 
 
@@ -90,53 +95,35 @@ def _lax_while(cond, body, carry, max_steps: int | None):
     return lax.while_loop(cond2, body2, (carry, 0))[0]
 
 
-# optimistix's `iterative_solve` calls `adjoint.apply(primal_fn, rewrite_fn,
-# inputs, tags)` with `inputs = (fn, solver, y0, args, options, max_steps,
-# f_struct, aux_struct, tags)` (its own rewrite functions unpack the same
-# tuple); `primal_fn(inputs + (while_loop,))` runs the solve with
-# `while_loop(cond, body, carry, max_steps=...)` and returns `(y, residual)`.
-_OPTX_INPUTS = 9
+def _find(tree, cls):
+    """The instances of `cls` in a pytree (found by type, so that nothing here
+    depends on the order of optimistix's inputs to an adjoint)."""
+    is_cls = lambda x: isinstance(x, cls)
+    return [x for x in jax.tree_util.tree_leaves(tree, is_leaf=is_cls) if is_cls(x)]
 
 
-def _optx_inputs(inputs, who: str) -> tuple:
-    if not (isinstance(inputs, tuple) and len(inputs) == _OPTX_INPUTS):
-        raise RuntimeError(
-            f"{who}.apply: optimistix passed inputs this version of eqsmooth does "
-            f"not know (expected a tuple of {_OPTX_INPUTS}, (fn, solver, y0, args, "
-            "options, max_steps, f_struct, aux_struct, tags))"
-        )
-    return inputs
+def _graph_solver(inputs) -> AbstractGraphSolver | None:
+    """The eqsmooth solver of an optimistix solve (None for optimistix's own)."""
+    found = _find(inputs, AbstractGraphSolver)
+    return found[0] if len(found) == 1 else None
 
 
-def _iteration_limit(inputs, who: str) -> int:
+def _iteration_limit(solver: AbstractGraphSolver | None, max_steps, who: str) -> int:
     """The static number of iterations a scan must cover for an optimistix solve.
 
     optimistix counts every call of the solver's `step` against its
-    `max_steps`, the first iteration of eqsmooth's solvers (which only
-    linearises the initial values) included; a fixed-step solver needs its
-    `num_steps`.
+    `max_steps` (handed to the adjoint's `while_loop`), the first iteration
+    of eqsmooth's solvers (which only linearises the initial values)
+    included; a fixed-step solver needs only its `num_steps`.
     """
-    from ._least_squares import AbstractFixedStepSolver  # it imports this module
-
-    _, solver, _, _, _, max_steps, *_ = _optx_inputs(inputs, who)
-    if isinstance(solver, AbstractFixedStepSolver):
-        return solver.iteration_limit(max_steps)
     if max_steps is None:
         raise ValueError(
             f"{who} scans a fixed number of iterations: pass max_steps to "
             "optx.least_squares"
         )
+    if solver is not None:
+        return min(max_steps, solver.iteration_limit(max_steps))
     return max_steps
-
-
-def _steps_after(inputs, who: str) -> int:
-    """Steps the optimistix solve's solver takes in `postprocess`."""
-    from ._least_squares import AbstractGraphSolver  # it imports this module
-
-    _, solver, *_ = _optx_inputs(inputs, who)
-    if isinstance(solver, AbstractGraphSolver):
-        return solver.steps_after_loop()
-    return 0
 
 
 class AbstractAdjoint(optx.AbstractAdjoint):
@@ -210,10 +197,10 @@ class UnrolledAdjoint(AbstractAdjoint):
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
-        limit = _iteration_limit(inputs, "UnrolledAdjoint")
+        solver = _graph_solver(inputs)
 
         def while_loop(cond, body, carry, max_steps):
-            del max_steps
+            limit = _iteration_limit(solver, max_steps, "UnrolledAdjoint")
             return _scan_while(cond, body, carry, limit)
 
         return primal_fn(inputs + (while_loop,))
@@ -273,12 +260,12 @@ class TruncatedAdjoint(AbstractAdjoint):
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
-        limit = _iteration_limit(inputs, "TruncatedAdjoint")
+        solver = _graph_solver(inputs)
         k = self.num_steps
-        after = _steps_after(inputs, "TruncatedAdjoint")
+        after = 0 if solver is None else solver.steps_after_loop()
 
         def while_loop(cond, body, carry, max_steps):
-            del max_steps
+            limit = _iteration_limit(solver, max_steps, "TruncatedAdjoint")
             return _truncated_loop(cond, body, carry, limit, k, after)
 
         return primal_fn(inputs + (while_loop,))
@@ -358,17 +345,27 @@ class ImplicitAdjoint(AbstractAdjoint):
     `max_steps_reached`) give the gradient at the returned point.
 
     The gradient is exact only at a stationary point: run the solver to
-    convergence (not [`eqsmooth.solve.FixedStepGaussNewton`][], whose result
-    is not a minimiser). Gradients with respect to the initial values are
-    zero, and so are those of `Solution.stats` and `Solution.state`. Only
-    reverse mode is supported (`jax.grad`, `jax.vjp`), not `jax.jvp`.
+    convergence. A [`eqsmooth.solve.FixedStepGaussNewton`][] solve that stops
+    short of a stationary point (`max |Jᵀr| > √ε · max(1, 2 cost)`) raises an
+    `EquinoxRuntimeError` when differentiated (use
+    [`eqsmooth.solve.UnrolledAdjoint`][] there). Gradients with respect to
+    the initial values are zero (the minimiser does not depend on them).
+    What the solution's state keeps is differentiable too: `state.lin` (the
+    linearisation at the solution, so marginal covariances and
+    log-determinants of a `Solution`) and `stats["final_cost"]` /
+    `stats["initial_cost"]` carry their exact derivatives, computed in the
+    backward pass by differentiating the linearisation at the solution;
+    differentiating `stats["cost_history"]` (intermediate iterates) raises.
+    Only reverse mode is supported (`jax.grad`, `jax.vjp`), not `jax.jvp`.
 
     Through `optx.least_squares` (with `args` the graph, any least-squares
     solver that keeps the values' types) it is the adjoint to use for
     Lie-group values: `optx.ImplicitAdjoint` would differentiate the
-    optimality condition in ambient coordinates, which is wrong there. It
-    linearises once more at the solution (eqsmooth's driver reuses the
-    solver's last linearisation).
+    optimality condition in ambient coordinates, which is wrong there (and
+    so refused by [`eqsmooth.solve.graph_residuals`][]). It linearises once
+    more at the solution (eqsmooth's driver reuses the solver's last
+    linearisation), and the `lin` of the solver state optimistix returns is
+    differentiable as above.
 
     **Arguments:**
 
@@ -414,31 +411,67 @@ class ImplicitAdjoint(AbstractAdjoint):
             state.result == RESULTS.linear_solve_failed
         )
         delta = _implicit_delta(graph, x_star, state.lin, self, linear_solver, failed)
-        return retract_values(x_star, delta), state, history
+        x = retract_values(x_star, delta)
+        # What the state keeps is differentiable too: the linearisation at the
+        # solution (marginals, log-determinants, the final cost), by
+        # differentiating the linearisation at x; the costs of intermediate
+        # iterates have no implicit derivative, so asking for one raises.
+        lin = recomputed((graph, x), state.lin, linearize_graph)
+        state = eqx.tree_at(lambda s: s.lin, state, lin)
+        history = refuse_derivative(lin.cost, history, _HISTORY)
+        return x, state, history
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
-        from ._least_squares import AbstractGraphSolver  # it imports this module
-
-        _, solver, _, graph, *_ = _optx_inputs(inputs, "ImplicitAdjoint")
-        if not isinstance(graph, FactorGraph):
+        graphs = _find(inputs, FactorGraph)
+        if len(graphs) != 1:
             raise TypeError(
                 "eqsmooth's ImplicitAdjoint differentiates an eqsmooth graph solve "
                 "(optx.least_squares(eqsmooth.solve.graph_residuals, solver, values, "
-                f"args=graph)); got args of type {type(graph).__name__}. For other "
-                "problems, or eqsmooth.solve.tangent_least_squares, use "
-                "optimistix.ImplicitAdjoint()"
+                "args=graph)); for other problems, or "
+                "eqsmooth.solve.tangent_least_squares, use optimistix.ImplicitAdjoint()"
             )
+        (graph,) = graphs
+        solver = _graph_solver(inputs)
         x_star, residual = primal_fn(_stop(inputs) + (_lax_while,))
         x_star, residual = _stop((x_star, residual))
         lin = linearize_graph(_stop(graph), x_star)
-        own = solver.linear_solver if isinstance(solver, AbstractGraphSolver) else None
+        own = None if solver is None else solver.linear_solver
         linear_solver = linear_solver_for(own, lin)
         # optimistix does not hand the solve's result code to an adjoint; a
         # non-finite problem at the returned point is the failure we can see.
         failed = ~jnp.isfinite(lin.cost)
         delta = _implicit_delta(graph, x_star, lin, self, linear_solver, failed)
-        return retract_values(x_star, delta), residual
+        x = retract_values(x_star, delta)
+        # The solver state optimistix returns keeps a linearisation at the
+        # solution (for a converging solver): make it differentiable, as in
+        # eqsmooth's driver. It is found by type in optimistix's output.
+        live = lambda y: (
+            recomputed((graph, x), y, linearize_graph)
+            if isinstance(y, Linearization)
+            else y
+        )
+        residual = jax.tree_util.tree_map(
+            live, residual, is_leaf=lambda y: isinstance(y, Linearization)
+        )
+        if solver is not None and not solver.reaches_minimum():
+            x = checked_derivative(
+                x,
+                ~stationary(lin),
+                "ImplicitAdjoint differentiates the optimality condition at a "
+                f"minimum, but this {type(solver).__name__} solve stopped after its "
+                "fixed number of steps short of a stationary point: use "
+                "eqsmooth.UnrolledAdjoint() or TruncatedAdjoint(k)",
+            )
+        return x, residual
+
+
+_HISTORY = (
+    "Solution.stats['cost_history'] holds the costs of intermediate iterates, "
+    "which have no derivative under ImplicitAdjoint (it differentiates the "
+    "solution only): differentiate stats['final_cost'] or stats['initial_cost'], "
+    "or solve with UnrolledAdjoint to differentiate every iterate"
+)
 
 
 def _zeros(lin: Linearization) -> Tangent:

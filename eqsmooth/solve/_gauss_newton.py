@@ -7,11 +7,12 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ..factors._graph import graph_cost
 from ._default_solver import linear_solver_for
-from ._least_squares import (
+from ._graph_solver import (
+    AbstractConvergingSolver,
     AbstractFixedStepSolver,
-    AbstractGraphSolver,
+    checked_graph,
+    fn_error_if,
     graph_of,
     to_optx_result,
 )
@@ -67,12 +68,13 @@ class GaussNewtonState(eqx.Module):
     last_step_norm: Float[Array, ""]
 
 
-def _init(graph, values) -> GaussNewtonState:
+def _init(fn, values, args, who: str) -> GaussNewtonState:
+    graph, mismatch = checked_graph(fn, values, args, who)
     lin = placeholder_linearization(graph, values)
     return GaussNewtonState(
         lin=lin,
         delta=zeros_tangent(lin),
-        step=jnp.array(0),
+        step=fn_error_if(jnp.array(0), mismatch, who),
         num_accepted=jnp.array(0),
         done=jnp.array(False),
         result=RESULTS.successful,
@@ -138,7 +140,7 @@ def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
     return values, new_state, None
 
 
-class GaussNewton(AbstractGraphSolver):
+class GaussNewton(AbstractConvergingSolver):
     """Gauss-Newton on the manifold: solve `JᵀJ δ = −Jᵀr`, set `x ← x ⊕ δ`.
 
     An optimistix least-squares solver (`args` is the graph, see
@@ -165,8 +167,8 @@ class GaussNewton(AbstractGraphSolver):
     xtol: float = eqx.field(static=True, default=1e-10)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del fn, options, f_struct, aux_struct, tags
-        return _init(graph_of(args, "GaussNewton"), y)
+        del options, f_struct, aux_struct, tags
+        return _init(fn, y, args, "GaussNewton")
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del fn, tags
@@ -217,8 +219,8 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
             )
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del fn, options, f_struct, aux_struct, tags
-        return _init(graph_of(args, "FixedStepGaussNewton"), y)
+        del options, f_struct, aux_struct, tags
+        return _init(fn, y, args, "FixedStepGaussNewton")
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del fn, tags
@@ -233,18 +235,21 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
         return done, to_optx_result(state.result)
 
     def finish(self, graph, values, state: GaussNewtonState):
-        # The K-th step, solved in the last iteration: taken here, checked by
-        # its cost only (no Jacobians are needed after it).
+        # The K-th step, solved in the last iteration: taken here and
+        # linearised, so that the state keeps the linearisation at the
+        # returned values (marginals). Where only the values are used (a
+        # training loss), the Jacobians are dead code and compiled away.
         take = state.result == RESULTS.successful
         final = retract_values(values, state.delta)
-        cost = graph_cost(graph, final).astype(state.lin.dtype)
+        final_lin = linearize_graph(graph, final)
+        cost = final_lin.cost.astype(state.lin.dtype)
         ok = jnp.isfinite(cost)
         failed = take & ~ok
         values = nan_derivative_if(
             failed, tree_where(take & ok, final, values), state.lin.cost
         )
         state = GaussNewtonState(
-            lin=state.lin,
+            lin=tree_where(take & ok, final_lin, state.lin),
             delta=zeros_tangent(state.lin),
             step=state.step + take.astype(state.step.dtype),
             num_accepted=state.num_accepted + (take & ok).astype(state.step.dtype),

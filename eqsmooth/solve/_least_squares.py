@@ -1,17 +1,11 @@
-"""The nonlinear least-squares entry point and the base of its solvers.
+"""The nonlinear least-squares entry point, [`eqsmooth.solve.least_squares`][].
 
-eqsmooth's solvers ([`eqsmooth.solve.GaussNewton`][],
-[`eqsmooth.solve.LevenbergMarquardt`][],
-[`eqsmooth.solve.FixedStepGaussNewton`][]) are optimistix least-squares
-solvers whose `args` is the [`eqsmooth.factors.FactorGraph`][] and whose `y`
-is the values dict; they update the values on the manifold (`x ⊕ δ`).
-They run through `optx.least_squares(eqs.solve.graph_residuals, solver,
-values, args=graph)` and through [`eqsmooth.solve.least_squares`][], which
-adds eqsmooth's adjoints (unrolled, truncated, implicit in tangent
-coordinates) and cost statistics.
+It runs an eqsmooth [`eqsmooth.solve.AbstractGraphSolver`][] (also usable
+through `optx.least_squares(eqs.solve.graph_residuals, solver, values,
+args=graph)`) with one of eqsmooth's adjoints (unrolled, truncated, implicit
+in tangent coordinates) and adds cost statistics.
 """
 
-import abc
 import functools as ft
 from typing import Any
 
@@ -21,163 +15,19 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import PyTree
 
 from ..factors import FactorGraph
+from ..factors._graph import graph_cost
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._default_solver import default_linear_solver
+from ._derivatives import checked_derivative, recomputed
+from ._misc import stationary
+from ._graph_solver import AbstractGraphSolver, graph_residuals
 from ._solution import raise_unless_successful, RESULTS, Solution
 
 
 Values = dict[str, PyTree]
-
-
-def graph_residuals(
-    values: Values, graph: FactorGraph
-) -> tuple[Float[Array, "_n _m"], ...]:
-    """Residuals of every factor stack whose half squared norm is the graph's cost.
-
-    The residual function to pass to `optx.least_squares` together with
-    `args=graph`: `½ Σ‖r‖² = graph.cost(values)`. Gaussian factors give their
-    whitened residuals; a robust noise model scales row `i` by
-    `√(ρ(sᵢ)/sᵢ)` (`sᵢ` its squared whitened norm; `√ρ'(0)` at `sᵢ = 0`).
-
-    **Arguments:**
-
-    - `values`: the values dict `{group: stacked states}`.
-    - `graph`: the [`eqsmooth.factors.FactorGraph`][].
-
-    **Returns:** a tuple of `(n, m)` arrays, one per factor stack.
-    """
-    if not isinstance(graph, FactorGraph):
-        raise TypeError(
-            f"graph_residuals(values, graph): graph must be a FactorGraph, got "
-            f"{type(graph).__name__}"
-        )
-    out = []
-    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
-        s = jnp.sum(rw * rw, axis=1)
-        positive = s > 0
-        safe = jnp.where(positive, s, 1.0)
-        rho, _ = f.noise.rho(safe)
-        _, drho0 = f.noise.rho(jnp.zeros_like(s))
-        scale = jnp.where(positive, jnp.sqrt(rho / safe), jnp.sqrt(drho0))
-        out.append(rw * scale[:, None])
-    return tuple(out)
-
-
-def graph_of(args: Any, who: str) -> FactorGraph:
-    """The factor graph passed as optimistix's `args`."""
-    if not isinstance(args, FactorGraph):
-        raise TypeError(
-            f"{who} solves an eqsmooth factor graph: call optx.least_squares("
-            "eqsmooth.solve.graph_residuals, solver, values, args=graph), or "
-            f"eqsmooth.least_squares(graph, values, solver); got args of type "
-            f"{type(args).__name__}"
-        )
-    return args
-
-
-def to_optx_result(result: RESULTS) -> optx.RESULTS:
-    """An eqsmooth result code as the nearest `optimistix.RESULTS` code."""
-    out = optx.RESULTS.successful
-    for item in optx.RESULTS._name_to_item.values():  # pyright: ignore
-        out = optx.RESULTS.where(result == RESULTS.promote(item), item, out)
-    out = optx.RESULTS.where(
-        result == RESULTS.linear_solve_failed, optx.RESULTS.singular, out
-    )
-    return optx.RESULTS.where(
-        result == RESULTS.nonfinite_problem, optx.RESULTS.nonfinite, out
-    )
-
-
-class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
-    """Base of eqsmooth's nonlinear solvers: optimistix least-squares solvers on graphs.
-
-    Subclasses implement optimistix's `init`, `step` and `terminate` with
-    `args` the [`eqsmooth.factors.FactorGraph`][] and `y` the values dict.
-    They linearise every factor stack with forward-mode autodiff, hand a
-    [`eqsmooth.solve.NormalOperator`][] to their lineax `linear_solver` and
-    update the values on the manifold (`x ⊕ δ`). Their states keep `lin`,
-    the linearisation at the current values (the adjoints of
-    [`eqsmooth.solve.least_squares`][] rely on it), `step`, `num_accepted`,
-    `done` and `result` (an [`eqsmooth.solve.RESULTS`][] code).
-
-    `options` (optimistix's per-call knobs): `"linear_options"` is passed to
-    `lineax.linear_solve` at every step.
-    """
-
-    linear_solver: eqx.AbstractVar[lx.AbstractLinearSolver | None]
-    ftol: eqx.AbstractVar[float]
-    gtol: eqx.AbstractVar[float]
-    xtol: eqx.AbstractVar[float]
-
-    # optimistix's names for the tolerances and the norm of its solvers.
-    @property
-    def rtol(self) -> float:
-        return self.ftol
-
-    @property
-    def atol(self) -> float:
-        return self.xtol
-
-    @property
-    def norm(self):
-        return optx.max_norm
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        del fn, options, tags, result
-        y, state, cost = self.finish(graph_of(args, type(self).__name__), y, state)
-        return y, aux, {"num_accepted": state.num_accepted, "final_cost": cost}
-
-    @abc.abstractmethod
-    def finish(self, graph: FactorGraph, values: Values, state) -> tuple:
-        """After the last iteration: `(values, state, final_cost)` of the
-        solution. [`eqsmooth.solve.GaussNewton`][] and
-        [`eqsmooth.solve.LevenbergMarquardt`][] return the values and the
-        cost of their last linearisation; [`eqsmooth.solve.FixedStepGaussNewton`][]
-        takes its last step here (see
-        [`eqsmooth.solve.AbstractGraphSolver.steps_after_loop`][])."""
-
-    def iteration_limit(self, max_steps: int) -> int:
-        """The static iteration limit of a solve called with `max_steps`.
-
-        One iteration more than steps, since the first iteration only
-        linearises the initial values (and solves for the first step):
-        `max_steps + 1`. An [`eqsmooth.solve.AbstractFixedStepSolver`][]
-        always runs its `num_steps` iterations (and takes its last step in
-        `finish`). [`eqsmooth.solve.UnrolledAdjoint`][] scans this many
-        iterations.
-        """
-        if isinstance(self, AbstractFixedStepSolver):
-            return self.num_steps
-        return max_steps + 1
-
-    def steps_after_loop(self) -> int:
-        """How many steps `finish` takes after the last iteration: 1 for an
-        [`eqsmooth.solve.AbstractFixedStepSolver`][] (its last step), else 0.
-        [`eqsmooth.solve.TruncatedAdjoint`][] replays that many iterations
-        fewer."""
-        return 1 if isinstance(self, AbstractFixedStepSolver) else 0
-
-    def at_max_steps(self) -> RESULTS:
-        """The result when the iteration limit is reached before convergence
-        (success for an [`eqsmooth.solve.AbstractFixedStepSolver`][])."""
-        if isinstance(self, AbstractFixedStepSolver):
-            return RESULTS.successful
-        return RESULTS.nonlinear_max_steps_reached
-
-
-class AbstractFixedStepSolver(AbstractGraphSolver):
-    """A solver that always runs exactly `num_steps` iterations.
-
-    [`eqsmooth.solve.least_squares`][] ignores its `max_steps` argument for
-    these solvers (see
-    [`eqsmooth.solve.AbstractGraphSolver.iteration_limit`][]); reaching
-    `num_steps` is success.
-    """
-
-    num_steps: eqx.AbstractVar[int]
 
 
 def least_squares(
@@ -278,9 +128,7 @@ def _all_arrays(tree) -> bool:
 
 def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
     limit = solver.iteration_limit(max_steps)
-    steps_cap = (
-        solver.num_steps if isinstance(solver, AbstractFixedStepSolver) else max_steps
-    )
+    steps_cap = limit - 1 + solver.steps_after_loop()
     at_max = solver.at_max_steps()
     linear_solver = solver.linear_solver
     if linear_solver is None:
@@ -327,18 +175,26 @@ def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
         _, state, _ = carry
         return ~state.done & (state.step < limit)
 
+    values0 = values
     values, state, history = adjoint.run(
         init, body, cond, graph, values, linear_solver, limit, solver.steps_after_loop()
     )
+    if isinstance(adjoint, ImplicitAdjoint) and not solver.reaches_minimum():
+        values = checked_derivative(
+            values, ~stationary(state.lin), _implicit_refusal(solver)
+        )
     values, state, final_cost = solver.finish(graph, values, state)
     steps = jnp.maximum(state.step - 1, 0)
     history = history.at[steps].set(final_cost)
     history = jnp.where(jnp.arange(steps_cap + 1) <= steps, history, final_cost)
     result = state.result
+    # The initial cost with its own derivative (the loop's copy may have been
+    # computed with gradients stopped, under the implicit adjoint).
+    initial_cost = recomputed((graph, values0), history[0], graph_cost)
     stats = {
         "num_steps": steps,
         "num_accepted": state.num_accepted,
-        "initial_cost": history[0],
+        "initial_cost": initial_cost,
         "final_cost": final_cost,
         "cost_history": history,
     }
@@ -358,6 +214,17 @@ _least_squares = eqx.filter_jit(_solve)
 @ft.partial(jax.jit, static_argnames=("max_steps", "verbose"))
 def _least_squares_of_arrays(graph, values, solver, adjoint, *, max_steps, verbose):
     return _solve(graph, values, solver, max_steps, adjoint, verbose, {})
+
+
+def _implicit_refusal(solver) -> str:
+    return (
+        "ImplicitAdjoint (least_squares's default adjoint) differentiates the "
+        f"optimality condition at a minimum, but this {type(solver).__name__} "
+        "solve stopped after its fixed number of steps short of a stationary "
+        "point, so an implicit gradient would be wrong: pass adjoint=eqsmooth.UnrolledAdjoint() (the paper's K "
+        "unrolled steps) or TruncatedAdjoint(k), or use a converging solver "
+        "(GaussNewton, LevenbergMarquardt)"
+    )
 
 
 def _is_none(x) -> bool:

@@ -7,7 +7,13 @@ import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._default_solver import linear_solver_for
-from ._least_squares import AbstractGraphSolver, graph_of, to_optx_result
+from ._graph_solver import (
+    AbstractConvergingSolver,
+    checked_graph,
+    fn_error_if,
+    graph_of,
+    to_optx_result,
+)
 from ._linear_solver import solve_unless
 from ._linearization import (
     apply_jacobian,
@@ -61,7 +67,7 @@ def predicted_decrease(lin: Linearization, delta: Tangent) -> Float[Array, ""]:
     return -gd - 0.5 * jd
 
 
-class LevenbergMarquardt(AbstractGraphSolver):
+class LevenbergMarquardt(AbstractConvergingSolver):
     """Levenberg-Marquardt on the manifold, robust to singular Gauss-Newton systems.
 
     Solves `(JᵀJ + λ D) δ = −Jᵀr` with `D = clip(diag(JᵀJ), min_diagonal,
@@ -126,13 +132,14 @@ class LevenbergMarquardt(AbstractGraphSolver):
                 )
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del fn, options, f_struct, aux_struct, tags
-        lin = placeholder_linearization(graph_of(args, "LevenbergMarquardt"), y)
+        del options, f_struct, aux_struct, tags
+        graph, mismatch = checked_graph(fn, y, args, "LevenbergMarquardt")
+        lin = placeholder_linearization(graph, y)
         return LevenbergMarquardtState(
             lin=lin,
             delta=zeros_tangent(lin),
             solved=jnp.array(True),
-            step=jnp.array(0),
+            step=fn_error_if(jnp.array(0), mismatch, "LevenbergMarquardt"),
             num_accepted=jnp.array(0),
             damping=jnp.asarray(self.initial_damping, lin.dtype),
             nu=jnp.asarray(2.0, lin.dtype),

@@ -136,3 +136,11 @@ def converged_test(old_cost, new_lin: Linearization, delta: Tangent, ftol, gtol,
     gnorm = max_abs(gradient(new_lin))
     xnorm = max_abs(delta)
     return (rel <= ftol) | (gnorm <= gtol) | (xnorm <= xtol)
+
+
+def stationary(lin: Linearization) -> Bool[Array, ""]:
+    """Whether the gradient `Jᵀr` of a linearisation vanishes to rounding level
+    (`max |Jᵀr| ≤ √ε · max(1, 2 cost)`): where an implicit derivative holds."""
+    eps = jnp.finfo(lin.dtype).eps
+    tol = jnp.sqrt(eps) * jnp.maximum(1.0, 2.0 * lin.cost)
+    return max_abs(gradient(lin)) <= tol

@@ -2,9 +2,9 @@ import warnings
 from typing import Any
 
 import equinox as eqx
-import jax
+import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, Int, PyTree
+from jaxtyping import PyTree
 
 
 with warnings.catch_warnings():
@@ -39,19 +39,22 @@ class Solution(eqx.Module):
     - `stats`: dict with `num_steps`, `num_accepted`, `initial_cost`,
         `final_cost`, `cost_history` (cost after each step, padded with the
         final cost).
-    - `state`: the solver's final state.
+    - `state`: the solver's final state; its `lin` is the linearisation at
+        `value` (what [`eqsmooth.solve.marginal_covariances`][] and
+        [`eqsmooth.solve.joint_marginal_covariance`][] use), differentiable
+        with every adjoint. Its other fields are diagnostics, not
+        differentiable.
+
+    Derivatives: `value`, `stats["final_cost"]`, `stats["initial_cost"]` and
+    `state.lin` are differentiable with every adjoint;
+    `stats["cost_history"]` only with the unrolled and truncated adjoints
+    (under [`eqsmooth.solve.ImplicitAdjoint`][] differentiating it raises).
     """
 
     value: PyTree
     result: RESULTS
     stats: dict[str, Any]
     state: PyTree
-
-
-class Stats(eqx.Module):
-    num_steps: Int[Array, ""]
-    num_accepted: Int[Array, ""]
-    cost_history: Float[Array, " max_steps_plus_one"]
 
 
 def raise_unless_successful(sol: Solution) -> Solution:
@@ -67,11 +70,9 @@ def raise_unless_successful(sol: Solution) -> Solution:
     its persistent compilation cache nor reads one from it, so a second
     process would compile the whole solve again (benchmarks/first_call.py).
     """
-    code = sol.result._value  # pyright: ignore[reportAttributeAccessIssue]
-    if isinstance(code, jax.core.Tracer):
+    if sol.result.is_traced():
         value = sol.result.error_if(sol.value, sol.result != RESULTS.successful)
         return eqx.tree_at(lambda s: s.value, sol, value)
-    code = int(code)
-    if code != int(RESULTS.successful._value):  # pyright: ignore
-        raise eqx.EquinoxRuntimeError(RESULTS._index_to_message[code])  # pyright: ignore
+    if not np.all(np.asarray(sol.result == RESULTS.successful)):
+        raise eqx.EquinoxRuntimeError(RESULTS[sol.result])
     return sol

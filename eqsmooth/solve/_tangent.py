@@ -17,7 +17,7 @@ from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
 from ..factors._graph import graph_cost
-from ._least_squares import graph_residuals
+from ._graph_solver import manifold_residuals
 from ._linearization import retract_values, Tangent
 from ._solution import raise_unless_successful, RESULTS, Solution
 
@@ -36,7 +36,7 @@ class TangentResiduals(eqx.Module):
         self, delta: Tangent, args: tuple[FactorGraph, Values]
     ) -> tuple[Float[Array, "_n _m"], ...]:
         graph, base = args
-        return graph_residuals(retract_values(base, delta), graph)
+        return manifold_residuals(retract_values(base, delta), graph)
 
 
 def tangent_least_squares(
