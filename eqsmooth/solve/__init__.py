@@ -26,13 +26,13 @@ from ._gauss_newton import (
     GaussNewton as GaussNewton,
     GaussNewtonState as GaussNewtonState,
 )
-from ._joint_marginals import joint_marginal_covariance as joint_marginal_covariance
 from ._graph_solver import (
     AbstractConvergingSolver as AbstractConvergingSolver,
     AbstractFixedStepSolver as AbstractFixedStepSolver,
     AbstractGraphSolver as AbstractGraphSolver,
     graph_residuals as graph_residuals,
 )
+from ._joint_marginals import joint_marginal_covariance as joint_marginal_covariance
 from ._least_squares import least_squares as least_squares
 from ._levenberg_marquardt import (
     LevenbergMarquardt as LevenbergMarquardt,

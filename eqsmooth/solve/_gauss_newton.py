@@ -171,12 +171,12 @@ class GaussNewton(AbstractConvergingSolver):
         return _init(fn, y, args, "GaussNewton")
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
-        del fn, tags
+        del tags  # fn was checked against the graph's residuals in init
         graph = graph_of(args, "GaussNewton")
         return _step(self, graph, y, state, options, check=True)
 
     def terminate(self, fn, y, args, options, state: GaussNewtonState, tags):
-        del fn, y, args, options, tags
+        del y, args, options, tags  # fn: checked in init
         return state.done, to_optx_result(state.result)
 
     def finish(self, graph, values, state: GaussNewtonState):
@@ -223,14 +223,14 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
         return _init(fn, y, args, "FixedStepGaussNewton")
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
-        del fn, tags
+        del tags  # fn was checked against the graph's residuals in init
         graph = graph_of(args, "FixedStepGaussNewton")
         return _step(self, graph, y, state, options, check=False)
 
     def terminate(
         self, fn, y, args, options, state: GaussNewtonState, tags
     ) -> tuple[Bool[Array, ""], optx.RESULTS]:
-        del fn, y, args, options, tags
+        del y, args, options, tags  # fn: checked in init
         done = state.done | (state.step >= self.num_steps)
         return done, to_optx_result(state.result)
 

@@ -251,7 +251,7 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
         return optx.max_norm
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        del fn, options, tags, result
+        del options, tags, result  # fn: checked in init
         y, state, cost = self.finish(graph_of(args, type(self).__name__), y, state)
         return y, aux, {"num_accepted": state.num_accepted, "final_cost": cost}
 

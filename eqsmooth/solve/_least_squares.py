@@ -12,7 +12,6 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import PyTree
@@ -22,8 +21,8 @@ from ..factors._graph import graph_cost
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._default_solver import default_linear_solver
 from ._derivatives import checked_derivative, recomputed
-from ._misc import stationary
 from ._graph_solver import AbstractGraphSolver, graph_residuals
+from ._misc import stationary
 from ._solution import raise_unless_successful, RESULTS, Solution
 
 
@@ -221,8 +220,9 @@ def _implicit_refusal(solver) -> str:
         "ImplicitAdjoint (least_squares's default adjoint) differentiates the "
         f"optimality condition at a minimum, but this {type(solver).__name__} "
         "solve stopped after its fixed number of steps short of a stationary "
-        "point, so an implicit gradient would be wrong: pass adjoint=eqsmooth.UnrolledAdjoint() (the paper's K "
-        "unrolled steps) or TruncatedAdjoint(k), or use a converging solver "
+        "point, so an implicit gradient would be wrong: pass "
+        "adjoint=eqsmooth.UnrolledAdjoint() (the paper's K unrolled steps) or "
+        "TruncatedAdjoint(k), or use a converging solver "
         "(GaussNewton, LevenbergMarquardt)"
     )
 

@@ -149,7 +149,7 @@ class LevenbergMarquardt(AbstractConvergingSolver):
         )
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
-        del fn, tags
+        del tags  # fn was checked against the graph's residuals in init
         graph = graph_of(args, "LevenbergMarquardt")
         values = y
         lin = state.lin
@@ -218,7 +218,7 @@ class LevenbergMarquardt(AbstractConvergingSolver):
         return values, new_state, None
 
     def terminate(self, fn, y, args, options, state: LevenbergMarquardtState, tags):
-        del fn, y, args, options, tags
+        del y, args, options, tags  # fn: checked in init
         return state.done, to_optx_result(state.result)
 
     def finish(self, graph, values, state: LevenbergMarquardtState):
