@@ -365,3 +365,34 @@ def test_implicit_gradient_of_failed_solve_is_nan(hessian):
     grad, result = fn(jnp.asarray(1.0), z.at[2, 1].set(jnp.nan))
     assert result == eqs.RESULTS.nonfinite_problem
     assert np.isnan(grad)
+
+
+def _matrix_factor():
+    """A user factor (outside the jaxtyping-checked packages) whose residual
+    is `(1, m)` instead of `(m,)`."""
+    import equinox as eqx
+
+    eqs = _eqs()
+
+    class MatrixResidual(eqs.AbstractFactor):
+        variables: tuple
+        noise: eqs.IsotropicNoise
+
+        def residual(self, x):
+            return x[None, :]
+
+    return MatrixResidual((eqs.Var("x", t),), _iso()), eqx
+
+
+@pytest.mark.parametrize("api", ["cost", "nll"])
+def test_residual_not_1d_in_cost(api):
+    # The cost and the NLL name the factor and the shape, as the solve does
+    # (they raised "check_shapes() takes 4 positional arguments but 5 were
+    # given" before).
+    eqs = _eqs()
+    f, _ = _matrix_factor()
+    graph = eqs.FactorGraph([f])
+    x = {"x": jnp.zeros((T, 1))}
+    fn = graph.cost if api == "cost" else graph.negative_log_likelihood
+    with raises(ValueError, "MatrixResidual.residual", "1-D", "(1, 1)"):
+        fn(x)

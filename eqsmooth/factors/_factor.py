@@ -192,7 +192,13 @@ def evaluate_rows(
     """Residuals of all rows, `(n, m)`, given per-row stacked states."""
     axes = _row_axes(factor)
     fn = eqx.filter_vmap(_row_call, in_axes=(axes,) + (0,) * len(states))
-    return fn(factor, *states)
+    r = fn(factor, *states)
+    if r.ndim != 2:  # (rows, m): each row's residual must be 1-D
+        raise ValueError(
+            f"{type(factor).__name__}.residual must return a 1-D array, got "
+            f"shape {r.shape[1:]}"
+        )
+    return r
 
 
 def linearize_rows(
