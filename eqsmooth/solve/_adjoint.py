@@ -457,7 +457,8 @@ class ImplicitAdjoint(AbstractAdjoint):
         if solver is not None and not solver.reaches_minimum():
             x = checked_derivative(
                 x,
-                ~stationary(lin),
+                lin,
+                lambda lin: ~stationary(lin),
                 "ImplicitAdjoint differentiates the optimality condition at a "
                 f"minimum, but this {type(solver).__name__} solve stopped after its "
                 "fixed number of steps short of a stationary point: use "

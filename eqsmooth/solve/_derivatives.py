@@ -95,29 +95,34 @@ def _refuse_bwd(residuals, grad_x, perturbed, witness, x, message):
     raise ValueError(message)
 
 
-def checked_derivative(x, pred, message: str):
+def checked_derivative(x, aux, fails: Callable, message: str):
     """`x`, whose reverse-mode derivative raises an `EquinoxRuntimeError(message)`
-    at run time where `pred` is true (e.g. an implicit gradient taken at a
-    point that is not stationary). The derivative itself is unchanged."""
-    return _checked(x, pred, message)
+    at run time where `fails(aux)` is true (e.g. an implicit gradient taken
+    at a point that is not stationary). The derivative itself is unchanged,
+    and `fails` is evaluated in the backward pass only (the forward pass
+    costs nothing)."""
+    aux = jax.tree_util.tree_map(
+        lambda y: jax.lax.stop_gradient(y) if eqx.is_array(y) else y, aux
+    )
+    return _checked(x, aux, fails, message)
 
 
 @eqx.filter_custom_vjp
-def _checked(x, pred, message):
-    del pred, message
+def _checked(x, aux, fails, message):
+    del aux, fails, message
     return x
 
 
 @_checked.def_fwd
-def _checked_fwd(perturbed, x, pred, message):
-    del perturbed, pred, message
+def _checked_fwd(perturbed, x, aux, fails, message):
+    del perturbed, aux, fails, message
     return x, None
 
 
 @_checked.def_bwd
-def _checked_bwd(residuals, grad_x, perturbed, x, pred, message):
+def _checked_bwd(residuals, grad_x, perturbed, x, aux, fails, message):
     del residuals, x
     grad_x = jax.tree_util.tree_map(
         lambda g, p: g if p else None, grad_x, perturbed, is_leaf=lambda y: y is None
     )
-    return eqx.error_if(grad_x, pred, message)
+    return eqx.error_if(grad_x, fails(aux), message)

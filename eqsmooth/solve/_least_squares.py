@@ -180,7 +180,7 @@ def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
     )
     if isinstance(adjoint, ImplicitAdjoint) and not solver.reaches_minimum():
         values = checked_derivative(
-            values, ~stationary(state.lin), _implicit_refusal(solver)
+            values, state.lin, _not_stationary, _implicit_refusal(solver)
         )
     values, state, final_cost = solver.finish(graph, values, state)
     steps = jnp.maximum(state.step - 1, 0)
@@ -213,6 +213,10 @@ _least_squares = eqx.filter_jit(_solve)
 @ft.partial(jax.jit, static_argnames=("max_steps", "verbose"))
 def _least_squares_of_arrays(graph, values, solver, adjoint, *, max_steps, verbose):
     return _solve(graph, values, solver, max_steps, adjoint, verbose, {})
+
+
+def _not_stationary(lin):
+    return ~stationary(lin)
 
 
 def _implicit_refusal(solver) -> str:
