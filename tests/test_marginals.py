@@ -1,6 +1,8 @@
 """Marginal covariances against the dense inverse of JᵀJ."""
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -60,5 +62,23 @@ def test_singular_marginals_raise():
 
     import eqsmooth as eqs
 
-    with pytest.raises(eqx.EquinoxRuntimeError, match="singular"):
-        eqs.marginal_covariances(_gauge_free_chain())
+    lin = _gauge_free_chain()
+    # Every linear solver, per-variable and joint: the message alone (checked
+    # on the host), naming the route and the missing prior. PCG used to stop
+    # with finite garbage in some columns of the joint covariance.
+    for solver in (None, eqs.PCG(), eqs.DenseCholesky()):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="prior") as info:
+            eqs.marginal_covariances(lin, solver)
+        assert str(info.value).startswith("marginal_covariances: the normal matrix")
+        with pytest.raises(eqx.EquinoxRuntimeError, match="singular") as info:
+            eqs.joint_marginal_covariance(lin, [("x", 0), ("x", 3)], solver)
+        assert "Equinox" not in str(info.value)
+    # float32: the message names the precision as a possible cause.
+    lin32 = jax.tree_util.tree_map(
+        lambda x: x.astype(jnp.float32)
+        if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating)
+        else x,
+        lin,
+    )
+    with pytest.raises(eqx.EquinoxRuntimeError, match="float32"):
+        eqs.marginal_covariances(lin32)

@@ -13,27 +13,8 @@ from ..factors import Var
 from ._default_solver import linear_solver_for
 from ._linear_solver import solve_normal
 from ._linearization import Linearization
+from ._posterior import as_linearization, raise_unless_ok, singular_message
 from ._solution import RESULTS, Solution
-
-
-def as_linearization(
-    lin_or_solution: Linearization | Solution, who: str
-) -> Linearization:
-    """The linearisation held by a solve's final state, or `lin` itself."""
-    if isinstance(lin_or_solution, Linearization):
-        return lin_or_solution
-    if isinstance(lin_or_solution, Solution):
-        lin = getattr(lin_or_solution.state, "lin", None)
-        if isinstance(lin, Linearization):
-            return lin
-        raise TypeError(
-            f"{who}: this Solution's state ({type(lin_or_solution.state).__name__}) "
-            "keeps no linearisation; pass eqsmooth.linearize(graph, sol.value)"
-        )
-    raise TypeError(
-        f"{who}: expected a Linearization or a Solution, got "
-        f"{type(lin_or_solution).__name__}"
-    )
 
 
 def _selection(lin: Linearization, variables) -> list[tuple[str, int]]:
@@ -61,7 +42,6 @@ def _selection(lin: Linearization, variables) -> list[tuple[str, int]]:
     return out
 
 
-@eqx.filter_jit
 def joint_marginal_covariance(
     lin: Linearization | Solution,
     variables: Sequence[tuple[str, int] | Var],
@@ -92,11 +72,21 @@ def joint_marginal_covariance(
     **Returns:**
 
     A `(k, k)` symmetric matrix: variable `j`'s tangent occupies
-    `d_j` consecutive rows and columns, in the order given. A singular
-    normal matrix gives non-finite entries.
+    `d_j` consecutive rows and columns, in the order given. A normal
+    matrix that cannot be factorised or solved (singular, or too
+    ill-conditioned in float32) raises an `EquinoxRuntimeError` that says
+    which.
     """
     lin = as_linearization(lin, "joint_marginal_covariance")
     chosen = _selection(lin, variables)
+    cov, ok = _joint(lin, tuple(chosen), solver)
+    return raise_unless_ok(
+        ok, cov, singular_message("joint_marginal_covariance", lin.dtype)
+    )
+
+
+@eqx.filter_jit
+def _joint(lin: Linearization, chosen, solver):
     dims = {g.name: g.dim for g in lin.layout}
     solver = linear_solver_for(solver, lin)
     # One unit right-hand side per selected tangent coordinate.
@@ -112,9 +102,11 @@ def joint_marginal_covariance(
 
     def column(b):
         x, result = solve_normal(solver, lin, rhs=b)
-        bad = result != RESULTS.successful
-        return {name: jnp.where(bad, jnp.nan, v) for name, v in x.items()}
+        return x, result == RESULTS.successful
 
-    x = jax.vmap(column)(rhs)
+    x, solved = jax.vmap(column)(rhs)
     rows = jnp.stack([x[g][:, i, c] for g, i, c in cols], axis=0)
-    return 0.5 * (rows + rows.T)
+    cov = 0.5 * (rows + rows.T)
+    # An iterative solve of a singular system may stop with finite garbage in
+    # some columns: any failed column or non-finite entry fails the whole.
+    return cov, jnp.all(solved) & jnp.all(jnp.isfinite(cov))

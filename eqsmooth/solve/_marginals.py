@@ -3,22 +3,16 @@
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Float
 
 from ._default_solver import factorize
-from ._joint_marginals import as_linearization
 from ._linearization import Linearization
+from ._posterior import as_linearization, raise_unless_ok, singular_message
 from ._solution import Solution
 
 
-_SINGULAR = (
-    "marginal_covariances: the normal matrix JᵀJ is singular, so some marginal "
-    "covariance is infinite (is every gauge freedom fixed by a prior?)"
-)
-
-
-@eqx.filter_jit
 def marginal_covariances(
     lin: Linearization | Solution,
     solver: lx.AbstractLinearSolver | None = None,
@@ -51,8 +45,9 @@ def marginal_covariances(
 
     **Returns:**
 
-    A dict `{group: (N_g, d_g, d_g)}` of covariance blocks. A singular normal
-    matrix raises an `EquinoxRuntimeError` (`eqx.error_if`).
+    A dict `{group: (N_g, d_g, d_g)}` of covariance blocks. A normal matrix
+    that cannot be factorised (singular, or too ill-conditioned in float32)
+    raises an `EquinoxRuntimeError` that says which.
     """
     lin = as_linearization(lin, "marginal_covariances")
     names = [g.name for g in lin.layout]
@@ -63,7 +58,13 @@ def marginal_covariances(
         raise ValueError(
             f"marginal_covariances: unknown groups {unknown}; the graph has {names}"
         )
+    cov, ok = _marginal_covariances(lin, solver, tuple(groups))
+    return raise_unless_ok(ok, cov, singular_message("marginal_covariances", lin.dtype))
+
+
+@eqx.filter_jit
+def _marginal_covariances(lin, solver, groups):
     factor = factorize(lin, solver)
     cov = factor.inverse_block_diagonal()
-    cov = eqx.error_if(cov, ~factor.ok, _SINGULAR)
-    return {k: v for k, v in cov.items() if k in groups}
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in cov.values()]))
+    return {k: v for k, v in cov.items() if k in groups}, factor.ok & finite

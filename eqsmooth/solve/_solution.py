@@ -26,7 +26,9 @@ with warnings.catch_warnings():
         )
         linear_solve_failed = (
             "The linear system was singular or not positive definite (is every gauge "
-            "freedom fixed by a prior?)."
+            "freedom fixed by a prior? In float32, noise scales that differ by "
+            "several orders of magnitude can also make it numerically singular: "
+            "use float64)."
         )
 
 
