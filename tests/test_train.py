@@ -135,6 +135,29 @@ def test_nonfinite_batches_raise_or_are_skipped():
     assert float(_line_loss(res.model, clean)) < 0.2 * float(_line_loss(_LINE0, clean))
     with pytest.raises(ValueError, match="on_nonfinite"):
         train(_LINE0, _line_loss, data, on_nonfinite="ignore", **kw)
+    # Every batch non-finite: skipping them all trains nothing, and says so.
+    all_bad = {k: np.where(True, np.nan, v) for k, v in data.items()}
+    with pytest.raises(FloatingPointError, match="every one of the 20 steps"):
+        train(_LINE0, _line_loss, all_bad, on_nonfinite="skip", **kw)
+
+
+def test_nonfinite_validation_example_is_named():
+    # One NaN validation example made every validation loss NaN, and model
+    # selection silently kept the untrained model (NaN never compares lower).
+    data = _line_data(2.0, n=16)
+    valid = _line_data(2.0, n=12)
+    valid["y"][7] = np.nan
+    with pytest.raises(FloatingPointError, match="examples 4..7 \\(of 12\\)"):
+        train(
+            _LINE0,
+            _line_loss,
+            data,
+            valid_data=valid,
+            optimizer=make_optimizer(0.1),
+            num_steps=4,
+            batch_size=4,
+            progress=False,
+        )
 
 
 def test_augment_sees_a_key_per_step_and_never_touches_validation():

@@ -202,7 +202,7 @@ def _make_evaluator(loss_fn, has_aux, mesh):
 
     def run(model, data, batch_size):
         n = _num_examples(data, "the validation data")
-        total, start = 0.0, 0
+        total, start, bad = 0.0, 0, []
         while start < n:
             stop = min(start + batch_size, n)
             batch = _take(data, np.arange(start, stop))
@@ -211,8 +211,21 @@ def _make_evaluator(loss_fn, has_aux, mesh):
                 batch = (
                     shard_batch(batch, mesh) if divisible else replicate(batch, mesh)
                 )
-            total = total + (stop - start) * batch_loss(model, batch)
+            loss = batch_loss(model, batch)
+            if not math.isfinite(float(loss)):
+                bad.append(f"{start}..{stop - 1}")
+            total = total + (stop - start) * loss
             start = stop
+        if bad:
+            # One non-finite example makes the mean non-finite, and a NaN
+            # never compares lower: model selection would silently keep the
+            # first model. Name the examples instead.
+            raise FloatingPointError(
+                f"the validation loss is {float(total) / n}: the validation batches of "
+                f"examples {', '.join(bad)} (of {n}) gave a non-finite loss; fix "
+                "or drop those examples of the validation data (evaluate them one "
+                "at a time with batch_size=1 to find which)"
+            )
         return total / n
 
     return run
@@ -538,6 +551,14 @@ def train(
                 checkpoint(done)
             if callback is not None:
                 callback(done, record if record is not None else _floats(metrics))
+        ran = num_steps - min(state.step, num_steps)
+        if ran and skipped == ran:
+            raise FloatingPointError(
+                f"train: every one of the {ran} steps of this call had a non-finite "
+                "loss or gradient norm and was skipped (on_nonfinite='skip'), so "
+                "nothing was trained; check the training data and the loss "
+                "(on_nonfinite='raise' names the examples of the first such batch)"
+            )
     finally:
         bar.close()
         if logfile is not None:
