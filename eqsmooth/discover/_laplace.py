@@ -9,7 +9,7 @@ import lineax as lx
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph, StudentTNoise
-from ..factors._graph import graph_negative_log_likelihood
+from ..factors._graph import graph_cost, graph_negative_log_likelihood
 from ..solve import (
     AbstractGraphSolver,
     BlockTridiagonal,
@@ -49,13 +49,24 @@ def laplace_log_marginal(
 
     **Gradients.** The MAP is computed at a stop-gradient copy of the graph;
     derivatives w.r.t. the graph's parameters `θ` then flow through one
-    Gauss-Newton correction `x̃(θ) = x̂ ⊕ δ(θ)`, `δ = −(JᵀJ)⁻¹ Jᵀr(x̂, θ)`, with
-    the normal matrix held fixed. Because `δ(θ̂) = 0` and `dx̃/dθ` is the
-    implicit derivative of the (Gauss-Newton) optimum, the gradient of the
-    cost term is exact (the envelope theorem) and its second derivative is
-    that of the profiled cost; only the dependence of `log det` on `x̂` uses
-    the Gauss-Newton approximation of `dx̂/dθ`. `jax.grad`, `jax.jacfwd` and
-    `jax.hessian` all work.
+    Newton correction `x̃(θ) = x̂ ⊕ δ(θ)`, `δ = −H⁻¹ g(θ)`, with `g` the
+    gradient of the cost in tangent coordinates at `x̂` and `H` its exact
+    Hessian there, held fixed. Because `g(θ̂) = 0` at the MAP, `δ(θ̂) = 0`
+    and `dx̃/dθ = −H⁻¹ ∂g/∂θ` is the implicit derivative of the MAP itself:
+    the gradient of the whole evidence, log-determinant included, is that
+    of the evidence with the MAP re-solved at every `θ` (checked against
+    central differences of re-solved evidences to 1e-5), and the second
+    derivative of the cost term is that of the profiled cost (the
+    log-determinant's is approximate: it misses the MAP's curvature in
+    `θ`). `H⁻¹` is applied by conjugate gradients on exact Hessian products,
+    preconditioned by the structured solve of `JᵀJ`, and differentiated as
+    a linear solve (`jax.lax.custom_linear_solve`), so `jax.grad`,
+    `jax.jacfwd` and `jax.hessian` all work. If CG does not converge (`H` not
+    positive definite: `x̂` is not a minimum), the evidence is NaN rather
+    than a value with a wrong gradient. (The correction used to take `JᵀJ`
+    for `H`, which made the gradient of the log-determinant term, and so
+    of the evidence, off by up to 7e-5 relative on small SE(2) loops with
+    nonzero residuals and 5e-5 on the oscillator of `tests/test_discover.py`.)
 
     [`eqsmooth.factors.StudentTNoise`][] is a normalised density, so a graph
     with Student-t factors gets a proper Laplace evidence. Its
@@ -121,7 +132,7 @@ def laplace_at_map(
     g = gradient(lin)
     rhs = {k: -v for k, v in g.items()}
     linear_solver = linear_solver_for(linear_solver, lin_frozen)
-    delta, _ = solve_normal(linear_solver, lin_frozen, None, rhs)
+    delta = _newton_correction(frozen, x_hat, lin_frozen, linear_solver, rhs)
     x_tilde = retract_values(x_hat, delta)
     lin_t = linearize_graph(_fisher_curvature(graph), x_tilde)
     log_det = normal_log_det(lin_t, linear_solver)
@@ -129,6 +140,74 @@ def laplace_at_map(
     N = lin_t.num_tangent
     log_ml = -nll + 0.5 * N * math.log(2 * math.pi) - 0.5 * log_det
     return jnp.asarray(log_ml)
+
+
+# CG on the exact Hessian, preconditioned by the Gauss-Newton solve: the
+# preconditioned eigenvalues cluster at 1 when residuals are small, so a few
+# iterations reach the tolerance (on the residual in the preconditioner's
+# norm, which rounding lets CG reach however badly scaled the variables are);
+# the limit only catches a Hessian that is not positive definite.
+_CG_RTOL = 1e-10
+_CG_MAX_STEPS = 100
+
+
+def _newton_correction(frozen, x_hat, lin_frozen, linear_solver, rhs):
+    """`H⁻¹ rhs`, with `H` the exact Hessian of the cost of `frozen` in
+    tangent coordinates at `x_hat` (constant), as a linear function of `rhs`
+    whose derivatives are again solves with `H`."""
+    zero = {k: jnp.zeros_like(v) for k, v in rhs.items()}
+
+    def tangent_gradient(d):
+        return jax.grad(lambda e: graph_cost(frozen, retract_values(x_hat, e)))(d)
+
+    _, hessian_product = jax.linearize(tangent_gradient, zero)
+
+    def precondition(v):
+        w, _ = solve_normal(linear_solver, lin_frozen, None, rhs=v)
+        return w
+
+    def solve(matvec, b):
+        x, ok = _pcg(matvec, precondition, b)
+        return {k: jnp.where(ok, v, jnp.nan) for k, v in x.items()}
+
+    return jax.lax.custom_linear_solve(hessian_product, rhs, solve, symmetric=True)
+
+
+def _dot(a, b):
+    return sum(jnp.sum(a[k] * b[k]) for k in a)
+
+
+def _pcg(matvec, precondition, b):
+    """Preconditioned CG for symmetric positive definite `matvec`; returns
+    `(x, converged)`: converged when `rᵀ M r ≤ rtol² bᵀ M b` (`M` the
+    preconditioner), not on a direction of non-positive curvature or at the
+    iteration limit."""
+    z0 = precondition(b)
+    bz = _dot(b, z0)
+    tol2 = _CG_RTOL * _CG_RTOL * bz
+
+    def cond(carry):
+        _, _, _, rz, k, bad = carry
+        return (rz > tol2) & (k < _CG_MAX_STEPS) & ~bad
+
+    def body(carry):
+        x, r, p, rz, k, _ = carry
+        ap = matvec(p)
+        pap = _dot(p, ap)
+        bad = ~(jnp.isfinite(pap) & (pap > 0))
+        alpha = jnp.where(bad, 0.0, rz / jnp.where(bad, 1.0, pap))
+        x = {key: x[key] + alpha * p[key] for key in x}
+        r = {key: r[key] - alpha * ap[key] for key in r}
+        z = precondition(r)
+        rz_new = _dot(r, z)
+        beta = rz_new / jnp.where(rz == 0, 1.0, rz)
+        p = {key: z[key] + beta * p[key] for key in p}
+        return x, r, p, rz_new, k + 1, bad
+
+    x0 = {k: jnp.zeros_like(v) for k, v in b.items()}
+    init = (x0, b, z0, bz, jnp.asarray(0), jnp.asarray(False))
+    x, _, _, rz, _, bad = jax.lax.while_loop(cond, body, init)
+    return x, (rz <= tol2) & ~bad
 
 
 def _fisher_curvature(graph: FactorGraph) -> FactorGraph:

@@ -106,7 +106,13 @@ def _sphere_log(measured: Array, direction: Array) -> Array:
     `direction` seen from the unit vector `measured`: the geodesic angle times
     the unit tangent direction, so the residual's norm is the angle between
     the two directions."""
-    basis = jax.lax.stop_gradient(_sphere_basis(measured))
+    # The basis moves with `measured` (smoothly: the choice of axis is
+    # piecewise constant), and so do the residual's coordinates: its
+    # derivative w.r.t. the measured direction must include the basis's.
+    # (Stopping the gradient here made the cost's gradient w.r.t. a measured
+    # bearing too small by the factor sin²(angle): -0.012 against -0.837 by
+    # central differences in tests/test_gradient_contract.py.)
+    basis = _sphere_basis(measured)
     w = basis.T @ direction  # sin(angle) · unit tangent
     s = _norm(w)
     c = jnp.dot(measured, direction)

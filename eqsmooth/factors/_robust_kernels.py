@@ -49,7 +49,11 @@ class TukeyNoise(AbstractRobustNoise):
     def rho(self, s):
         k2 = jnp.square(self.scale).astype(s.dtype)
         u = jnp.clip(1.0 - s / k2, 0.0, None)
-        return k2 / 3.0 * (1.0 - u**3), u * u
+        # `where`, not `u * u`: beyond k the weight is exactly 0, and the
+        # solvers' IRLS weight √ρ' has an infinite derivative there; `where`
+        # sends that cotangent to the constant branch, `u * u` turned it into
+        # a NaN gradient for every parameter (tests/test_gradient_contract.py).
+        return k2 / 3.0 * (1.0 - u**3), jnp.where(u > 0, u * u, 0.0)
 
 
 class GemanMcClureNoise(AbstractRobustNoise):
@@ -93,7 +97,10 @@ class WelschNoise(AbstractRobustNoise):
     def rho(self, s):
         k2 = jnp.square(self.scale).astype(s.dtype)
         w = jnp.exp(-s / k2)
-        return k2 * (1.0 - w), w
+        # exp underflows to exactly 0 beyond s ≈ 745 k² (an outlier of 27
+        # scales); as for Tukey, `where` keeps the infinite derivative of the
+        # IRLS weight √ρ' = 0 out of the gradient (it was NaN).
+        return k2 * (1.0 - w), jnp.where(w > 0, w, 0.0)
 
 
 class DCSNoise(AbstractRobustNoise):
@@ -146,7 +153,21 @@ class FairNoise(AbstractRobustNoise):
     def rho(self, s):
         k = self.scale.astype(s.dtype)
         x = _safe_sqrt(s) / k
-        return 2.0 * k * k * (x - jnp.log1p(x)), 1.0 / (1.0 + x)
+        # ρ = 2k²(x − log(1 + x)) written as 2 s φ(x), φ(x) = (x − log1p(x))/x²
+        # (φ → ½ at 0; a series below x = 1e-3, where the quotient cancels).
+        # The autodiff derivative of ρ at s = 0 is then ρ'(0) = 1; the first
+        # form gave 0 (through √s's zero derivative there), so the cost's
+        # Hessian at a zero residual was 0 instead of the identity, and
+        # every second-order route (the implicit adjoint's exact Hessian,
+        # `jax.hessian` of a cost) was wrong there.
+        small = x < 1e-3
+        xs = jnp.where(small, 1.0, x)
+        phi = jnp.where(
+            small,
+            0.5 - x / 3.0 + x * x / 4.0 - x * x * x / 5.0,
+            (xs - jnp.log1p(xs)) / (xs * xs),
+        )
+        return 2.0 * s * phi, 1.0 / (1.0 + x)
 
 
 class L2WithDeadZoneNoise(AbstractRobustNoise):
