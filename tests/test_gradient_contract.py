@@ -665,16 +665,18 @@ def test_robust_kernels_forward_mode():
     assert_gradients(_kernel_forward(), GRAPH_OUTPUTS, rows=rows)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="open: eqsmooth/solve/_linearization.py weights rows by jnp.sqrt(ρ'), "
-    "whose forward-mode derivative is 0·∞ = NaN on rows with ρ' = 0 (Tukey and "
-    "Welsch outliers, L2WithDeadZone inliers); reverse mode is right. Needs a "
-    "safe square root there (solver work); remove this mark when it passes",
-)
 def test_linearize_forward_mode_with_zero_weight_rows():
-    assert_gradients(_kernel_forward(), GRAPH_OUTPUTS, rows=_LINEARIZE_ROWS)
+    # The linearisation weights rows by √ρ'; its forward-mode derivative was
+    # 0·∞ = NaN on rows with ρ' = 0 (Tukey and Welsch outliers, dead-zone
+    # inliers) until a safe square root replaced it.
+    # A truncated quadratic's residual weight is 1 inside its scale and 0
+    # beyond: only its cost (not these rows) moves with the scale.
+    assert_gradients(
+        _kernel_forward(),
+        GRAPH_OUTPUTS,
+        rows=_LINEARIZE_ROWS,
+        zero_leaves=("TruncatedQuadraticNoise']['scale",),
+    )
 
 
 # ------------------------------------------------------------ EKF and RTS

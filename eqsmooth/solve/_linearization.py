@@ -76,7 +76,11 @@ def linearize_graph(graph: FactorGraph, values: dict[str, PyTree]) -> Linearizat
         s = jnp.sum(rw * rw, axis=1)
         rho, drho = f.noise.rho(s)
         cost = cost + 0.5 * jnp.sum(rho).astype(cost.dtype)
-        w = jnp.sqrt(drho)
+        # √ρ' with a finite derivative where ρ' = 0 (Tukey and Welsch
+        # outliers): the plain square root's derivative there is infinite,
+        # and forward mode turned it into NaN.
+        positive = drho > 0
+        w = jnp.where(positive, jnp.sqrt(jnp.where(positive, drho, 1.0)), 0.0)
         rw = rw * w[:, None]
         jw = tuple(j * w[:, None, None] for j in jw)
         out.append(FactorLinearization(rw, jw, f.variables, type(f).__name__))
