@@ -228,3 +228,27 @@ def test_named_constructors_agree():
         eqs.IsotropicNoise.from_precision(4.0).sqrt_precision,
         eqs.IsotropicNoise.from_sigma(0.5).sqrt_precision,
     )
+
+
+_KERNELS = (
+    "HuberNoise CauchyNoise TukeyNoise GemanMcClureNoise WelschNoise DCSNoise "
+    "FairNoise L2WithDeadZoneNoise TruncatedQuadraticNoise"
+).split()
+
+
+@pytest.mark.parametrize("inner", ["TukeyNoise", "StudentTNoise"])
+@pytest.mark.parametrize("outer", _KERNELS + ["StudentTNoise"])
+def test_noise_models_do_not_nest(outer, inner):
+    # A kernel acts on its base's whitened residual only: an inner kernel (or
+    # Student-t) was accepted and silently dropped.
+    eqs = _eqs()
+    assert sorted(_KERNELS) == _robust_kernels()
+    base = eqs.IsotropicNoise.from_sigma(1.0)
+    inner_model = (
+        eqs.StudentTNoise(base, 4.0)
+        if inner == "StudentTNoise"
+        else getattr(eqs, inner)(base, 1.0)
+    )
+    second = 4.0 if outer == "StudentTNoise" else 1.0
+    with raises(TypeError, f"{outer}.base", inner):
+        getattr(eqs, outer)(inner_model, second)

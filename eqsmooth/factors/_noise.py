@@ -17,6 +17,7 @@ cost is `½ ρ(‖R r‖²)` where `ρ` is the identity for Gaussian models.
 
 import abc
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -121,7 +122,14 @@ def gaussian_log_normalizer(noise: "AbstractNoiseModel", n: int, m: int) -> Arra
 
 
 class AbstractNoiseModel(eqx.Module):
-    """Base class of noise models (see the module docs for shapes)."""
+    """Base class of noise models (see the module docs for shapes).
+
+    `is_gaussian` (a class attribute) says whether the model is a Gaussian
+    density (whitening only): robust kernels and Student-t wrap one, and
+    only one.
+    """
+
+    is_gaussian: ClassVar[bool] = True
 
     @abc.abstractmethod
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -454,12 +462,22 @@ class AbstractRobustNoise(AbstractNoiseModel):
 
     base: eqx.AbstractVar[AbstractNoiseModel]
     scale: eqx.AbstractVar[Float[Array, "*rows"]]
+    is_gaussian: ClassVar[bool] = False
 
     def __check_init__(self):
         if not isinstance(self.base, AbstractNoiseModel):
             raise TypeError(
                 f"{type(self).__name__}.base must be a Gaussian noise model such as "
                 f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
+            )
+        if not self.base.is_gaussian:
+            # The kernel acts on the base's whitened residual only: an inner
+            # kernel's ρ would be silently dropped.
+            raise TypeError(
+                f"{type(self).__name__}.base must be a Gaussian noise model such as "
+                f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}, "
+                "which is not Gaussian: kernels do not nest (the inner one would "
+                "be ignored); wrap the Gaussian model in one kernel"
             )
         _check_scale(type(self).__name__, self.scale)
 

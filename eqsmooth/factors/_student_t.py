@@ -1,6 +1,7 @@
 """Student-t noise: heavy tails with a normalised density."""
 
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -12,7 +13,6 @@ from ._noise import (
     _check_positive,
     _positive_under_jit,
     AbstractNoiseModel,
-    AbstractRobustNoise,
     gaussian_log_normalizer,
 )
 
@@ -55,6 +55,7 @@ class StudentTNoise(AbstractNoiseModel):
     base: AbstractNoiseModel
     dof: Float[Array, "*rows"]
     dim: int = eqx.field(static=True)
+    is_gaussian: ClassVar[bool] = False
 
     def __init__(
         self, base: AbstractNoiseModel, dof: Float[ArrayLike, "*rows"], dim: int = 1
@@ -64,9 +65,7 @@ class StudentTNoise(AbstractNoiseModel):
         self.dim = dim
 
     def __check_init__(self):
-        if not isinstance(self.base, AbstractNoiseModel) or isinstance(
-            self.base, (AbstractRobustNoise, StudentTNoise)
-        ):
+        if not isinstance(self.base, AbstractNoiseModel) or not self.base.is_gaussian:
             raise TypeError(
                 "StudentTNoise.base must be a Gaussian noise model such as "
                 f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
