@@ -175,6 +175,40 @@ def test_3d_bearing_at_measured_direction():
         np.testing.assert_allclose(np.asarray(j[0]), jr, atol=1e-6)
 
 
+def test_3d_bearings_are_normalised_and_zero_ones_refused():
+    # (0, 0, 2) was taken as a unit vector: the angle to a point 45° off read
+    # 26.6°. Directions are normalised (GTSAM's Unit3); zero / NaN ones raise.
+    import eqsmooth as eqs
+
+    pose = eqs.SE3.identity((1,), dtype=jnp.float64)
+    for cls, extra in (
+        (eqs.BearingFactor, ()),
+        (eqs.BearingRangeFactor, (jnp.ones(1),)),
+    ):
+        f = cls(
+            eqs.Var("x", [0]),
+            eqs.Var("l", [0]),
+            jnp.array([[0.0, 0.0, 2.0]]),
+            *extra,
+            _noise(2 + len(extra)),
+        )
+        np.testing.assert_allclose(np.asarray(f.bearing), [[0.0, 0.0, 1.0]])
+        graph = eqs.FactorGraph([f])
+        r = graph.residuals({"x": pose, "l": jnp.array([[1.0, 0.0, 1.0]])})[0][0]
+        np.testing.assert_allclose(float(jnp.linalg.norm(r[:2])), np.pi / 4, rtol=1e-12)
+        for bad in ([[0.0, 0.0, 0.0]], [[np.nan, 0.0, 1.0]]):
+            with pytest.raises(
+                ValueError, match=f"{cls.__name__}.bearing: rows \\[0\\]"
+            ):
+                cls(
+                    eqs.Var("x", [0]),
+                    eqs.Var("l", [0]),
+                    jnp.array(bad),
+                    *extra,
+                    _noise(2 + len(extra)),
+                )
+
+
 def test_pose2_accessors():
     pose = _se2(1.5, -2.0, 3.0)
     np.testing.assert_allclose(np.asarray(pose.x()), [1.5])

@@ -12,14 +12,16 @@ derivative is defined everywhere but at the origin). Everything else is
 smooth and is differentiated by the solver's forward-mode linearisation.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ..lie import SE2, SE3
 from ..lie._base import AbstractLieGroup
 from ._factor import AbstractFactor
-from ._noise import AbstractNoiseModel
+from ._noise import _is_concrete, AbstractNoiseModel
 from ._variables import Var
 
 
@@ -139,6 +141,38 @@ def _as_rows(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
 # ------------------------------------------------------------------ factors
 
 
+def _bearings(name: str, bearing) -> Array:
+    """Validated bearings of a landmark factor: `(n,)` angles, or `(n, 3)`
+    directions normalised to unit vectors (like GTSAM's `Unit3`, so a ray
+    `(x, y, 1)` may be passed as it is); a zero or non-finite direction
+    raises (a `ValueError` naming the rows, or `eqx.error_if` under `jit`)."""
+    bearing = jnp.asarray(bearing)
+    if bearing.ndim not in (1, 2) or (bearing.ndim == 2 and bearing.shape[1] != 3):
+        raise ValueError(
+            f"{name}.bearing must have shape (n,) (angles, 2-D) or (n, 3) "
+            f"(directions, 3-D), got {bearing.shape}"
+        )
+    if bearing.ndim == 1:
+        return bearing
+    norm = jnp.sqrt(jnp.sum(bearing * bearing, axis=1))
+    ok = jnp.isfinite(norm) & (norm > 0)
+    if _is_concrete(ok):
+        bad = np.flatnonzero(~np.asarray(ok))
+        if bad.size:
+            raise ValueError(
+                f"{name}.bearing: rows {bad[:8].tolist()} are zero or non-finite "
+                "directions (a 3-D bearing is a direction; it is normalised to a "
+                "unit vector)"
+            )
+    else:
+        norm = eqx.error_if(
+            norm,
+            ~jnp.all(ok),
+            f"{name}.bearing has a zero or non-finite direction (checked under jit)",
+        )
+    return bearing / norm[:, None]
+
+
 class RangeFactor(AbstractFactor):
     """Distance between two positions: residual `‖p_b − p_a‖ − range`.
 
@@ -186,7 +220,8 @@ class BearingFactor(AbstractFactor):
 
     - `pose`: a [`eqsmooth.factors.Var`][] of SE2 or SE3 poses, `n` rows.
     - `point`: a `Var` of points (or poses, whose translation is used).
-    - `bearing`: `(n,)` angles (2-D) or `(n, 3)` unit vectors (3-D).
+    - `bearing`: `(n,)` angles (2-D) or `(n, 3)` directions (3-D; normalised
+        to unit vectors, like GTSAM's `Unit3`).
     - `noise`: noise model on the residual.
     """
 
@@ -202,13 +237,7 @@ class BearingFactor(AbstractFactor):
         noise: AbstractNoiseModel,
     ):
         self.variables = (pose, point)
-        bearing = jnp.asarray(bearing)
-        if bearing.ndim not in (1, 2) or (bearing.ndim == 2 and bearing.shape[1] != 3):
-            raise ValueError(
-                "BearingFactor.bearing must have shape (n,) (angles, 2-D) or (n, 3) "
-                f"(unit vectors, 3-D), got {bearing.shape}"
-            )
-        self.bearing = bearing
+        self.bearing = _bearings("BearingFactor", bearing)
         self.noise = noise
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " k"]:
@@ -237,7 +266,8 @@ class BearingRangeFactor(AbstractFactor):
 
     - `pose`: a [`eqsmooth.factors.Var`][] of SE2 or SE3 poses, `n` rows.
     - `point`: a `Var` of points.
-    - `bearing`: `(n,)` angles (SE2) or `(n, 3)` unit vectors (SE3).
+    - `bearing`: `(n,)` angles (SE2) or `(n, 3)` directions (SE3; normalised
+        to unit vectors).
     - `range`: `(n,)` distances.
     - `noise`: noise model on the stacked `(bearing, range)` residual, e.g.
         `DiagonalNoise.from_sigmas([σ_bearing, σ_range])` in 2-D.
@@ -257,13 +287,7 @@ class BearingRangeFactor(AbstractFactor):
         noise: AbstractNoiseModel,
     ):
         self.variables = (pose, point)
-        bearing = jnp.asarray(bearing)
-        if bearing.ndim not in (1, 2) or (bearing.ndim == 2 and bearing.shape[1] != 3):
-            raise ValueError(
-                "BearingRangeFactor.bearing must have shape (n,) or (n, 3), got "
-                f"{bearing.shape}"
-            )
-        self.bearing = bearing
+        self.bearing = _bearings("BearingRangeFactor", bearing)
         self.range = _as_rows(range, "BearingRangeFactor.range", ())
         self.noise = noise
 
