@@ -310,3 +310,14 @@ def test_sensor_shapes():
     with jax.numpy_dtype_promotion("standard"):
         v, ls, h = sensor(pair)
     assert v.shape == (2,) and ls.shape == (2,) and h.shape == (M.FEATURES,)
+
+
+@pytest.mark.parametrize("token", ["nan", "inf", "-inf"])
+def test_read_poses_refuses_non_finite_lines(tmp_path, token):
+    # A "nan" in a pose file used to come back as NaN poses.
+    path = tmp_path / "05.txt"
+    good = " ".join(["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", "0"])
+    bad = good.replace("0", token, 1)
+    path.write_text("\n".join([good, good, bad, good]) + "\n")
+    with pytest.raises(ValueError, match=r"05\.txt: lines \[3\] hold non-finite"):
+        D.read_poses(path)

@@ -60,6 +60,12 @@ def read_poses(path: str | Path) -> np.ndarray:
     data = np.loadtxt(path, dtype=np.float64, ndmin=2)
     if data.shape[1] != 12:
         raise ValueError(f"{path}: expected 12 floats per line, got {data.shape[1]}")
+    bad = np.flatnonzero(~np.all(np.isfinite(data), axis=1))
+    if bad.size:
+        raise ValueError(
+            f"{path}: lines {(bad[:8] + 1).tolist()} hold non-finite numbers (nan or "
+            "inf); a pose file holds 12 finite floats per line"
+        )
     return data.reshape(-1, 3, 4)
 
 
