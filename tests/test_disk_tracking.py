@@ -456,3 +456,15 @@ def test_docs_table_is_the_committed_results(tmp_path):
         shutil.copy(f, tmp_path)
     _, table = report.write_summary(tmp_path)
     assert report.docs_table(page) == table
+
+
+def test_damaged_fold_cache_is_reported_and_rebuilt(tmp_path):
+    # A cache cut short by a kill raised zipfile.BadZipFile with no path.
+    kw = dict(seed=0, fold=1, num_sequences=3, num_frames=5, cache_dir=tmp_path)
+    fresh = D.load_fold(**kw)
+    (path,) = tmp_path.glob("*.npz")
+    path.write_bytes(path.read_bytes()[:40])
+    with pytest.warns(UserWarning, match=f"{path.name}: damaged cache file"):
+        again = D.load_fold(**kw)
+    np.testing.assert_array_equal(again.disk_positions, fresh.disk_positions)
+    assert D.load_cache(path, ("radii",)) is not None  # rewritten whole

@@ -18,6 +18,8 @@ run's first sequences are exactly those of the full protocol.
 
 import dataclasses
 import time
+import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -299,17 +301,9 @@ def load_fold(
         path = cache_dir / (
             f"disk_seed{seed}_fold{fold}_n{num_sequences}_t{num_frames}.npz"
         )
-        if path.exists():
-            with np.load(path) as z:
-                return DiskFold(
-                    disk_positions=z["disk_positions"],
-                    disk_velocities=z["disk_velocities"],
-                    radii=z["radii"],
-                    colours=z["colours"],
-                    visible_pixels=z["visible_pixels"],
-                    seed=seed,
-                    fold=fold,
-                )
+        z = load_cache(path, _FOLD_KEYS)
+        if z is not None:
+            return DiskFold(**z, seed=seed, fold=fold)
     t0 = time.perf_counter()
     data = generate_fold(seed, fold, num_sequences, num_frames)
     if verbose:
@@ -330,6 +324,28 @@ def load_fold(
         )
         tmp.replace(path)
     return data
+
+
+_FOLD_KEYS = ("disk_positions", "disk_velocities", "radii", "colours", "visible_pixels")
+
+
+def load_cache(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+    """The arrays `keys` of the `.npz` cache at `path`, or None when there is
+    none. A damaged cache (cut short by a kill, or missing a key) is only a
+    cache: it is reported with its path and rebuilt, never a crash."""
+    if not path.exists():
+        return None
+    try:
+        # Our own file handle: np.load leaves its own open when the zip is bad.
+        with open(path, "rb") as fh, np.load(fh) as z:
+            return {k: z[k] for k in keys}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+        warnings.warn(
+            f"{path}: damaged cache file ({type(err).__name__}: {err}); it is "
+            "rebuilt (delete the file to silence this)",
+            stacklevel=2,
+        )
+        return None
 
 
 def fold_images(fold: DiskFold, cache_dir: Path | None = None) -> np.ndarray:

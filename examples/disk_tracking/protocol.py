@@ -23,7 +23,7 @@ import numpy as np
 
 import eqsmooth as eqs
 
-from . import report, train as T
+from . import data as D, report, train as T
 
 
 class StageTimer:
@@ -54,9 +54,9 @@ class StageTimer:
 
 def _cached_outputs(sensor, split: T.Split, cfg: T.Config, path: Path) -> None:
     """Fill `split.sensor` and `split.features`, from `path` when it exists."""
-    if path.exists():
-        with np.load(path) as z:
-            split.sensor, split.features = z["positions"], z["features"]
+    z = D.load_cache(path, ("positions", "features"))
+    if z is not None:
+        split.sensor, split.features = z["positions"], z["features"]
         return
     split.sensor, split.features = T.sensor_outputs(sensor, split, cfg)
 
