@@ -396,3 +396,30 @@ def test_residual_not_1d_in_cost(api):
     fn = graph.cost if api == "cost" else graph.negative_log_likelihood
     with raises(ValueError, "MatrixResidual.residual", "1-D", "(1, 1)"):
         fn(x)
+
+
+class _ForeignPose:
+    """Stands in for a `gtsam.Pose2` passed where eqsmooth wants arrays."""
+
+    def __init__(self, x, y, theta):
+        self.xyt = (x, y, theta)
+
+
+@pytest.mark.parametrize("field", ["data", "measurement"])
+def test_foreign_objects_as_factor_data_name_the_field(field):
+    # A gtsam object passed as a value was accepted and failed later inside
+    # JAX without naming the factor or the field.
+    eqs = _eqs()
+    pose = _ForeignPose(0.0, 0.0, 0.0)
+    if field == "data":
+        make = lambda: eqs.FunctionFactor(
+            _meas, (eqs.Var("x", t[:1]),), _iso(), data=pose
+        )
+        fragments = ["FunctionFactor.data", "_ForeignPose", "not an array"]
+    else:
+        make = lambda: eqs.BetweenFactor(
+            eqs.Var("x", t[:1]), eqs.Var("x", t[1:2]), [pose], _iso()
+        )
+        fragments = ["BetweenFactor.measurement", "_ForeignPose", "not an array"]
+    with raises(TypeError, *fragments):
+        make()

@@ -5,6 +5,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from ..manifold import retract, tangent_dim
@@ -72,6 +73,7 @@ class AbstractFactor(eqx.Module):
                 f"{name}.noise must be an AbstractNoiseModel, got "
                 f"{type(self.noise).__name__}"
             )
+        check_array_leaves(self)
 
     @property
     def num_rows(self) -> int:
@@ -166,6 +168,22 @@ def _row_axes(factor: AbstractFactor) -> AbstractFactor:
             continue
         object.__setattr__(axes, f.name, 0 if _is_per_row(f) else None)
     return axes
+
+
+def check_array_leaves(factor: AbstractFactor) -> None:
+    """Raise if a data field of `factor` holds something that is not an array
+    (e.g. a `gtsam.Pose2`, a list of objects), which would otherwise fail
+    later inside JAX without naming the factor or the field."""
+    name = type(factor).__name__
+    for field_name, value in per_row_fields(factor).items():
+        for leaf in jax.tree_util.tree_leaves(value):
+            if not (eqx.is_array(leaf) or isinstance(leaf, (int, float, np.generic))):
+                raise TypeError(
+                    f"{name}.{field_name} holds a {type(leaf).__module__}."
+                    f"{type(leaf).__qualname__}, not an array: factor data must be "
+                    "JAX or NumPy arrays or eqsmooth Lie groups (for a GTSAM pose, "
+                    "e.g. eqsmooth.SE2.from_xy_theta(p.x(), p.y(), p.theta()))"
+                )
 
 
 def check_row_leaves(factor: AbstractFactor) -> None:
