@@ -252,3 +252,32 @@ def test_noise_models_do_not_nest(outer, inner):
     second = 4.0 if outer == "StudentTNoise" else 1.0
     with raises(TypeError, f"{outer}.base", inner):
         getattr(eqs, outer)(inner_model, second)
+
+
+def test_pose_sigmas_are_named_by_part():
+    # GTSAM orders Pose3 tangents (rotation, translation), eqsmooth
+    # (translation, rotation): sigmas passed positionally in GTSAM's order
+    # were accepted and wrong. The named constructor is right in both.
+    eqs = _eqs()
+    se3 = eqs.DiagonalNoise.from_pose_sigmas(
+        rotation=np.array([0.01, 0.02, 0.03]), translation=np.array([0.1, 0.2, 0.3])
+    )
+    np.testing.assert_allclose(
+        1.0 / np.asarray(se3.sqrt_precision), [0.1, 0.2, 0.3, 0.01, 0.02, 0.03]
+    )
+    se2 = eqs.DiagonalNoise.from_pose_sigmas(
+        translation=np.array([0.1, 0.2]), rotation=0.05
+    )
+    np.testing.assert_allclose(1.0 / np.asarray(se2.sqrt_precision), [0.1, 0.2, 0.05])
+    rows = eqs.DiagonalNoise.from_pose_sigmas(
+        translation=np.full((4, 2), 0.1), rotation=np.full(4, 0.05)
+    )
+    assert rows.sqrt_precision.shape == (4, 3)
+    with raises(ValueError, "from_pose_sigmas", "(3,)", "(1,)"):
+        eqs.DiagonalNoise.from_pose_sigmas(
+            translation=np.array([0.1, 0.2, 0.3]), rotation=0.05
+        )
+    with raises(ValueError, "DiagonalNoise.sigmas", "positive"):
+        eqs.DiagonalNoise.from_pose_sigmas(
+            translation=np.array([0.1, 0.0]), rotation=0.05
+        )

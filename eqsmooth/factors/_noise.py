@@ -283,6 +283,39 @@ class DiagonalNoise(AbstractNoiseModel):
         return cls(sqrt_precision=1.0 / sigmas)
 
     @classmethod
+    def from_pose_sigmas(
+        cls,
+        *,
+        translation: Float[ArrayLike, "*rows t"],
+        rotation: Float[ArrayLike, "..."],
+    ) -> "DiagonalNoise":
+        """Build the noise of a pose from its translation and rotation σ, named.
+
+        eqsmooth's pose tangents put the translation first (`SE2`: `(vx, vy,
+        ω)`, `SE3`: `(v, ω)`), while GTSAM's `Pose3` puts the rotation first:
+        naming the parts (keywords only) makes a port from either order
+        right. `translation=[σx, σy, σz], rotation=[σroll, σpitch, σyaw]` for
+        `SE3`; `translation=[σx, σy], rotation=[σθ]` (or a scalar) for `SE2`.
+        Per-row σ carry a leading row axis on both.
+        """
+        t = _as_float(translation)
+        r = _as_float(rotation)
+        if r.ndim == 0 or (t.ndim == 2 and r.ndim == 1 and r.shape[0] == t.shape[0]):
+            r = r[..., None]
+        if (
+            t.ndim not in (1, 2)
+            or t.shape[-1] not in (2, 3)
+            or r.shape[-1] != (1 if t.shape[-1] == 2 else 3)
+            or t.shape[:-1] != r.shape[:-1]
+        ):
+            raise ValueError(
+                "DiagonalNoise.from_pose_sigmas: translation must have 2 (SE2) or 3 "
+                "(SE3) sigmas and rotation 1 or 3 to match, with the same leading "
+                f"row axis; got translation {t.shape}, rotation {r.shape}"
+            )
+        return cls.from_sigmas(jnp.concatenate([t, r.astype(t.dtype)], axis=-1))
+
+    @classmethod
     def from_variances(cls, variances: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate variances σ_j² (`1/σ_j`)."""
         v = _positive_under_jit("DiagonalNoise", "variances", _as_float(variances))
