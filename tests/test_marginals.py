@@ -75,9 +75,11 @@ def test_singular_marginals_raise():
         assert "Equinox" not in str(info.value)
     # float32: the message names the precision as a possible cause.
     lin32 = jax.tree_util.tree_map(
-        lambda x: x.astype(jnp.float32)
-        if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating)
-        else x,
+        lambda x: (
+            x.astype(jnp.float32)
+            if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating)
+            else x
+        ),
         lin,
     )
     with pytest.raises(eqx.EquinoxRuntimeError, match="float32"):

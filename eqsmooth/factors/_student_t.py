@@ -86,8 +86,10 @@ class StudentTNoise(AbstractNoiseModel):
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
         log_det = self.base.log_det_sqrt_information(n, m)
         nu = self.dof.astype(log_det.dtype)
-        const = n * _log_t_constant(nu, m) if nu.ndim == 0 else jnp.sum(
-            _log_t_constant(nu, m)
+        const = (
+            n * _log_t_constant(nu, m)
+            if nu.ndim == 0
+            else jnp.sum(_log_t_constant(nu, m))
         )
         return log_det + const
 
