@@ -67,9 +67,9 @@ def test_function_factor_warns_on_recreated_lambdas():
     def build():
         return eqs.FunctionFactor(lambda x, d, p: x - d, (var,), noise, data=data)
 
+    build()  # the first object: nothing to say yet
     with pytest.warns(UserWarning, match="new function object"):
-        for _ in range(3):
-            build()
+        build()  # the second one with the same code warns at once
     # Once per code object: no second warning.
     with warnings.catch_warnings():
         warnings.simplefilter("error")

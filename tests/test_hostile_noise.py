@@ -281,3 +281,33 @@ def test_pose_sigmas_are_named_by_part():
         eqs.DiagonalNoise.from_pose_sigmas(
             translation=np.array([0.1, 0.0]), rotation=0.05
         )
+
+
+@pytest.mark.parametrize("bad", [np.inf, np.nan, -1.0])
+def test_traced_kernel_scale_must_be_finite_and_positive(bad):
+    # Under jit a scale of inf passed the check ("positive") and the solve
+    # then blamed the measurements.
+    import equinox as eqx
+
+    eqs = _eqs()
+    base = eqs.IsotropicNoise.from_sigma(1.0)
+
+    @eqx.filter_jit
+    def rho(scale):
+        return jnp.sum(eqs.FairNoise(base, scale).rho(jnp.ones(2))[0])
+
+    assert np.isfinite(float(rho(jnp.asarray(2.0))))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="FairNoise.scale must be"):
+        rho(jnp.asarray(bad))
+
+
+def test_unbatched_prior_value_message_fits_builtin_factors():
+    # The message used to point only at shared_field(), which does not apply
+    # to a PriorFactor's value.
+    eqs = _eqs()
+    f = eqs.PriorFactor(
+        eqs.Var("x", [0, 1]), jnp.zeros(3), eqs.IsotropicNoise.from_sigma(1.0)
+    )
+    graph = eqs.FactorGraph([f])
+    with raises(ValueError, "PriorFactor.value", "leading axis of length 2", "x[None]"):
+        graph.validate({"x": jnp.zeros((2, 3))})

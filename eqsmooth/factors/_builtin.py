@@ -162,8 +162,8 @@ class BetweenFactor(AbstractAnalyticFactor):
 # distinct function objects seen]; see `_note_function`.
 _FUNCTIONS_SEEN: dict = {}
 _NEW_FUNCTION_WARNING = (
-    "FunctionFactor received a new function object {name!r} for the {count}th time "
-    "(the same code, e.g. a lambda or closure re-created before every solve). "
+    "FunctionFactor received a new function object {name!r} with the same code as "
+    "one it has seen (e.g. a lambda or closure re-created before every solve). "
     "The function is part of the compiled graph's static structure, so each new "
     "object compiles the solve again (seconds). Define it once, at module level, "
     "and pass data through `data=` / `params=` instead."
@@ -185,9 +185,11 @@ def _note_function(fn: Callable) -> None:
         return
     entry[0] = weakref.ref(fn)
     entry[1] += 1
-    if entry[1] == 3:
+    # At the second object: the first one has cost one compilation already,
+    # and each further one costs another (it was the third; issue 36).
+    if entry[1] == 2:
         warnings.warn(
-            _NEW_FUNCTION_WARNING.format(name=getattr(fn, "__qualname__", fn), count=3),
+            _NEW_FUNCTION_WARNING.format(name=getattr(fn, "__qualname__", fn)),
             UserWarning,
             stacklevel=4,
         )

@@ -195,8 +195,12 @@ def check_row_leaves(factor: AbstractFactor) -> None:
             if eqx.is_array(leaf) and (leaf.ndim == 0 or leaf.shape[0] != n):
                 raise ValueError(
                     f"{name}.{field_name}: per-row leaf of shape {leaf.shape} must "
-                    f"have a leading axis of length {n} (the number of factor rows); "
-                    "declare shared parameters with eqsmooth.factors.shared_field()"
+                    f"have a leading axis of length {n} (the number of factor rows): "
+                    "give one entry per row (for a single row, add a leading axis "
+                    "of length 1, e.g. x[None], or build a group element from "
+                    "arrays of shape (1,)); only for a parameter that every row of "
+                    "your own factor shares, declare the field with "
+                    "eqsmooth.factors.shared_field()"
                 )
 
 

@@ -57,7 +57,7 @@ def _positive_under_jit(name: str, field: str, value: Array) -> Array:
         return value
     return eqx.error_if(
         value,
-        ~jnp.all(value > 0),
+        ~jnp.all((value > 0) & jnp.isfinite(value)),
         f"{name}.{field} must be positive and finite (checked under jit)",
     )
 
