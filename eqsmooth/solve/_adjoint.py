@@ -45,7 +45,12 @@ from jaxtyping import Array, Bool, PyTree
 from ..factors import FactorGraph
 from ..factors._graph import graph_cost
 from ._default_solver import linear_solver_for
-from ._derivatives import checked_derivative, recomputed, refuse_derivative
+from ._derivatives import (
+    checked_derivative,
+    recomputed,
+    refuse_derivative,
+    stop_arrays,
+)
 from ._graph_solver import AbstractGraphSolver
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize_graph, retract_values, Tangent
@@ -58,12 +63,6 @@ Carry = tuple[Values, Any, Array]
 InitFn = Callable[[FactorGraph, Values], Carry]
 BodyFn = Callable[[FactorGraph, Carry], Carry]
 CondFn = Callable[[Carry], Bool[Array, ""]]
-
-
-def _stop(tree):
-    return jax.tree_util.tree_map(
-        lambda x: lax.stop_gradient(x) if eqx.is_array(x) else x, tree
-    )
 
 
 def _scan_while(cond, body, carry, length: int):
@@ -285,7 +284,7 @@ def _truncated_loop(cond, body, carry0, limit: int, k: int, after: int = 0):
     free = limit - m
     if free <= 0:
         return _scan_while(cond, body, carry0, limit)
-    start0 = _stop(carry0)
+    start0 = stop_arrays(carry0)
     ring0 = jax.tree_util.tree_map(
         lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x)), start0
     )
@@ -297,7 +296,7 @@ def _truncated_loop(cond, body, carry0, limit: int, k: int, after: int = 0):
     def body1(loop):
         carry, n, ring = loop
         ring = jax.tree_util.tree_map(lambda r, x: r.at[n % m].set(x), ring, carry)
-        return _stop(body(carry)), n + 1, ring
+        return stop_arrays(body(carry)), n + 1, ring
 
     carry1, n1, ring = lax.while_loop(cond1, body1, (start0, 0, ring0))
     stopped = ~cond(carry1)
@@ -401,10 +400,10 @@ class ImplicitAdjoint(AbstractAdjoint):
         self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
     ):
         del steps_after  # the fixed point is the same however the steps are split
-        stopped_graph = _stop(graph)
-        carry = init(stopped_graph, _stop(values))
+        stopped_graph = stop_arrays(graph)
+        carry = init(stopped_graph, stop_arrays(values))
         carry = lax.while_loop(cond, lambda c: body(stopped_graph, c), carry)
-        x_star, state, history = _stop(carry)
+        x_star, state, history = stop_arrays(carry)
         # A solve that failed (non-finite problem, singular system) has no
         # optimality condition to differentiate: its gradient is NaN.
         failed = (state.result == RESULTS.nonfinite_problem) | (
@@ -433,9 +432,9 @@ class ImplicitAdjoint(AbstractAdjoint):
             )
         (graph,) = graphs
         solver = _graph_solver(inputs)
-        x_star, residual = primal_fn(_stop(inputs) + (_lax_while,))
-        x_star, residual = _stop((x_star, residual))
-        lin = linearize_graph(_stop(graph), x_star)
+        x_star, residual = primal_fn(stop_arrays(inputs) + (_lax_while,))
+        x_star, residual = stop_arrays((x_star, residual))
+        lin = linearize_graph(stop_arrays(graph), x_star)
         own = None if solver is None else solver.linear_solver
         linear_solver = linear_solver_for(own, lin)
         # optimistix does not hand the solve's result code to an adjoint; a

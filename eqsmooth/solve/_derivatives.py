@@ -7,6 +7,13 @@ import jax
 import jax.numpy as jnp
 
 
+def stop_arrays(tree):
+    """`tree` with gradients stopped at its array leaves (other leaves kept)."""
+    return jax.tree_util.tree_map(
+        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree
+    )
+
+
 def _float_leaves(tree) -> list:
     return [
         x
@@ -24,9 +31,7 @@ def recomputed(problem, value, fn: Callable):
     linearisation at the solution under the implicit adjoint, whose loop
     runs with gradients stopped.
     """
-    value = jax.tree_util.tree_map(
-        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, value
-    )
+    value = stop_arrays(value)
     return _recomputed(problem, value, fn)
 
 
@@ -71,9 +76,7 @@ def refuse_derivative(witness, x, message: str):
     differentiated (so that JAX asks for this derivative at all); the error
     is raised only when a gradient actually reaches `x`.
     """
-    x = jax.tree_util.tree_map(
-        lambda y: jax.lax.stop_gradient(y) if eqx.is_array(y) else y, x
-    )
+    x = stop_arrays(x)
     return _refuse(witness, x, message)
 
 
@@ -101,9 +104,7 @@ def checked_derivative(x, aux, fails: Callable, message: str):
     at a point that is not stationary). The derivative itself is unchanged,
     and `fails` is evaluated in the backward pass only (the forward pass
     costs nothing)."""
-    aux = jax.tree_util.tree_map(
-        lambda y: jax.lax.stop_gradient(y) if eqx.is_array(y) else y, aux
-    )
+    aux = stop_arrays(aux)
     return _checked(x, aux, fails, message)
 
 

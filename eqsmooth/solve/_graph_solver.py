@@ -20,6 +20,7 @@ from jaxtyping import Array, Bool, Float, PyTree
 
 from ..factors import FactorGraph
 from ..lie import AbstractLieGroup
+from ._derivatives import stop_arrays
 from ._solution import RESULTS
 
 
@@ -135,9 +136,7 @@ def _fn_mismatch(fn, y, graph: FactorGraph, who: str) -> Bool[Array, ""] | None:
     trace time and its values at run time, at the initial values."""
     if fn is graph_residuals or fn is manifold_residuals:
         return None
-    y, graph = jax.tree_util.tree_map(
-        lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, (y, graph)
-    )
+    y, graph = stop_arrays((y, graph))
     out = fn(y, graph)
     want = _residuals(y, graph)
     # optimistix wraps `fn` so that it returns `(residuals, aux)`.
