@@ -10,59 +10,40 @@ therefore what reverse-mode autodiff differentiates:
 - [`eqsmooth.solve.ImplicitAdjoint`][]: the implicit function theorem at the
     solution, in tangent coordinates.
 
-They are `optimistix.AbstractAdjoint`s, so they also serve
-`optx.least_squares(eqs.solve.graph_residuals, solver, values, args=graph,
-adjoint=...)`; there they find the eqsmooth solver and graph in
-optimistix's inputs by type and take the iteration limit from the
+They are `optimistix.AbstractAdjoint`s: [`eqsmooth.solve.least_squares`][]
+runs every solve through `optx.least_squares`, so each adjoint has one code
+path, its `apply(primal_fn, rewrite_fn, inputs, tags)`, which chooses the
+`while_loop` the solve runs with (a masked `lax.scan`, a stopped
+`lax.while_loop` followed by a differentiated scan, or a stopped
+`lax.while_loop` under a custom VJP). They find the eqsmooth solver and
+graph in optimistix's inputs by type and take the iteration limit from the
 `max_steps` optimistix hands to the loop, so they do not depend on the
-layout of those inputs. Each implements two loops:
-
-- `run`, for eqsmooth's driver, which hands it three functions over the loop
-    carry `(values, state, cost_history)`: `init(graph, values)`,
-    `body(graph, carry)` and `cond(carry)`; it relies on one invariant of the
-    solver states: after the first iteration, `state.lin` is the
-    linearisation at `values` (every iteration linearises the trial point
-    of the step solved in the iteration before, and keeps it if taken);
-- `apply`, optimistix's interface: it receives optimistix's whole solve
-    (`primal_fn`) and its `inputs`, and chooses the `while_loop` the solve
-    runs with (a masked `lax.scan`, a stopped `lax.while_loop` followed by a
-    differentiated scan, or a stopped `lax.while_loop` under a custom VJP).
+layout of those inputs. They serve `optx.least_squares(
+eqs.solve.graph_residuals, solver, values, args=graph, adjoint=...)` the same
+way.
 """
 
-import abc
-from collections.abc import Callable
-from typing import Any, Literal
+from typing import Literal
 
 import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, PyTree
+from jaxtyping import PyTree
 
 from ..factors import FactorGraph
 from ..factors._graph import graph_cost
 from ._default_solver import linear_solver_for
-from ._derivatives import (
-    checked_derivative,
-    recomputed,
-    refuse_derivative,
-    stop_arrays,
-)
+from ._derivatives import checked_derivative, recomputed, stop_arrays
 from ._graph_solver import AbstractGraphSolver
 from ._linear_solver import solve_normal
 from ._linearization import Linearization, linearize_graph, retract_values, Tangent
 from ._misc import preconditioned_cg, stationary, tree_where
-from ._solution import RESULTS
 
 
 Values = dict[str, PyTree]
-Carry = tuple[Values, Any, Array]
-InitFn = Callable[[FactorGraph, Values], Carry]
-BodyFn = Callable[[FactorGraph, Carry], Carry]
-CondFn = Callable[[Carry], Bool[Array, ""]]
 
 
 def _scan_while(cond, body, carry, length: int):
@@ -73,11 +54,6 @@ def _scan_while(cond, body, carry, length: int):
 
     carry, _ = lax.scan(scan_body, carry, None, length=length)
     return carry
-
-
-def _masked_scan(body: BodyFn, cond: CondFn, graph, carry: Carry, length: int):
-    """`length` iterations of `body`, each a no-op once `cond` is false."""
-    return _scan_while(cond, lambda c: body(graph, c), carry, length)
 
 
 def _lax_while(cond, body, carry, max_steps: int | None):
@@ -135,39 +111,9 @@ class AbstractAdjoint(optx.AbstractAdjoint):
     result; they differ in what reverse-mode autodiff computes and at which
     memory cost.
 
-    Subclasses implement `run` (eqsmooth's driver) and optimistix's
-    `apply(primal_fn, rewrite_fn, inputs, tags)`.
+    Subclasses implement optimistix's `apply(primal_fn, rewrite_fn, inputs,
+    tags)`.
     """
-
-    @abc.abstractmethod
-    def run(
-        self,
-        init: InitFn,
-        body: BodyFn,
-        cond: CondFn,
-        graph: FactorGraph,
-        values: Values,
-        linear_solver: lx.AbstractLinearSolver,
-        max_steps: int,
-        steps_after: int = 0,
-    ) -> Carry:
-        """Run the solve and return the final carry `(values, state, history)`.
-
-        **Arguments:**
-
-        - `init`: `init(graph, values)` builds the initial carry.
-        - `body`: `body(graph, carry)` runs one iteration.
-        - `cond`: `cond(carry)` is false once the solver has stopped.
-        - `graph`, `values`: the problem and initial values.
-        - `linear_solver`: the solver's linear solver (for the implicit
-            adjoint's linear systems).
-        - `max_steps`: the static iteration limit.
-        - `steps_after`: how many steps the solver takes after the loop, in
-            its `finish` (1 for [`eqsmooth.solve.FixedStepGaussNewton`][],
-            0 otherwise).
-
-        **Returns:** the final carry.
-        """
 
 
 class UnrolledAdjoint(AbstractAdjoint):
@@ -187,12 +133,6 @@ class UnrolledAdjoint(AbstractAdjoint):
     scan covers `max_steps` iterations (`num_steps` for
     [`eqsmooth.solve.FixedStepGaussNewton`][]).
     """
-
-    def run(
-        self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
-    ):
-        del steps_after
-        return _masked_scan(body, cond, graph, init(graph, values), max_steps)
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
@@ -244,18 +184,6 @@ class TruncatedAdjoint(AbstractAdjoint):
                 "TruncatedAdjoint.num_steps must be an int >= 1, got "
                 f"{self.num_steps!r}"
             )
-
-    def run(
-        self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
-    ):
-        return _truncated_loop(
-            cond,
-            lambda c: body(graph, c),
-            init(graph, values),
-            max_steps,
-            self.num_steps,
-            steps_after,
-        )
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
@@ -396,30 +324,6 @@ class ImplicitAdjoint(AbstractAdjoint):
                 f"ImplicitAdjoint.max_steps must be >= 1, got {self.max_steps}"
             )
 
-    def run(
-        self, init, body, cond, graph, values, linear_solver, max_steps, steps_after=0
-    ):
-        del steps_after  # the fixed point is the same however the steps are split
-        stopped_graph = stop_arrays(graph)
-        carry = init(stopped_graph, stop_arrays(values))
-        carry = lax.while_loop(cond, lambda c: body(stopped_graph, c), carry)
-        x_star, state, history = stop_arrays(carry)
-        # A solve that failed (non-finite problem, singular system) has no
-        # optimality condition to differentiate: its gradient is NaN.
-        failed = (state.result == RESULTS.nonfinite_problem) | (
-            state.result == RESULTS.linear_solve_failed
-        )
-        delta = _implicit_delta(graph, x_star, state.lin, self, linear_solver, failed)
-        x = retract_values(x_star, delta)
-        # What the state keeps is differentiable too: the linearisation at the
-        # solution (marginals, log-determinants, the final cost), by
-        # differentiating the linearisation at x; the costs of intermediate
-        # iterates have no implicit derivative, so asking for one raises.
-        lin = recomputed((graph, x), state.lin, linearize_graph)
-        state = eqx.tree_at(lambda s: s.lin, state, lin)
-        history = refuse_derivative(lin.cost, history, _HISTORY)
-        return x, state, history
-
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
         graphs = _find(inputs, FactorGraph)
@@ -434,7 +338,10 @@ class ImplicitAdjoint(AbstractAdjoint):
         solver = _graph_solver(inputs)
         x_star, residual = primal_fn(stop_arrays(inputs) + (_lax_while,))
         x_star, residual = stop_arrays((x_star, residual))
-        lin = linearize_graph(stop_arrays(graph), x_star)
+        # An eqsmooth solver's state (and its stats) keep the linearisation at
+        # the solution: reuse it. Any other solver's: linearise once more.
+        lins = _find(residual, Linearization) if solver is not None else []
+        lin = lins[0] if lins else linearize_graph(stop_arrays(graph), x_star)
         own = None if solver is None else solver.linear_solver
         linear_solver = linear_solver_for(own, lin)
         # optimistix does not hand the solve's result code to an adjoint; a
@@ -453,6 +360,18 @@ class ImplicitAdjoint(AbstractAdjoint):
         residual = jax.tree_util.tree_map(
             live, residual, is_leaf=lambda y: isinstance(y, Linearization)
         )
+        # An eqsmooth solver's stats: the final cost is that of the (now
+        # differentiable) linearisation at the solution.
+        is_stats = lambda y: (
+            isinstance(y, dict) and "final_cost" in y and "linearization" in y
+        )
+        residual = jax.tree_util.tree_map(
+            lambda y: (
+                {**y, "final_cost": y["linearization"].cost} if is_stats(y) else y
+            ),
+            residual,
+            is_leaf=is_stats,
+        )
         if solver is not None and not solver.reaches_minimum():
             x = checked_derivative(
                 x,
@@ -464,14 +383,6 @@ class ImplicitAdjoint(AbstractAdjoint):
                 "eqsmooth.UnrolledAdjoint() or TruncatedAdjoint(k)",
             )
         return x, residual
-
-
-_HISTORY = (
-    "Solution.stats['cost_history'] holds the costs of intermediate iterates, "
-    "which have no derivative under ImplicitAdjoint (it differentiates the "
-    "solution only): differentiate stats['final_cost'] or stats['initial_cost'], "
-    "or solve with UnrolledAdjoint to differentiate every iterate"
-)
 
 
 def _zeros(lin: Linearization) -> Tangent:

@@ -12,8 +12,11 @@ from ._graph_solver import (
     AbstractConvergingSolver,
     AbstractFixedStepSolver,
     checked_graph,
+    cost_record,
     fn_error_if,
     graph_of,
+    initial_status,
+    record_iteration,
     to_optx_result,
 )
 from ._linear_solver import solve_unless
@@ -57,6 +60,10 @@ class GaussNewtonState(eqx.Module):
     - `done`: converged or failed.
     - `result`: an [`eqsmooth.solve.RESULTS`][] code.
     - `last_step_norm`: `‖δ‖₂` of the last step tried (a diagnostic).
+    - `initial_cost`: the cost at the initial values (after the first
+        iteration).
+    - `cost_history`: the cost after each iteration (its length is the
+        `"cost_history_length"` option, 0 by default).
     """
 
     lin: Linearization
@@ -66,19 +73,28 @@ class GaussNewtonState(eqx.Module):
     done: Bool[Array, ""]
     result: RESULTS
     last_step_norm: Float[Array, ""]
+    initial_cost: Float[Array, ""]
+    cost_history: Float[Array, " H"]
 
 
-def _init(fn, values, args, who: str) -> GaussNewtonState:
-    graph, mismatch = checked_graph(fn, values, args, who)
-    lin = placeholder_linearization(graph, values)
+def _init(fn, values, args, options, f_struct, who: str) -> GaussNewtonState:
+    graph, mismatch = checked_graph(fn, values, args, who, options)
+    lin = placeholder_linearization(graph, values, f_struct)
+    done, result = initial_status(values)
+    # No cost before the first linearisation: NaN where the solve ends
+    # before it (non-finite initial values).
+    no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
+    lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
     return GaussNewtonState(
         lin=lin,
         delta=zeros_tangent(lin),
         step=fn_error_if(jnp.array(0), mismatch, who),
         num_accepted=jnp.array(0),
-        done=jnp.array(False),
-        result=RESULTS.successful,
+        done=done,
+        result=result,
         last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
+        initial_cost=no_cost.astype(lin.dtype),
+        cost_history=cost_record(options, lin.dtype),
     )
 
 
@@ -121,6 +137,11 @@ def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
     result = RESULTS.where(done | solved, result, RESULTS.linear_solve_failed)
     # A failed solve ends the solve here: no derivative through its values.
     values = nan_derivative_if(~solved, values, lin.cost)
+    # Diagnostic only; stopped so that sqrt at a zero step never puts a NaN
+    # into masked iterations of an unrolled backward pass.
+    step_norm = jnp.where(
+        first, jnp.inf, lax.stop_gradient(jnp.sqrt(sq_norm(state.delta)))
+    ).astype(lin.dtype)
     new_state = GaussNewtonState(
         lin=lin,
         delta=delta,
@@ -129,13 +150,11 @@ def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
         + (finite & ~first).astype(state.num_accepted.dtype),
         done=done | ~solved,
         result=result,
-        # Diagnostic only; stopped so that sqrt at a zero step never puts a
-        # NaN into masked iterations of an unrolled backward pass.
-        last_step_norm=jnp.where(
-            first,
-            jnp.inf,
-            lax.stop_gradient(jnp.sqrt(sq_norm(state.delta))),
-        ).astype(lin.dtype),
+        last_step_norm=step_norm,
+        initial_cost=jnp.where(first, lin.cost, state.initial_cost),
+        cost_history=record_iteration(
+            options, state.step, state.cost_history, lin.cost, step_norm
+        ),
     )
     return values, new_state, None
 
@@ -167,8 +186,8 @@ class GaussNewton(AbstractConvergingSolver):
     xtol: float = eqx.field(static=True, default=1e-10)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del options, f_struct, aux_struct, tags
-        return _init(fn, y, args, "GaussNewton")
+        del aux_struct, tags
+        return _init(fn, y, args, options, f_struct, "GaussNewton")
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del tags  # fn was checked against the graph's residuals in init
@@ -219,8 +238,8 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
             )
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del options, f_struct, aux_struct, tags
-        return _init(fn, y, args, "FixedStepGaussNewton")
+        del aux_struct, tags
+        return _init(fn, y, args, options, f_struct, "FixedStepGaussNewton")
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
         del tags  # fn was checked against the graph's residuals in init
@@ -249,6 +268,8 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
             failed, tree_where(take & ok, final, values), state.lin.cost
         )
         state = GaussNewtonState(
+            initial_cost=state.initial_cost,
+            cost_history=state.cost_history,
             lin=tree_where(take & ok, final_lin, state.lin),
             delta=zeros_tangent(state.lin),
             step=state.step + take.astype(state.step.dtype),

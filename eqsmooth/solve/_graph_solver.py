@@ -117,6 +117,36 @@ def manifold_residuals(values: Values, graph: FactorGraph) -> tuple[Array, ...]:
     return _residuals(values, graph)
 
 
+# Per-call options eqsmooth's driver sets (optimistix's `options` dict):
+# the length of the per-iteration cost record, whether to print each
+# iteration, and that `fn` is `graph_residuals` itself (optimistix hands the
+# solvers a wrapped copy, so they cannot see it).
+HISTORY = "cost_history_length"
+VERBOSE = "verbose"
+FN_IS_GRAPH_RESIDUALS = "fn_is_graph_residuals"
+
+
+def cost_record(options, dtype) -> Float[Array, " H"]:
+    """The empty per-iteration cost record of a solver state."""
+    return jnp.zeros((int(options.get(HISTORY, 0)),), dtype)
+
+
+def record_iteration(options, state_step, history, cost, step_norm, damping=None):
+    """The cost after iteration `state_step` written into `history` (and
+    printed when `options["verbose"]`)."""
+    if options.get(VERBOSE, False):
+        jax.debug.print(
+            "step {step:4d}  cost {cost:.6e}  damping {lam:.2e}  |δ| {dx:.2e}",
+            step=state_step,
+            cost=cost,
+            lam=jnp.zeros(()) if damping is None else damping,
+            dx=step_norm,
+        )
+    if history.shape[0] == 0:
+        return history
+    return history.at[state_step].set(cost.astype(history.dtype), mode="drop")
+
+
 def graph_of(args, who: str) -> FactorGraph:
     """The factor graph passed as optimistix's `args`."""
     if not isinstance(args, FactorGraph):
@@ -169,11 +199,31 @@ def _fn_mismatch(fn, y, graph: FactorGraph, who: str) -> Bool[Array, ""] | None:
     return bad
 
 
-def checked_graph(fn, y, args, who: str) -> tuple[FactorGraph, Bool[Array, ""] | None]:
+def checked_graph(
+    fn, y, args, who: str, options=None
+) -> tuple[FactorGraph, Bool[Array, ""] | None]:
     """`args` as the factor graph, and whether `fn` is not its residual function
     (for an `eqx.error_if` on the solver's initial state)."""
     graph = graph_of(args, who)
+    if options is not None and options.get(FN_IS_GRAPH_RESIDUALS, False):
+        return graph, None
     return graph, _fn_mismatch(fn, y, graph, who)
+
+
+def initial_status(values: Values) -> tuple[Bool[Array, ""], RESULTS]:
+    """`(done, result)` of a solver's initial state.
+
+    Initial values that are not finite end the solve before its first
+    iteration with `RESULTS.nonfinite_problem` (optimistix's loop does not
+    start on them either). Both are computed from the values, so they are
+    traced under `jit`: optimistix calls `terminate` on the initial state,
+    and on constants (`RESULTS.successful` is one) its operations would run
+    eagerly, one small XLA compilation each in a fresh process.
+    """
+    finite = jnp.array(True)
+    for leaf in jax.tree_util.tree_leaves(values):
+        finite = finite & jnp.all(jnp.isfinite(leaf))
+    return ~finite, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_problem)
 
 
 def fn_error_if(x, mismatch: Bool[Array, ""] | None, who: str):
@@ -201,10 +251,14 @@ _OPTX_CODES = (
 
 def to_optx_result(result: RESULTS) -> optx.RESULTS:
     """An eqsmooth result code as the nearest `optimistix.RESULTS` code."""
+    # Compared with eqsmooth's own item of the same name: `RESULTS.promote`
+    # of a constant would be evaluated eagerly at trace time (several tiny
+    # compilations in every fresh process).
     out = optx.RESULTS.nonlinear_divergence
     for name in _OPTX_CODES:
-        item = getattr(optx.RESULTS, name)
-        out = optx.RESULTS.where(result == RESULTS.promote(item), item, out)
+        out = optx.RESULTS.where(
+            result == getattr(RESULTS, name), getattr(optx.RESULTS, name), out
+        )
     out = optx.RESULTS.where(
         result == RESULTS.linear_solve_failed, optx.RESULTS.singular, out
     )
@@ -228,7 +282,12 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
     `done` and `result` (an [`eqsmooth.solve.RESULTS`][] code).
 
     `options` (optimistix's per-call knobs): `"linear_options"` is passed to
-    `lineax.linear_solve` at every step.
+    `lineax.linear_solve` at every step; `"cost_history_length"` (an int)
+    sizes the per-iteration cost record of `stats["cost_history"]`;
+    `"verbose"` prints every iteration. `postprocess` returns the stats
+    `num_steps`, `num_accepted`, `initial_cost`, `final_cost`,
+    `cost_history` and `linearization` (the linearisation at the returned
+    values).
     """
 
     linear_solver: eqx.AbstractVar[lx.AbstractLinearSolver | None]
@@ -250,9 +309,26 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
         return optx.max_norm
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        del options, tags, result  # fn: checked in init
+        del tags, result  # fn: checked in init
         y, state, cost = self.finish(graph_of(args, type(self).__name__), y, state)
-        return y, aux, {"num_accepted": state.num_accepted, "final_cost": cost}
+        steps = jnp.maximum(state.step - 1, 0)
+        # The cost record: entry i is the cost after step i (0: the initial
+        # values), padded with the final cost.
+        history = state.cost_history
+        if history.shape[0]:
+            history = history.at[steps].set(cost, mode="drop")
+            history = jnp.where(jnp.arange(history.shape[0]) <= steps, history, cost)
+        stats = {
+            "num_steps": steps,
+            "num_accepted": state.num_accepted,
+            "initial_cost": state.initial_cost,
+            "final_cost": cost,
+            "cost_history": history,
+            # optimistix returns the state of the last iteration; a
+            # fixed-step solver takes its last step here, after it.
+            "linearization": state.lin,
+        }
+        return y, aux, stats
 
     @abc.abstractmethod
     def finish(self, graph: FactorGraph, values: Values, state) -> tuple:

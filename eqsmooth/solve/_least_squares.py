@@ -20,9 +20,14 @@ from ..factors import FactorGraph
 from ..factors._graph import graph_cost
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._default_solver import default_linear_solver
-from ._derivatives import checked_derivative, recomputed
-from ._graph_solver import AbstractGraphSolver, graph_residuals
-from ._misc import stationary
+from ._derivatives import recomputed, refuse_derivative
+from ._graph_solver import (
+    AbstractGraphSolver,
+    FN_IS_GRAPH_RESIDUALS,
+    graph_residuals,
+    HISTORY,
+    VERBOSE,
+)
 from ._solution import raise_unless_successful, RESULTS, Solution
 
 
@@ -126,9 +131,10 @@ def _all_arrays(tree) -> bool:
 
 
 def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
+    """One solve, driven by `optx.least_squares` (the one loop driver: the
+    adjoint's `apply` runs it), with eqsmooth's result codes and stats."""
     limit = solver.iteration_limit(max_steps)
     steps_cap = limit - 1 + solver.steps_after_loop()
-    at_max = solver.at_max_steps()
     linear_solver = solver.linear_solver
     if linear_solver is None:
         linear_solver = default_linear_solver(
@@ -137,67 +143,56 @@ def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
         solver = eqx.tree_at(
             lambda s: s.linear_solver, solver, linear_solver, is_leaf=_is_none
         )
-    tags = frozenset()
-
-    def init(graph, values):
-        state = solver.init(graph_residuals, values, graph, options, None, None, tags)
-        # Filled by the iterations: entry i is the cost after step i (entry 0
-        # at the initial values, from the first iteration).
-        history = jnp.zeros((steps_cap + 1,), state.lin.cost.dtype)
-        return values, state, history
-
-    def body(graph, carry):
-        values, state, history = carry
-        new_values, new_state, _ = solver.step(
-            graph_residuals, values, graph, options, state, tags
-        )
-        # Out of steps without converging: stop with the solver's at-max code.
-        out = (new_state.step >= limit) & ~new_state.done
-        result = RESULTS.where(
-            out & (new_state.result == RESULTS.successful), at_max, new_state.result
-        )
-        new_state = eqx.tree_at(
-            lambda s: (s.done, s.result), new_state, (new_state.done | out, result)
-        )
-        if verbose:
-            jax.debug.print(
-                "step {step:4d}  cost {cost:.6e}  damping {lam:.2e}  |δ| {dx:.2e}",
-                step=new_state.step - 1,
-                cost=new_state.lin.cost,
-                lam=getattr(new_state, "damping", jnp.zeros(())),
-                dx=new_state.last_step_norm,
-            )
-        history = history.at[new_state.step - 1].set(new_state.lin.cost)
-        return new_values, new_state, history
-
-    def cond(carry):
-        _, state, _ = carry
-        return ~state.done & (state.step < limit)
-
-    values0 = values
-    values, state, history = adjoint.run(
-        init, body, cond, graph, values, linear_solver, limit, solver.steps_after_loop()
+    options = {
+        **options,
+        HISTORY: steps_cap + 1,
+        VERBOSE: verbose,
+        FN_IS_GRAPH_RESIDUALS: True,
+    }
+    sol = optx.least_squares(
+        graph_residuals,
+        solver,
+        values,
+        args=graph,
+        options=options,
+        max_steps=limit,
+        adjoint=adjoint,
+        throw=False,
     )
-    if isinstance(adjoint, ImplicitAdjoint) and not solver.reaches_minimum():
-        values = checked_derivative(
-            values, state.lin, _not_stationary, _implicit_refusal(solver)
-        )
-    values, state, final_cost = solver.finish(graph, values, state)
-    steps = jnp.maximum(state.step - 1, 0)
-    history = history.at[steps].set(final_cost)
-    history = jnp.where(jnp.arange(steps_cap + 1) <= steps, history, final_cost)
-    result = state.result
-    # The initial cost with its own derivative (the loop's copy may have been
-    # computed with gradients stopped, under the implicit adjoint).
-    initial_cost = recomputed((graph, values0), history[0], graph_cost)
+    stats = sol.stats
+    # The state at the returned values (a fixed-step solver takes its last
+    # step in postprocess, after the state optimistix returns).
+    state = eqx.tree_at(lambda s: s.lin, sol.state, stats["linearization"])
+    # Out of iterations without converging: the solver's at-max code.
+    result = RESULTS.where(
+        ~state.done & (state.result == RESULTS.successful),
+        solver.at_max_steps(),
+        state.result,
+    )
+    history = stats["cost_history"]
+    if isinstance(adjoint, ImplicitAdjoint):
+        # Intermediate iterates have no implicit derivative.
+        history = refuse_derivative(state.lin.cost, history, _HISTORY)
     stats = {
-        "num_steps": steps,
-        "num_accepted": state.num_accepted,
-        "initial_cost": initial_cost,
-        "final_cost": final_cost,
+        "num_steps": stats["num_steps"],
+        "num_accepted": stats["num_accepted"],
+        # The initial cost with its own derivative (the loop may have run
+        # with gradients stopped, under the implicit adjoint).
+        "initial_cost": recomputed((graph, values), stats["initial_cost"], graph_cost),
+        # = the cost of the linearisation at the returned values, which
+        # carries its derivative under every adjoint.
+        "final_cost": state.lin.cost,
         "cost_history": history,
     }
-    return Solution(value=values, result=result, stats=stats, state=state)
+    return Solution(value=sol.value, result=result, stats=stats, state=state)
+
+
+_HISTORY = (
+    "Solution.stats['cost_history'] holds the costs of intermediate iterates, "
+    "which have no derivative under ImplicitAdjoint (it differentiates the "
+    "solution only): differentiate stats['final_cost'] or stats['initial_cost'], "
+    "or solve with UnrolledAdjoint to differentiate every iterate"
+)
 
 
 # Two entry points to one program. When every leaf of the graph, the values,
@@ -213,22 +208,6 @@ _least_squares = eqx.filter_jit(_solve)
 @ft.partial(jax.jit, static_argnames=("max_steps", "verbose"))
 def _least_squares_of_arrays(graph, values, solver, adjoint, *, max_steps, verbose):
     return _solve(graph, values, solver, max_steps, adjoint, verbose, {})
-
-
-def _not_stationary(lin):
-    return ~stationary(lin)
-
-
-def _implicit_refusal(solver) -> str:
-    return (
-        "ImplicitAdjoint (least_squares's default adjoint) differentiates the "
-        f"optimality condition at a minimum, but this {type(solver).__name__} "
-        "solve stopped after its fixed number of steps short of a stationary "
-        "point, so an implicit gradient would be wrong: pass "
-        "adjoint=eqsmooth.UnrolledAdjoint() (the paper's K unrolled steps) or "
-        "TruncatedAdjoint(k), or use a converging solver "
-        "(GaussNewton, LevenbergMarquardt)"
-    )
 
 
 def _is_none(x) -> bool:

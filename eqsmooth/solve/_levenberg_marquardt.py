@@ -10,8 +10,11 @@ from ._default_solver import linear_solver_for
 from ._graph_solver import (
     AbstractConvergingSolver,
     checked_graph,
+    cost_record,
     fn_error_if,
     graph_of,
+    initial_status,
+    record_iteration,
     to_optx_result,
 )
 from ._linear_solver import solve_unless
@@ -49,6 +52,8 @@ class LevenbergMarquardtState(eqx.Module):
     done: Bool[Array, ""]
     result: RESULTS
     last_step_norm: Float[Array, ""]
+    initial_cost: Float[Array, ""]
+    cost_history: Float[Array, " H"]
 
 
 def marquardt_damping(lin: Linearization, lam, min_diag: float, max_diag: float):
@@ -132,9 +137,14 @@ class LevenbergMarquardt(AbstractConvergingSolver):
                 )
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del options, f_struct, aux_struct, tags
-        graph, mismatch = checked_graph(fn, y, args, "LevenbergMarquardt")
-        lin = placeholder_linearization(graph, y)
+        del aux_struct, tags
+        graph, mismatch = checked_graph(fn, y, args, "LevenbergMarquardt", options)
+        lin = placeholder_linearization(graph, y, f_struct)
+        done, result = initial_status(y)
+        # No cost before the first linearisation: NaN where the solve ends
+        # before it (non-finite initial values).
+        no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
+        lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
         return LevenbergMarquardtState(
             lin=lin,
             delta=zeros_tangent(lin),
@@ -143,9 +153,11 @@ class LevenbergMarquardt(AbstractConvergingSolver):
             num_accepted=jnp.array(0),
             damping=jnp.asarray(self.initial_damping, lin.dtype),
             nu=jnp.asarray(2.0, lin.dtype),
-            done=jnp.array(False),
-            result=RESULTS.successful,
+            done=done,
+            result=result,
             last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
+            initial_cost=no_cost.astype(lin.dtype),
+            cost_history=cost_record(options, lin.dtype),
         )
 
     def step(self, fn, y, args, options: dict[str, Any], state, tags):
@@ -201,6 +213,9 @@ class LevenbergMarquardt(AbstractConvergingSolver):
         next_delta, solved = solve_unless(
             done, linear_solver_for(self.linear_solver, lin), lin, damping, options
         )
+        step_norm = jnp.where(first, jnp.inf, jnp.sqrt(sq_norm(delta))).astype(
+            lam.dtype
+        )
         new_state = LevenbergMarquardtState(
             lin=lin,
             delta=next_delta,
@@ -211,8 +226,10 @@ class LevenbergMarquardt(AbstractConvergingSolver):
             nu=new_nu.astype(lam.dtype),
             done=done,
             result=result,
-            last_step_norm=jnp.where(first, jnp.inf, jnp.sqrt(sq_norm(delta))).astype(
-                lam.dtype
+            last_step_norm=step_norm,
+            initial_cost=jnp.where(first, lin.cost, state.initial_cost),
+            cost_history=record_iteration(
+                options, state.step, state.cost_history, lin.cost, step_norm, new_lam
             ),
         )
         return values, new_state, None

@@ -99,22 +99,52 @@ def _whiten_jacobians(noise, jacs: tuple[Array, ...]) -> tuple[Array, ...]:
 
 
 def placeholder_linearization(
-    graph: FactorGraph, values: dict[str, PyTree]
+    graph: FactorGraph,
+    values: dict[str, PyTree],
+    residuals: PyTree[jax.ShapeDtypeStruct] | None = None,
 ) -> Linearization:
-    """Zeros shaped like `linearize(graph, values)`, computed from shapes only.
+    """Zeros shaped like `linearize(graph, values)`.
 
     A solver's initial state holds it until its first iteration linearises,
     so that the compiled solve contains one copy of the linearisation (in the
-    loop) instead of two (before the loop and in it).
+    loop) instead of two (before the loop and in it). `residuals`, the
+    shapes of the graph's whitened residuals (one `(n, m)` per factor
+    stack), saves tracing the linearisation for its shapes: block `k` of a
+    stack is `(n, m, d)` with `d` the tangent dimension of its variable's
+    group, and every block has its stack's residual dtype.
     """
-    shapes = eqx.filter_eval_shape(linearize_graph, graph, values)
-    return jax.tree_util.tree_map(
-        lambda x: (
-            jnp.zeros(x.shape, x.dtype) if isinstance(x, jax.ShapeDtypeStruct) else x
-        ),
-        shapes,
-        is_leaf=lambda x: isinstance(x, jax.ShapeDtypeStruct),
-    )
+    if residuals is None:
+        shapes = eqx.filter_eval_shape(linearize_graph, graph, values)
+        return jax.tree_util.tree_map(
+            lambda x: (
+                jnp.zeros(x.shape, x.dtype)
+                if isinstance(x, jax.ShapeDtypeStruct)
+                else x
+            ),
+            shapes,
+            is_leaf=lambda x: isinstance(x, jax.ShapeDtypeStruct),
+        )
+    layout = graph.validate(values)
+    dims = {g.name: g.dim for g in layout}
+    residuals = jax.tree_util.tree_leaves(residuals)
+    if len(residuals) != len(graph.factors) or any(r.ndim != 2 for r in residuals):
+        raise ValueError(
+            "the residual function returned shapes "
+            f"{[tuple(r.shape) for r in residuals]}; the graph has "
+            f"{len(graph.factors)} factor stacks, each with (n, m) residuals"
+        )
+    out = []
+    for f, r in zip(graph.factors, residuals):
+        n, m = r.shape
+        jacobians = tuple(
+            jnp.zeros((n, m, dims[v.group]), r.dtype) for v in f.variables
+        )
+        out.append(
+            FactorLinearization(
+                jnp.zeros((n, m), r.dtype), jacobians, f.variables, type(f).__name__
+            )
+        )
+    return Linearization(tuple(out), layout, jnp.zeros((), _values_dtype(values)))
 
 
 def _values_dtype(values):
