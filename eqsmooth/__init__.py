@@ -34,6 +34,7 @@ from .factors import (
     HuberNoise as HuberNoise,
     IsotropicNoise as IsotropicNoise,
     L2WithDeadZoneNoise as L2WithDeadZoneNoise,
+    MaskedNoise as MaskedNoise,
     PoseToPointFactor as PoseToPointFactor,
     PriorFactor as PriorFactor,
     RangeFactor as RangeFactor,

@@ -112,7 +112,10 @@ def test_bearing_wraps_across_pi(theta):
     assert abs(r[0]) < 3e-3
 
 
-def test_range_at_zero_distance_is_finite():
+def test_range_at_zero_distance_has_no_derivative():
+    """The documented rule: at zero distance the distance has no derivative and
+    the Jacobian is NaN (a zero would make a landmark on its observer a false
+    stationary point), so a solve from there fails and names the factor."""
     import eqsmooth as eqs
     from eqsmooth.factors._factor import linearize_rows
 
@@ -123,10 +126,12 @@ def test_range_at_zero_distance_is_finite():
     )
     r, (jx, jl) = eqx.filter_jit(linearize_rows)(f, (pose, point))
     np.testing.assert_allclose(np.asarray(r), [[-1.0]])
-    assert np.all(np.isfinite(np.asarray(jx))) and np.all(np.isfinite(np.asarray(jl)))
-    # Reverse mode through the residual at zero distance is finite too.
+    assert np.all(np.isnan(np.asarray(jl)))
     g = jax.grad(lambda q: f.residual(pose[0], q)[0])(point[0])
-    assert np.all(np.isfinite(np.asarray(g)))
+    assert np.all(np.isnan(np.asarray(g)))
+    # Away from zero distance the derivative is the unit direction.
+    g = jax.grad(lambda q: f.residual(pose[0], q)[0])(point[0] + jnp.array([0.6, 0.8]))
+    np.testing.assert_allclose(np.asarray(g), [0.6, 0.8], atol=1e-12)
 
 
 def test_3d_factors_jacobians(getkey):
@@ -154,7 +159,7 @@ def test_3d_factors_jacobians(getkey):
     np.testing.assert_allclose(
         _check_jacobians(fg, [pose]), t - np.array([0.1, 0.2, 0.3]), atol=1e-12
     )
-    fr = eqs.RangeFactor(x, eqs.Var("x", [0]), jnp.array([0.0]), _noise(1))
+    fr = eqs.RangeFactor(x, eqs.Var("x", [0]), jnp.array([1.0]), _noise(1))
     _check_jacobians(fr, [pose, _se3(getkey())])
 
 

@@ -33,12 +33,28 @@ class Evaluation(eqx.Module):
 
 
 def feature_scales(model: ChainModel, data: Sequences, xhat: np.ndarray) -> np.ndarray:
-    """RMS size of every candidate feature over the given states (for steps)."""
+    """RMS size of every candidate feature over the given states (for steps).
+
+    A feature that is not finite at some of these states (e.g. `√x` where
+    `x < 0`) raises a `ValueError` naming the candidate and the first such
+    state: its score would be NaN, and the test of every candidate with it.
+    """
     x = jnp.asarray(xhat).reshape(-1, xhat.shape[-1])
     u = data.inputs.reshape(-1, data.inputs.shape[-1])
     out = []
     for c in model.candidates:
         f = np.asarray(_eval_feature(c.feature, x, u))
+        bad = ~np.isfinite(f.reshape(f.shape[0], -1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            b, t = np.unravel_index(i, xhat.shape[:-1])
+            raise ValueError(
+                f"Candidate {c.name!r}: its feature is not finite at {int(bad.sum())} "
+                f"of {bad.size} estimated states (first: sequence {b}, step {t}, "
+                f"state {np.asarray(x[i]).tolist()}, input {np.asarray(u[i]).tolist()}"
+                "); give it a value everywhere (e.g. √|x| instead of √x) or drop it "
+                "from the library"
+            )
         out.append(float(np.sqrt(np.mean(np.sum(f * f, axis=-1)))))
     scales = np.asarray(out)
     return np.where(scales > 0, scales, 1.0)

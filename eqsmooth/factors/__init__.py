@@ -20,6 +20,7 @@ from ._landmark import (
     RangeFactor as RangeFactor,
     TranslationPriorFactor as TranslationPriorFactor,
 )
+from ._masked_noise import MaskedNoise as MaskedNoise
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
     AbstractRobustNoise as AbstractRobustNoise,

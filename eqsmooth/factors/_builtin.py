@@ -208,6 +208,12 @@ class FunctionFactor(AbstractFactor):
     - `noise`: noise model.
     - `data`: per-row pytree (leaves with leading axis `n`), or `None`.
     - `params`: pytree shared by all rows (learnable), or `None`.
+    - `residual_dim`: the residual's dimension `m`, if you declare it (a
+        static int). A residual of another shape then raises naming `fn`.
+        Without it a function that broadcasts (`x - data` with a state of
+        dimension 2 and data of dimension 1) returns a residual of the wrong
+        size that nothing can tell from a right one; noise models with a
+        dimension (`DiagonalNoise`, `SqrtInformationNoise`) check `m` too.
     """
 
     fn: Callable = eqx.field(static=True)
@@ -215,6 +221,7 @@ class FunctionFactor(AbstractFactor):
     noise: AbstractNoiseModel
     data: PyTree
     params: PyTree = shared_field()
+    residual_dim: int | None = eqx.field(static=True, default=None)
 
     def __init__(
         self,
@@ -223,6 +230,8 @@ class FunctionFactor(AbstractFactor):
         noise: AbstractNoiseModel,
         data: PyTree = None,
         params: PyTree = None,
+        *,
+        residual_dim: int | None = None,
     ):
         _note_function(fn)
         self.fn = fn
@@ -230,6 +239,28 @@ class FunctionFactor(AbstractFactor):
         self.noise = noise
         self.data = data
         self.params = params
+        if residual_dim is not None and (
+            isinstance(residual_dim, bool)
+            or not isinstance(residual_dim, int)
+            or residual_dim < 1
+        ):
+            raise ValueError(
+                f"FunctionFactor.residual_dim must be a positive int, got "
+                f"{residual_dim!r}"
+            )
+        self.residual_dim = residual_dim
 
     def residual(self, *states: PyTree) -> Float[Array, " m"]:
-        return jnp.asarray(self.fn(*states, self.data, self.params))
+        r = jnp.asarray(self.fn(*states, self.data, self.params))
+        if self.residual_dim is not None and r.shape != (self.residual_dim,):
+            name = getattr(self.fn, "__qualname__", type(self.fn).__name__)
+            shapes = [
+                tuple(jnp.shape(leaf)) for leaf in jax.tree_util.tree_leaves(states)
+            ]
+            raise ValueError(
+                f"FunctionFactor(fn={name}): one row's residual has shape {r.shape}, "
+                f"but residual_dim={self.residual_dim} was declared (the row's state "
+                f"leaves have shapes {shapes}; a residual such as x - data broadcasts "
+                "a state against data of another size)"
+            )
+        return r

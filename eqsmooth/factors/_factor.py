@@ -80,6 +80,13 @@ class AbstractFactor(eqx.Module):
         """Number of stacked rows `n`."""
         return len(self.variables[0])
 
+    def nonfinite_hint(self) -> str:
+        """A likely cause, in words, when this factor's residual or Jacobian is
+        not finite at the initial values (added to the solve's error, which
+        names the rows). Empty by default; the landmark factors name a point
+        initialised at its observer."""
+        return ""
+
 
 class AbstractAnalyticFactor(AbstractFactor):
     """A factor that also gives its Jacobians in closed form.

@@ -5,11 +5,16 @@ Poses are [`eqsmooth.lie.SE2`][] or [`eqsmooth.lie.SE3`][] values; points are pl
 arrays of shape `(2,)` or `(3,)` per variable. Residuals follow the
 "prediction minus measurement" convention, with angles wrapped to `(-π, π]`.
 
-The two nonlinearities that plain autodiff gets wrong are given analytic
-derivatives with `jax.custom_jvp`: the Euclidean norm (whose autodiff
-derivative at zero is `nan`) and the planar angle `atan2(y, x)` (whose
-derivative is defined everywhere but at the origin). Everything else is
-smooth and is differentiated by the solver's forward-mode linearisation.
+The nonlinearities are given analytic derivatives with `jax.custom_jvp`:
+the distance between two positions and the planar angle `atan2(y, x)`.
+Neither has a derivative where the two positions coincide (a landmark at its
+observer), and there their derivative is NaN on purpose: a zero there would
+make every such configuration a stationary point, and a solve started from
+it would report success after zero steps with the landmark still on its
+observer. A NaN Jacobian makes the solve fail with
+`RESULTS.nonfinite_problem`, and the error names the factor and rows (see
+`nonfinite_hint`). Everything else is smooth and is differentiated by the
+solver's forward-mode linearisation.
 """
 
 import equinox as eqx
@@ -45,6 +50,23 @@ def _norm_jvp(primals, tangents):
 
 
 @jax.custom_jvp
+def _distance(v: Array) -> Array:
+    """`‖v‖` between two positions: like `_norm`, but with a NaN derivative at
+    `v = 0`, where the distance has none (see the module docs)."""
+    return jnp.sqrt(jnp.sum(v * v, axis=-1))
+
+
+@_distance.defjvp
+def _distance_jvp(primals, tangents):
+    (v,), (dv,) = primals, tangents
+    n = _distance(v)
+    # Linear in dv (a NaN factor, not a NaN constant), so that reverse mode,
+    # which transposes this rule, gives NaN at zero distance too.
+    scale = jnp.where(n > 0, 1.0 / jnp.where(n > 0, n, 1.0), jnp.nan)
+    return n, jnp.sum(v * dv, axis=-1) * scale
+
+
+@jax.custom_jvp
 def _angle(v: Array) -> Array:
     return jnp.arctan2(v[..., 1], v[..., 0])
 
@@ -53,11 +75,11 @@ def _angle(v: Array) -> Array:
 def _angle_jvp(primals, tangents):
     (v,), (dv,) = primals, tangents
     a = _angle(v)
-    # dθ = (x dy − y dx) / (x² + y²); zero at the origin where θ is undefined.
+    # dθ = (x dy − y dx) / (x² + y²); NaN at the origin, where θ has none.
     n2 = jnp.sum(v * v, axis=-1)
-    safe = jnp.where(n2 > 0, n2, jnp.ones_like(n2))
+    scale = jnp.where(n2 > 0, 1.0 / jnp.where(n2 > 0, n2, 1.0), jnp.nan)
     cross = v[..., 0] * dv[..., 1] - v[..., 1] * dv[..., 0]
-    return a, jnp.where(n2 > 0, cross / safe, jnp.zeros_like(n2))
+    return a, cross * scale
 
 
 def _wrapped_difference(v: Array, measured: Array) -> Array:
@@ -138,6 +160,38 @@ def _as_rows(x: ArrayLike, name: str, trailing: tuple[int, ...]) -> Array:
     return x
 
 
+_COINCIDENT = (
+    "a point at the same position as its observer (zero distance) has no "
+    "bearing and no range derivative: initialise landmarks away from their "
+    "observers, e.g. at the measured bearing and range"
+)
+
+
+def _ranges(name: str, range) -> Array:
+    """Validated measured ranges: `(n,)`, positive and finite (a `ValueError`
+    naming the rows, or `eqx.error_if` under `jit`). A zero range is refused
+    too: its solution puts the point on its observer, where the distance has
+    no derivative (use a `PoseToPointFactor` or `TranslationPriorFactor` for
+    "at the same place")."""
+    range = _as_rows(range, f"{name}.range", ())
+    ok = jnp.isfinite(range) & (range > 0)
+    if _is_concrete(ok):
+        bad = np.flatnonzero(~np.asarray(ok))
+        if bad.size:
+            raise ValueError(
+                f"{name}.range: rows {bad[:8].tolist()} are not positive and finite "
+                f"(got {np.asarray(range)[bad[:8]].tolist()}); a zero range has no "
+                "derivative at its solution: for 'at the same place' use "
+                "PoseToPointFactor or TranslationPriorFactor"
+            )
+        return range
+    return eqx.error_if(
+        range,
+        ~jnp.all(ok),
+        f"{name}.range must be positive and finite (checked under jit)",
+    )
+
+
 # ------------------------------------------------------------------ factors
 
 
@@ -197,12 +251,15 @@ class RangeFactor(AbstractFactor):
         self, a: Var, b: Var, range: Float[ArrayLike, " n"], noise: AbstractNoiseModel
     ):
         self.variables = (a, b)
-        self.range = _as_rows(range, "RangeFactor.range", ())
+        self.range = _ranges("RangeFactor", range)
         self.noise = noise
 
     def residual(self, a: PyTree, b: PyTree) -> Float[Array, " 1"]:
-        d = _norm(_position(b) - _position(a))
+        d = _distance(_position(b) - _position(a))
         return jnp.reshape(d - self.range, (1,))
+
+    def nonfinite_hint(self) -> str:
+        return _COINCIDENT
 
 
 class BearingFactor(AbstractFactor):
@@ -244,6 +301,9 @@ class BearingFactor(AbstractFactor):
         local = _local_point("BearingFactor", pose, point)
         return _bearing_residual("BearingFactor", pose, local, self.bearing)
 
+    def nonfinite_hint(self) -> str:
+        return _COINCIDENT
+
 
 def _bearing_residual(name: str, pose, local: Array, bearing: Array) -> Array:
     if isinstance(pose, SE2):
@@ -252,7 +312,7 @@ def _bearing_residual(name: str, pose, local: Array, bearing: Array) -> Array:
         return jnp.reshape(_wrapped_difference(local, bearing), (1,))
     if bearing.shape != (3,):
         raise ValueError(f"{name}: SE3 poses need unit-vector bearings of shape (n, 3)")
-    n = _norm(local)
+    n = _distance(local)
     direction = local / jnp.where(n > 0, n, jnp.ones_like(n))
     return _sphere_log(bearing, direction)
 
@@ -288,14 +348,17 @@ class BearingRangeFactor(AbstractFactor):
     ):
         self.variables = (pose, point)
         self.bearing = _bearings("BearingRangeFactor", bearing)
-        self.range = _as_rows(range, "BearingRangeFactor.range", ())
+        self.range = _ranges("BearingRangeFactor", range)
         self.noise = noise
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " k"]:
         local = _local_point("BearingRangeFactor", pose, point)
         b = _bearing_residual("BearingRangeFactor", pose, local, self.bearing)
-        r = jnp.reshape(_norm(local) - self.range, (1,))
+        r = jnp.reshape(_distance(local) - self.range, (1,))
         return jnp.concatenate([b, r])
+
+    def nonfinite_hint(self) -> str:
+        return _COINCIDENT
 
 
 class TranslationPriorFactor(AbstractFactor):

@@ -522,8 +522,9 @@ class AbstractRobustNoise(AbstractNoiseModel):
 
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
         # A robust loss is not a normalised density: the constant is the base
-        # Gaussian's, so likelihoods built from it are only indicative.
-        return gaussian_log_normalizer(self.base, n, m)
+        # Gaussian's (its own, so that masked rows are left out), so
+        # likelihoods built from it are only indicative.
+        return self.base.log_normalizer(n, m)
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)

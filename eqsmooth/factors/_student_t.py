@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jax.scipy.special import gammaln
 from jaxtyping import Array, ArrayLike, Float
 
+from ._masked_noise import MaskedNoise
 from ._noise import (
     _as_float,
     _check_positive,
@@ -69,6 +70,12 @@ class StudentTNoise(AbstractNoiseModel):
             raise TypeError(
                 "StudentTNoise.base must be a Gaussian noise model such as "
                 f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
+            )
+        if isinstance(self.base, MaskedNoise):
+            raise TypeError(
+                "StudentTNoise.base cannot be a MaskedNoise: the Student-t "
+                "density's constant would count the masked rows; mask rows of a "
+                "Gaussian or robust model, or split the factor stack instead"
             )
         if isinstance(self.dim, bool) or not isinstance(self.dim, int) or self.dim < 1:
             raise ValueError(

@@ -17,6 +17,7 @@ from ..factors import (
     AbstractFactor,
     AbstractNoiseModel,
     AbstractRobustNoise,
+    MaskedNoise,
     per_row_fields as per_row_fields,
     StudentTNoise,
     with_rows as with_rows,
@@ -32,7 +33,14 @@ def gather_rows(rows: dict[str, PyTree], index: np.ndarray) -> dict[str, PyTree]
 
 
 def check_gaussian(noise: AbstractNoiseModel, where: str) -> None:
-    """Raise a `TypeError` if `noise` is a robust (non-Gaussian) model."""
+    """Raise a `TypeError` if `noise` is a robust (non-Gaussian) model or masks rows."""
+    if isinstance(noise, MaskedNoise):
+        raise TypeError(
+            f"{where}: MaskedNoise rows cannot be masked in a Kalman filter (a "
+            "masked row has zero information, which the filter's update cannot "
+            "invert); leave the masked measurements out of the filter's factors, "
+            "or use the factor-graph smoother"
+        )
     robust = isinstance(noise, (AbstractRobustNoise, StudentTNoise))
     if not robust:
         # Probe user-defined models: a Gaussian model has rho(s) = s. Skipped

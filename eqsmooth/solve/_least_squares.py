@@ -21,6 +21,7 @@ from ..factors._graph import graph_cost
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._default_solver import default_linear_solver
 from ._derivatives import recomputed, refuse_derivative
+from ._diagnose import failure_detail
 from ._graph_solver import (
     AbstractGraphSolver,
     FN_IS_GRAPH_RESIDUALS,
@@ -97,7 +98,9 @@ def least_squares(
             graph, values, solver, max_steps, adjoint, verbose, options or {}
         )
     if throw:
-        sol = raise_unless_successful(sol)
+        sol = raise_unless_successful(
+            sol, lambda result: failure_detail(graph, values, result)
+        )
     return sol
 
 

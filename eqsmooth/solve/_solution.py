@@ -1,4 +1,5 @@
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -22,7 +23,8 @@ with warnings.catch_warnings():
 
         nonfinite_problem = (
             "A factor produced a non-finite residual or Jacobian at the initial values "
-            "(check the measurements and initial values for NaN/inf)."
+            "(check the measurements and initial values for NaN/inf, and that no "
+            "landmark starts at the position of its observer)."
         )
         linear_solve_failed = (
             "The linear system was singular or not positive definite (is every gauge "
@@ -60,7 +62,9 @@ class Solution(eqx.Module):
     state: PyTree
 
 
-def raise_unless_successful(sol: Solution) -> Solution:
+def raise_unless_successful(
+    sol: Solution, detail: Callable[[RESULTS], str] | None = None
+) -> Solution:
     """`throw=True` of the solve entry points, applied after the compiled solve
     rather than inside it.
 
@@ -84,7 +88,10 @@ def raise_unless_successful(sol: Solution) -> Solution:
         value = sol.result.error_if(sol.value, sol.result != RESULTS.successful)
         return eqx.tree_at(lambda s: s.value, sol, value)
     if not np.all(code == _SUCCESS):
-        raise eqx.EquinoxRuntimeError(RESULTS[sol.result])
+        message = RESULTS[sol.result]
+        # On the host, the failure is narrowed down (which rows, which cause).
+        more = "" if detail is None else detail(sol.result)
+        raise eqx.EquinoxRuntimeError(f"{message} {more}" if more else message)
     return sol
 
 
