@@ -373,6 +373,31 @@ _SCRIPT = textwrap.dedent(
     from eqsmooth.learn import make_optimizer, train
 
     ckpt, log, out, sleep = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+    if len(sys.argv) > 5:
+        # Killed in the middle of writing the checkpoint of step argv[5]: the
+        # real atomic_write runs, its temporary file gets half the bytes, and
+        # the process is SIGKILLed before the rename.
+        import os, signal
+        import eqsmooth.learn._checkpoint as C
+        kill_at, real = int(sys.argv[5]), C.atomic_write
+
+        def dying(path, write):
+            import io
+            buf = io.BytesIO()
+            write(buf)
+            data = buf.getvalue()
+            if json.loads(data.split(b"\\n", 1)[0])["step"] != kill_at:
+                return real(path, write)
+
+            def half(f):
+                f.write(data[: len(data) // 2])
+                f.flush()
+                os.fsync(f.fileno())
+                os.kill(os.getpid(), signal.SIGKILL)
+
+            return real(path, half)
+
+        C.atomic_write = dying
     rng = np.random.default_rng(0)
     x = rng.normal(size=(64, 2))
     y = np.sin(x[:, :1]) + x[:, 1:] ** 2
@@ -402,7 +427,7 @@ _SCRIPT = textwrap.dedent(
 )
 
 
-def _run(tmp_path, name, sleep):
+def _run(tmp_path, name, sleep, kill_in_write_at=None):
     script = tmp_path / "train_script.py"
     script.write_text(_SCRIPT)
     d = tmp_path / name
@@ -414,7 +439,7 @@ def _run(tmp_path, name, sleep):
         str(d / "log.jsonl"),
         str(d / "out.eqx"),
         str(sleep),
-    ]
+    ] + ([] if kill_in_write_at is None else [str(kill_in_write_at)])
     env = child_env()
     with open(d / "stderr.txt", "ab") as err:
         return subprocess.Popen(args, env=env, stderr=err), d
@@ -425,7 +450,10 @@ def _stderr(d):
 
 
 def test_kill_and_resume_is_bitwise_identical(tmp_path):
+    """Killed between steps, and killed while a checkpoint is being written:
+    both resume and end with the uninterrupted run's bytes."""
     full, full_dir = _run(tmp_path, "full", 0.0)
+    in_write, wdir = _run(tmp_path, "in_write", 0.0, kill_in_write_at=12)
     killed, kdir = _run(tmp_path, "killed", 0.1)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
@@ -463,3 +491,16 @@ def test_kill_and_resume_is_bitwise_identical(tmp_path):
         logs.append(recs)
     assert logs[0] == logs[1]
     assert [r["step"] for r in logs[0] if "loss" in r] == list(range(1, 46))
+
+    # Killed in the middle of writing step 12's checkpoint: the file in place
+    # is still step 9's, whole; the half-written temporary file is left over.
+    assert in_write.wait(timeout=180) == -signal.SIGKILL, _stderr(wdir)
+    assert read_checkpoint_header(wdir / "ckpt.eqx")["step"] == 9
+    assert len(list(wdir.glob(".ckpt.eqx.*.tmp"))) == 1
+    resumed, _ = _run(tmp_path, "in_write", 0.0)
+    assert resumed.wait(timeout=180) == 0, _stderr(wdir)
+    assert json.loads((wdir / "out.eqx.steps.json").read_text()) == list(range(10, 46))
+    assert (wdir / "out.eqx").read_bytes() == (full_dir / "out.eqx").read_bytes()
+    assert (wdir / "ckpt.eqx").read_bytes() == b
+    # The resumed run removed the stale temporary file.
+    assert not list(wdir.glob(".ckpt.eqx.*.tmp"))
