@@ -233,6 +233,11 @@ class FunctionFactor(AbstractFactor):
         *,
         residual_dim: int | None = None,
     ):
+        if not callable(fn):
+            raise TypeError(
+                "FunctionFactor: fn must be a function fn(*states, data, params) -> "
+                f"residual, got {type(fn).__name__}"
+            )
         _note_function(fn)
         self.fn = fn
         self.variables = tuple(variables)

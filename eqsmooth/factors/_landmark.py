@@ -195,6 +195,19 @@ def _ranges(name: str, range) -> Array:
 # ------------------------------------------------------------------ factors
 
 
+def _finite_rows(name: str, x: Array) -> Array:
+    """`x`, with a `ValueError` naming its non-finite rows when it is concrete
+    (traced measurements reach the solve, which reports a non-finite problem)."""
+    if _is_concrete(x):
+        ok = np.isfinite(np.asarray(x)).reshape(x.shape[0], -1).all(axis=1)
+        bad = np.flatnonzero(~ok)
+        if bad.size:
+            raise ValueError(
+                f"{name}: rows {bad[:8].tolist()} are not finite (nan or inf)"
+            )
+    return x
+
+
 def _bearings(name: str, bearing) -> Array:
     """Validated bearings of a landmark factor: `(n,)` angles, or `(n, 3)`
     directions normalised to unit vectors (like GTSAM's `Unit3`, so a ray
@@ -207,7 +220,7 @@ def _bearings(name: str, bearing) -> Array:
             f"(directions, 3-D), got {bearing.shape}"
         )
     if bearing.ndim == 1:
-        return bearing
+        return _finite_rows(f"{name}.bearing", bearing)
     norm = jnp.sqrt(jnp.sum(bearing * bearing, axis=1))
     ok = jnp.isfinite(norm) & (norm > 0)
     if _is_concrete(ok):
@@ -255,7 +268,14 @@ class RangeFactor(AbstractFactor):
         self.noise = noise
 
     def residual(self, a: PyTree, b: PyTree) -> Float[Array, " 1"]:
-        d = _distance(_position(b) - _position(a))
+        pa, pb = _position(a), _position(b)
+        if pa.shape != pb.shape or pa.shape not in ((2,), (3,)):
+            raise ValueError(
+                f"RangeFactor: both variables need positions of the same dimension "
+                f"(2 or 3), got {pa.shape} ({type(a).__name__}) and {pb.shape} "
+                f"({type(b).__name__})"
+            )
+        d = _distance(pb - pa)
         return jnp.reshape(d - self.range, (1,))
 
     def nonfinite_hint(self) -> str:
@@ -388,7 +408,7 @@ class TranslationPriorFactor(AbstractFactor):
                 "TranslationPriorFactor.position must have shape (n, 2) or (n, 3), "
                 f"got {position.shape}"
             )
-        self.position = position
+        self.position = _finite_rows("TranslationPriorFactor.position", position)
         self.noise = noise
 
     def residual(self, pose: PyTree) -> Float[Array, " s"]:
@@ -430,7 +450,7 @@ class PoseToPointFactor(AbstractFactor):
                 "PoseToPointFactor.measured must have shape (n, 2) or (n, 3), got "
                 f"{measured.shape}"
             )
-        self.measured = measured
+        self.measured = _finite_rows("PoseToPointFactor.measured", measured)
         self.noise = noise
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " s"]:

@@ -39,10 +39,19 @@ class MaskedNoise(AbstractNoiseModel):
     active: Bool[Array, " n"]
 
     def __init__(self, base: AbstractNoiseModel, active: ArrayLike):
+        if active is None:
+            raise TypeError(
+                "MaskedNoise.active must be booleans, one per row, got None"
+            )
         self.base = base
         self.active = jnp.asarray(active)
 
     def __check_init__(self):
+        if isinstance(self.base, MaskedNoise):
+            raise TypeError(
+                "MaskedNoise.base is itself a MaskedNoise: combine the masks "
+                "instead (MaskedNoise(base, active_a & active_b))"
+            )
         if not isinstance(self.base, AbstractNoiseModel) or not self.base.is_gaussian:
             raise TypeError(
                 "MaskedNoise.base must be a Gaussian noise model such as "

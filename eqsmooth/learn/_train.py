@@ -41,8 +41,19 @@ def _split_loss(out, has_aux: bool):
             raise TypeError(
                 "with has_aux=True the loss function must return (loss, aux_dict)"
             )
-        return out
-    return out, {}
+        loss, aux = out
+    else:
+        loss, aux = out, {}
+    # Checked at trace time, before `grad` would say it in its own words.
+    shape, dtype = jnp.shape(loss), jnp.result_type(loss)
+    if shape != () or not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(
+            "the loss function must return a floating-point scalar"
+            + (" (as the first element of (loss, aux_dict))" if has_aux else "")
+            + f"; got shape {shape} and dtype {dtype} (reduce it with jnp.mean, "
+            "and compute it from floating-point arrays)"
+        )
+    return loss, aux
 
 
 def _global_norm(tree) -> Float[Array, ""]:
@@ -148,6 +159,12 @@ def _num_examples(data: PyTree, name: str) -> int:
     leaves = jax.tree_util.tree_leaves(data)
     if not leaves:
         raise ValueError(f"train: {name} has no array leaves")
+    for path, leaf in jax.tree_util.tree_flatten_with_path(data)[0]:
+        if np.asarray(leaf).dtype.kind not in "biuf":
+            raise TypeError(
+                f"train: {name}{jax.tree_util.keystr(path)} has dtype "
+                f"{np.asarray(leaf).dtype}; every leaf must be a numeric array"
+            )
     sizes = {np.shape(x)[0] if np.ndim(x) else -1 for x in leaves}
     if len(sizes) != 1 or -1 in sizes:
         raise ValueError(
@@ -387,6 +404,23 @@ def train(
         )
     if log_every < 1:
         raise ValueError(f"train: log_every must be >= 1, got {log_every}")
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise TypeError(
+            "train: optimizer must be an optax.GradientTransformation (e.g. "
+            f"optax.adam(1e-3) or eqsmooth.learn.make_optimizer), got "
+            f"{type(optimizer).__name__}"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"train: seed must be an int >= 0, got {seed!r}")
+    if not jax.tree_util.tree_leaves(eqx.filter(model, filter_spec)):
+        raise ValueError(
+            "train: the model has no trainable leaves (none selected by "
+            "filter_spec; by default floating-point JAX arrays: a Python float "
+            "field is a constant, wrap it in jnp.asarray)"
+        )
+    for label, path in (("checkpoint_path", checkpoint_path), ("log_path", log_path)):
+        if path is not None and Path(path).is_dir():
+            raise ValueError(f"train: {label} {path} is a directory; give a file path")
     data = _to_host(train_data)
     n = _num_examples(data, "train_data")
     if n < batch_size:

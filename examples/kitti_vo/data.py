@@ -57,7 +57,12 @@ DEFAULT_POSES_DIR = (DEFAULT_POSES_DIR / "kitti_poses").resolve()
 
 def read_poses(path: str | Path) -> np.ndarray:
     """KITTI pose file -> `(N, 3, 4)` float64 `[R | t]` matrices."""
-    data = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    try:
+        data = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise ValueError(f"{path}: not a KITTI pose file ({e})") from e
+    if data.size == 0:
+        raise ValueError(f"{path}: no poses (an empty file)")
     if data.shape[1] != 12:
         raise ValueError(f"{path}: expected 12 floats per line, got {data.shape[1]}")
     bad = np.flatnonzero(~np.all(np.isfinite(data), axis=1))
@@ -66,7 +71,19 @@ def read_poses(path: str | Path) -> np.ndarray:
             f"{path}: lines {(bad[:8] + 1).tolist()} hold non-finite numbers (nan or "
             "inf); a pose file holds 12 finite floats per line"
         )
-    return data.reshape(-1, 3, 4)
+    poses = data.reshape(-1, 3, 4)
+    # The files print 6-7 significant digits: rotations are orthonormal to
+    # about 1e-6; anything far off is not a rotation (a column order mix-up).
+    R = poses[:, :, :3]
+    error = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((error > 1e-3) | (np.linalg.det(R) < 0))
+    if bad.size:
+        raise ValueError(
+            f"{path}: lines {(bad[:8] + 1).tolist()} do not hold a rotation in "
+            "their first three columns of each row (R Rᵀ ≠ I or det < 0; a KITTI "
+            "line is the row-major 3x4 matrix [R | t])"
+        )
+    return poses
 
 
 def poses_to_2d(poses: np.ndarray) -> np.ndarray:
