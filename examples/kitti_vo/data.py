@@ -57,6 +57,8 @@ DEFAULT_POSES_DIR = (DEFAULT_POSES_DIR / "kitti_poses").resolve()
 
 def read_poses(path: str | Path) -> np.ndarray:
     """KITTI pose file -> `(N, 3, 4)` float64 `[R | t]` matrices."""
+    if not Path(path).read_text().strip():
+        raise ValueError(f"{path}: no poses (an empty file)")
     try:
         data = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as e:
