@@ -13,8 +13,8 @@ documented rule. Cases by class (this module: 136 test items):
   bearings of the other dimension, rows that disagree with the variables;
 - landmark on its observer (3): 2-D LM and 3-D GN solves name the factor
   and the cause; under `jit` the result code;
-- masks (8, one of them four checks): non-boolean, `None`, 2-D and wrong-length masks, robust /
-  nested / Student-t bases, filters;
+- masks (8, one of them four checks): non-boolean, `None`, 2-D and
+  wrong-length masks, robust / nested / Student-t bases, filters;
 - FunctionFactor (8): a non-callable `fn`, bad `residual_dim`, a
   broadcasting residual;
 - robust kernel scales (27): nine kernels x scale inf / nan / -1;
