@@ -1,6 +1,6 @@
 import abc
 import dataclasses
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -48,6 +48,10 @@ class AbstractFactor(eqx.Module):
 
     variables: eqx.AbstractVar[tuple[Var, ...]]
     noise: eqx.AbstractVar[AbstractNoiseModel]
+    # A likely cause, in words, when a row's residual or Jacobian is not
+    # finite at the initial values: added to the solve's error, which names
+    # the rows. The landmark factors name a point at its observer.
+    nonfinite_hint: ClassVar[str] = ""
 
     @abc.abstractmethod
     def residual(self, *states: PyTree) -> Float[Array, " m"]:
@@ -79,13 +83,6 @@ class AbstractFactor(eqx.Module):
     def num_rows(self) -> int:
         """Number of stacked rows `n`."""
         return len(self.variables[0])
-
-    def nonfinite_hint(self) -> str:
-        """A likely cause, in words, when this factor's residual or Jacobian is
-        not finite at the initial values (added to the solve's error, which
-        names the rows). Empty by default; the landmark factors name a point
-        initialised at its observer."""
-        return ""
 
 
 class AbstractAnalyticFactor(AbstractFactor):

@@ -17,6 +17,8 @@ observer. A NaN Jacobian makes the solve fail with
 solver's forward-mode linearisation.
 """
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -259,6 +261,7 @@ class RangeFactor(AbstractFactor):
     variables: tuple[Var, ...]
     range: Float[Array, " n"]
     noise: AbstractNoiseModel
+    nonfinite_hint: ClassVar[str] = _COINCIDENT
 
     def __init__(
         self, a: Var, b: Var, range: Float[ArrayLike, " n"], noise: AbstractNoiseModel
@@ -277,9 +280,6 @@ class RangeFactor(AbstractFactor):
             )
         d = _distance(pb - pa)
         return jnp.reshape(d - self.range, (1,))
-
-    def nonfinite_hint(self) -> str:
-        return _COINCIDENT
 
 
 class BearingFactor(AbstractFactor):
@@ -305,6 +305,7 @@ class BearingFactor(AbstractFactor):
     variables: tuple[Var, ...]
     bearing: Float[Array, "n ..."]
     noise: AbstractNoiseModel
+    nonfinite_hint: ClassVar[str] = _COINCIDENT
 
     def __init__(
         self,
@@ -320,9 +321,6 @@ class BearingFactor(AbstractFactor):
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " k"]:
         local = _local_point("BearingFactor", pose, point)
         return _bearing_residual("BearingFactor", pose, local, self.bearing)
-
-    def nonfinite_hint(self) -> str:
-        return _COINCIDENT
 
 
 def _bearing_residual(name: str, pose, local: Array, bearing: Array) -> Array:
@@ -357,6 +355,7 @@ class BearingRangeFactor(AbstractFactor):
     bearing: Float[Array, "n ..."]
     range: Float[Array, " n"]
     noise: AbstractNoiseModel
+    nonfinite_hint: ClassVar[str] = _COINCIDENT
 
     def __init__(
         self,
@@ -376,9 +375,6 @@ class BearingRangeFactor(AbstractFactor):
         b = _bearing_residual("BearingRangeFactor", pose, local, self.bearing)
         r = jnp.reshape(_distance(local) - self.range, (1,))
         return jnp.concatenate([b, r])
-
-    def nonfinite_hint(self) -> str:
-        return _COINCIDENT
 
 
 class TranslationPriorFactor(AbstractFactor):

@@ -25,7 +25,7 @@ def nonfinite_rows(graph: FactorGraph, values: dict[str, PyTree]) -> str:
     concrete values: it linearises once more (one compilation, on the
     failure path only) and names each factor stack's rows with a non-finite
     residual or Jacobian, with the factor's
-    [`eqsmooth.factors.AbstractFactor.nonfinite_hint`][].
+    `nonfinite_hint` (a class attribute of the factor).
     """
     parts = []
     for name, group in values.items():
@@ -49,7 +49,7 @@ def nonfinite_rows(graph: FactorGraph, values: dict[str, PyTree]) -> str:
                     f"{v.group}[{int(v.ids[np.flatnonzero(bad)[0]])}]"
                     for v in f.variables
                 )
-                hint = f.nonfinite_hint()
+                hint = f.nonfinite_hint
                 parts.append(
                     f"{where}: non-finite {what} in rows {_rows(bad)} (first row "
                     f"touches {variables})" + (f"; {hint}" if hint else "")
