@@ -131,7 +131,7 @@ def test_normal_log_det_chain_equals_dense():
         return (
             normal_log_det(lin, eqs.BlockTridiagonal()),
             normal_log_det(lin, eqs.DenseCholesky()),
-            eqs.solve._dense.dense_normal_matrix(lin),
+            eqs.solve._linearization.dense_normal_matrix(lin),
         )
 
     chain, dense, H = both(graph, init)

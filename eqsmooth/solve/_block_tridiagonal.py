@@ -136,18 +136,50 @@ def chain_plan(lin: Linearization) -> ChainPlan:
 
 
 @ft.lru_cache(maxsize=64)
+def chain_violation(
+    layout: tuple[GroupLayout, ...],
+    variables: tuple[tuple[Var, ...], ...],
+    names: tuple[str, ...],
+) -> str | None:
+    """Why a graph's structure is not a chain, in words, or `None` if it is.
+
+    A chain has one variable per time step in every group, and every factor
+    row touches time steps `t` and `t + 1` only: the structure
+    [`eqsmooth.solve.BlockTridiagonal`][] solves (a static query, from the
+    variable indices).
+    """
+    counts = {g.name: g.count for g in layout}
+    if len(set(counts.values())) != 1:
+        return (
+            "BlockTridiagonal needs a chain: every variable group must have the same "
+            f"number of variables (one per time step), got counts {counts}. Use "
+            "PCG() or DenseCholesky() for general graphs."
+        )
+    for name, vars_ in zip(names, variables):
+        ids = np.stack([v.ids for v in vars_])  # (k, n)
+        if ids.shape[1] == 0:
+            continue
+        bad = ids.max(axis=0) - ids.min(axis=0) > 1
+        if bad.any():
+            row = int(np.argmax(bad))
+            touched = ", ".join(f"{v.group}[{int(v.ids[row])}]" for v in vars_)
+            return (
+                f"BlockTridiagonal needs a chain (every factor row touches time steps "
+                f"t and t+1 only), but {name} row {row} touches {touched}. Use PCG() "
+                "or DenseCholesky() for graphs with loop closures or long-range "
+                "factors."
+            )
+    return None
+
+
 def _chain_plan(
     layout: tuple[GroupLayout, ...],
     variables: tuple[tuple[Var, ...], ...],
     names: tuple[str, ...],
 ) -> ChainPlan:
-    counts = {g.name: g.count for g in layout}
-    if len(set(counts.values())) != 1:
-        raise ValueError(
-            "BlockTridiagonal needs a chain: every variable group must have the same "
-            f"number of variables (one per time step), got counts {counts}. Use "
-            "PCG() or DenseCholesky() for general graphs."
-        )
+    violation = chain_violation(layout, variables, names)
+    if violation is not None:
+        raise ValueError(violation)
     length = layout[0].count
     dims = tuple(g.dim for g in layout)
     offsets = tuple(int(o) for o in np.cumsum((0,) + dims[:-1]))
@@ -155,22 +187,10 @@ def _chain_plan(
 
     gradient_terms, hessian_terms = [], []
     for name, vars_ in zip(names, variables):
-        ids = np.stack([v.ids for v in vars_])  # (k, n)
-        if ids.shape[1] == 0:
+        if len(vars_[0]) == 0:
             gradient_terms.append(())
             hessian_terms.append(())
             continue
-        lo, hi = ids.min(axis=0), ids.max(axis=0)
-        bad = hi - lo > 1
-        if bad.any():
-            row = int(np.argmax(bad))
-            touched = ", ".join(f"{v.group}[{int(v.ids[row])}]" for v in vars_)
-            raise ValueError(
-                f"BlockTridiagonal needs a chain (every factor row touches time steps "
-                f"t and t+1 only), but {name} row {row} touches {touched}. Use PCG() "
-                "or DenseCholesky() for graphs with loop closures or long-range "
-                "factors."
-            )
         grads = tuple(
             (k, group_index[v.group], _Placement.make(None, v.ids))
             for k, v in enumerate(vars_)

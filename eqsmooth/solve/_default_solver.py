@@ -3,7 +3,7 @@
 import lineax as lx
 
 from ..factors import GroupLayout, Var
-from ._block_tridiagonal import _chain_plan, BlockTridiagonal
+from ._block_tridiagonal import BlockTridiagonal, chain_violation
 from ._dense import DenseCholesky
 from ._linear_solver import AbstractFactorization, NormalOperator
 from ._linearization import Linearization, Tangent
@@ -30,14 +30,12 @@ def default_linear_solver(
     [`eqsmooth.solve.SparseLU`][].
     """
     names = tuple(f"factor stack {i}" for i in range(len(variables)))
-    try:
-        _chain_plan(layout, variables, names)
-    except ValueError:
-        size = sum(g.count * g.dim for g in layout)
-        if size <= DENSE_LIMIT:
-            return DenseCholesky()
-        return SparsaxCholesky() if sparsax_available() else SparseLU()
-    return BlockTridiagonal()
+    if chain_violation(layout, variables, names) is None:
+        return BlockTridiagonal()
+    size = sum(g.count * g.dim for g in layout)
+    if size <= DENSE_LIMIT:
+        return DenseCholesky()
+    return SparsaxCholesky() if sparsax_available() else SparseLU()
 
 
 def linear_solver_for(
@@ -65,8 +63,6 @@ def factorize(
     """
     if solver is None:
         solver = linear_solver_for(None, lin)
-        if not isinstance(solver, (BlockTridiagonal, SparsaxCholesky)):
-            solver = DenseCholesky()
     operator = NormalOperator(lin, damping)
     state = solver.init(operator, {})
     if not isinstance(state, AbstractFactorization):

@@ -21,6 +21,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._linearization import (
     block_diagonal,
+    dense_normal_matrix,
     flatten_tangent,
     gradient,
     Linearization,
@@ -78,8 +79,6 @@ class NormalOperator(lx.AbstractLinearOperator):
         return out
 
     def as_matrix(self) -> Float[Array, "N N"]:
-        from ._dense import dense_normal_matrix
-
         return dense_normal_matrix(self.lin, self.damping)
 
     def transpose(self) -> "NormalOperator":

@@ -249,6 +249,47 @@ def dense_jacobian(
     return jnp.concatenate(blocks), jnp.concatenate(rs)
 
 
+def dense_normal_matrix(
+    lin: Linearization, damping: Tangent | None = None
+) -> Float[Array, "N N"]:
+    """`JᵀJ + diag(damping)` as a dense group-major matrix.
+
+    Every factor stack contributes one `(n, K, K)` batch of products of its
+    concatenated row Jacobian `[J_1 … J_k]` (`K = Σ d_i`); all entries of all
+    stacks are added into the flat `N²` matrix by a single scatter whose
+    indices are computed once, at trace time (no `M × N` Jacobian, no
+    per-block scatter).
+    """
+    N = lin.num_tangent
+    offsets = group_offsets(lin)
+    dims = {g.name: g.dim for g in lin.layout}
+    values, indices = [], []
+    for fl in lin.factors:
+        n = fl.residual.shape[0]
+        if n == 0:
+            continue
+        cols = np.concatenate(
+            [
+                offsets[v.group]
+                + np.asarray(v.ids)[:, None] * dims[v.group]
+                + np.arange(dims[v.group])[None]
+                for v in fl.variables
+            ],
+            axis=1,
+        )  # (n, K) absolute coordinates touched by each row
+        jac = jnp.concatenate(fl.jacobians, axis=2)  # (n, m, K)
+        values.append(jnp.einsum("nmi,nmj->nij", jac, jac).reshape(-1))
+        indices.append((cols[:, :, None] * N + cols[:, None, :]).reshape(-1))
+    flat = jnp.zeros((N * N,), lin.dtype)
+    if values:
+        flat = flat.at[np.concatenate(indices)].add(jnp.concatenate(values))
+    H = flat.reshape(N, N)
+    if damping is not None:
+        d = flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in damping.items()})
+        H = H + jnp.diag(d)
+    return H
+
+
 def _scatter_cols(rows, j, cols):
     # rows: (n, m, N); j: (n, m, d); cols: (n, d) absolute column indices.
     n = rows.shape[0]
