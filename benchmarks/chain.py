@@ -42,7 +42,7 @@ import numpy as np
 from _common import markdown_table, time_fn, write_json
 
 import eqsmooth as eqs
-from eqsmooth.solve._block_tridiagonal import (
+from eqsmooth.solve._linear._block_tridiagonal import (
     assemble_chain,
     chain_plan,
     cyclic_reduction_factor,

@@ -1,7 +1,7 @@
 """Per-step pieces of a pose-graph solve: pattern, linearisation, assembly.
 
 For each g2o file, in one process: the time to build the sparsity pattern
-(`eqsmooth.solve._sparse._Pattern`, once per graph structure), and the
+(`eqsmooth.solve._linear._sparse._Pattern`, once per graph structure), and the
 median time of the jitted linearisation (`linearize`) and of the jitted
 assembly of `JᵀJ + 1e-3·I` (`assemble_sparse`) at the file's initial
 values. With `--whiten`, also the XLA-on-CPU cost of whitening `n` Jacobian
@@ -33,9 +33,9 @@ from _common import write_json  # noqa: E402
 
 import eqsmooth  # noqa: E402
 from eqsmooth.io import load_g2o  # noqa: E402
-from eqsmooth.solve._linear_solver import NormalOperator  # noqa: E402
+from eqsmooth.solve._linear._linear_solver import NormalOperator  # noqa: E402
+from eqsmooth.solve._linear._sparse import _Pattern, assemble_sparse  # noqa: E402
 from eqsmooth.solve._linearization import linearize  # noqa: E402
-from eqsmooth.solve._sparse import _Pattern, assemble_sparse  # noqa: E402
 
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "g2o"

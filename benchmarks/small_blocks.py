@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from _common import markdown_table, time_fn, write_json
 
-from eqsmooth.solve._small_blocks import block_cholesky, block_solve_lower
+from eqsmooth.solve._linear._small_blocks import block_cholesky, block_solve_lower
 
 
 jax.config.update("jax_enable_x64", True)

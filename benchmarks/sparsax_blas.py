@@ -46,7 +46,7 @@ def child(mode: str, files: list[str], repeats: int) -> dict:
     sys.path.insert(0, str(HERE))
     import sparse_factor
 
-    from eqsmooth.solve._sparsax import _import_sparsax, sparsax_blas
+    from eqsmooth.solve._linear._sparsax import _import_sparsax, sparsax_blas
 
     sparsax = _import_sparsax()
     if mode == "simplicial":

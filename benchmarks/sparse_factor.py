@@ -38,9 +38,9 @@ import numpy as np  # noqa: E402
 from _common import loaded_blas, machine, markdown_table, write_json  # noqa: E402
 
 from eqsmooth.io import load_g2o  # noqa: E402
-from eqsmooth.solve._linear_solver import NormalOperator  # noqa: E402
+from eqsmooth.solve._linear._linear_solver import NormalOperator  # noqa: E402
+from eqsmooth.solve._linear._sparse import _host_csc, assemble_sparse  # noqa: E402
 from eqsmooth.solve._linearization import linearize  # noqa: E402
-from eqsmooth.solve._sparse import _host_csc, assemble_sparse  # noqa: E402
 
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "g2o"

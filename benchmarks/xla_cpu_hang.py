@@ -33,7 +33,7 @@ import eqsmooth
 if os.environ.get("HANG_TRIAL_FLAGS") == "1":
     eqsmooth.set_xla_cpu_flags()
 import jax, jax.numpy as jnp
-from eqsmooth.solve._block_tridiagonal import (
+from eqsmooth.solve._linear._block_tridiagonal import (
     cyclic_reduction_factor, cyclic_reduction_solve)
 jax.config.update("jax_enable_x64", True)
 T, D, calls = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])

@@ -251,8 +251,8 @@ def test_sparse_assembly_matches_dense_normal_matrix():
     blocks of two shapes (3×3, 3×2, 2×2), variable pairs in both orders, the
     same variable in both slots of a row, and a variable no factor touches."""
     import eqsmooth as eqs
-    from eqsmooth.solve._linear_solver import NormalOperator
-    from eqsmooth.solve._sparse import _host_csc, assemble_sparse
+    from eqsmooth.solve._linear._linear_solver import NormalOperator
+    from eqsmooth.solve._linear._sparse import _host_csc, assemble_sparse
 
     rng = np.random.default_rng(0)
     a, b = np.array([0, 2, 3, 1, 2]), np.array([1, 0, 3, 3, 2])  # 2→0; 3,3; 2,2
@@ -485,7 +485,7 @@ def test_pcg_out_of_steps():
     """By default the last iterate counts (LM's gain ratio judges it); it
     decreases the quadratic model. `accept_inexact=False` reports it."""
     import eqsmooth as eqs
-    from eqsmooth.solve._levenberg_marquardt import predicted_decrease
+    from eqsmooth.solve._nonlinear._levenberg_marquardt import predicted_decrease
 
     lin = _closure_lin(0)
     delta, result = _solve(eqs.PCG(max_steps=2), lin, None)
@@ -529,7 +529,7 @@ def test_cyclic_reduction_operator(T):
     # Longer chains (6 -> 3 -> 2 -> 1 blocks) are covered by the graph tests.
     import lineax as lx
 
-    from eqsmooth.solve._block_tridiagonal import (
+    from eqsmooth.solve._linear._block_tridiagonal import (
         BlockCyclicReduction,
         BlockTridiagonalOperator,
     )
@@ -553,7 +553,7 @@ def test_cyclic_reduction_operator(T):
 def test_cyclic_reduction_levels_and_tail(tail):
     # Reduction levels of odd and even sizes down to `tail` blocks, then the
     # sequential tail: solve and selected inversion against a dense inverse.
-    from eqsmooth.solve import _block_tridiagonal as bt
+    from eqsmooth.solve._linear import _block_tridiagonal as bt
 
     T, D = 11, 2
     diag, upper = _random_blocks(T, D, 5)
@@ -582,7 +582,7 @@ def test_cyclic_reduction_levels_and_tail(tail):
 
 @pytest.mark.parametrize("D", [1, 4, 9])  # 9: above SMALL_BLOCK_LIMIT, LAPACK
 def test_small_blocks_match_numpy(D):
-    from eqsmooth.solve._small_blocks import block_cho_solve, block_cholesky
+    from eqsmooth.solve._linear._small_blocks import block_cho_solve, block_cholesky
 
     diag, _ = _random_blocks(5, D, 3)
     a = np.array(diag)
@@ -601,7 +601,7 @@ def test_chain_solve_calls_no_lapack():
     # jaxlib's batched LAPACK kernels can deadlock XLA:CPU's thread pool when two
     # run at once, and a cyclic reduction solve has one independent triangular
     # solve per level: the solve and the selected inversion must not call them.
-    from eqsmooth.solve._block_tridiagonal import (
+    from eqsmooth.solve._linear._block_tridiagonal import (
         cyclic_reduction_factor,
         cyclic_reduction_inverse_blocks,
         cyclic_reduction_solve,
@@ -737,7 +737,7 @@ def test_sparsax_not_positive_definite_raises():
 
 
 def _have_mkl() -> bool:
-    from eqsmooth.solve._sparsax import _mkl_runtime
+    from eqsmooth.solve._linear._sparsax import _mkl_runtime
 
     return _mkl_runtime() is not None
 
@@ -752,7 +752,7 @@ def test_sparsax_runs_on_mkl_when_installed():
     from pathlib import Path
 
     import eqsmooth as eqs
-    from eqsmooth.solve._sparsax import _import_sparsax
+    from eqsmooth.solve._linear._sparsax import _import_sparsax
 
     assert eqs.solve.sparsax_blas() == "mkl"
     sparsax = _import_sparsax()
@@ -770,7 +770,7 @@ def test_sparsax_runs_on_mkl_when_installed():
 
 def test_sparsax_missing_says_so(monkeypatch):
     import eqsmooth as eqs
-    from eqsmooth.solve import _default_solver, _sparsax
+    from eqsmooth.solve._linear import _default_solver, _sparsax
 
     lin = _loop_lin(0)
     layout, variables = lin.layout, tuple(f.variables for f in lin.factors)

@@ -209,7 +209,7 @@ def test_changing_data_does_not_recompile():
 
 def test_array_arguments_dispatch_through_jax_jit_with_the_same_result():
     import eqsmooth as eqs
-    from eqsmooth.solve import _least_squares as L
+    from eqsmooth.solve._nonlinear import _least_squares as L
 
     t = np.arange(4)
     data = np.random.default_rng(3).normal(size=(4, 2))

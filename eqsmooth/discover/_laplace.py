@@ -18,7 +18,7 @@ from ..solve import (
     normal_log_det,
     solve_normal,
 )
-from ..solve._default_solver import linear_solver_for
+from ..solve._linear._default_solver import linear_solver_for
 from ..solve._linearization import gradient, linearize_graph, retract_values
 
 

@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Float
 
-from ._default_solver import factorize
-from ._linearization import Linearization
+from .._linear._default_solver import factorize
+from .._linearization import Linearization
+from .._solution import Solution
 from ._posterior import as_linearization, raise_unless_ok, singular_message
-from ._solution import Solution
 
 
 def marginal_covariances(

@@ -9,12 +9,12 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..factors import Var
-from ._default_solver import linear_solver_for
-from ._linear_solver import solve_normal
-from ._linearization import Linearization
+from ...factors import Var
+from .._linear._default_solver import linear_solver_for
+from .._linear._linear_solver import solve_normal
+from .._linearization import Linearization
+from .._solution import RESULTS, Solution
 from ._posterior import as_linearization, raise_unless_ok, singular_message
-from ._solution import RESULTS, Solution
 
 
 def _selection(lin: Linearization, variables) -> list[tuple[str, int]]:

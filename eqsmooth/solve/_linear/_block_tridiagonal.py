@@ -35,7 +35,8 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ..factors import GroupLayout, Var
+from ...factors import GroupLayout, Var
+from .._linearization import Linearization, Tangent
 from ._linear_solver import (
     AbstractFactorization,
     AbstractNormalSolver,
@@ -43,7 +44,6 @@ from ._linear_solver import (
     pivot_tolerance,
     register_symmetric_psd,
 )
-from ._linearization import Linearization, Tangent
 from ._small_blocks import block_cholesky, block_solve_lower
 
 

@@ -33,14 +33,14 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import PyTree
 
-from ..factors import FactorGraph
-from ..factors._graph import graph_cost
-from ._default_solver import linear_solver_for
-from ._derivatives import checked_derivative, recomputed, stop_arrays
+from ...factors import FactorGraph
+from ...factors._graph import graph_cost
+from .._derivatives import checked_derivative, recomputed, stop_arrays
+from .._linear._default_solver import linear_solver_for
+from .._linear._linear_solver import solve_normal
+from .._linearization import Linearization, linearize_graph, retract_values, Tangent
+from .._misc import preconditioned_cg, stationary, tree_where
 from ._graph_solver import AbstractGraphSolver
-from ._linear_solver import solve_normal
-from ._linearization import Linearization, linearize_graph, retract_values, Tangent
-from ._misc import preconditioned_cg, stationary, tree_where
 
 
 Values = dict[str, PyTree]

@@ -2,11 +2,11 @@
 
 import lineax as lx
 
-from ..factors import GroupLayout, Var
+from ...factors import GroupLayout, Var
+from .._linearization import Linearization, Tangent
 from ._block_tridiagonal import BlockTridiagonal, chain_violation
 from ._dense import DenseCholesky
 from ._linear_solver import AbstractFactorization, NormalOperator
-from ._linearization import Linearization, Tangent
 from ._sparsax import sparsax_available, SparsaxCholesky
 from ._sparse import SparseLU
 

@@ -9,16 +9,16 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ..factors import GroupLayout
+from ...factors import GroupLayout
+from .._linearization import (
+    flatten_layout,
+    unflatten_layout,
+)
 from ._linear_solver import (
     AbstractFactorization,
     AbstractNormalSolver,
     normal_operator_of,
     pivot_tolerance,
-)
-from ._linearization import (
-    flatten_layout,
-    unflatten_layout,
 )
 
 

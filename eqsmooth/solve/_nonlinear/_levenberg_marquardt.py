@@ -6,19 +6,9 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._default_solver import linear_solver_for
-from ._graph_solver import (
-    AbstractConvergingSolver,
-    checked_graph,
-    cost_record,
-    fn_error_if,
-    graph_of,
-    initial_status,
-    record_iteration,
-    to_optx_result,
-)
-from ._linear_solver import solve_unless
-from ._linearization import (
+from .._linear._default_solver import linear_solver_for
+from .._linear._linear_solver import solve_unless
+from .._linearization import (
     apply_jacobian,
     block_diagonal,
     gradient,
@@ -29,8 +19,18 @@ from ._linearization import (
     Tangent,
     zeros_tangent,
 )
-from ._misc import converged_test, finite_lin, max_abs, sq_norm, tree_where
-from ._solution import RESULTS
+from .._misc import converged_test, finite_lin, max_abs, sq_norm, tree_where
+from .._solution import RESULTS
+from ._graph_solver import (
+    AbstractConvergingSolver,
+    checked_graph,
+    cost_record,
+    fn_error_if,
+    graph_of,
+    initial_status,
+    record_iteration,
+    to_optx_result,
+)
 
 
 class LevenbergMarquardtState(eqx.Module):

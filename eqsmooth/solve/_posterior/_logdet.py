@@ -3,9 +3,11 @@
 import lineax as lx
 from jaxtyping import Array, Float
 
-from ._block_tridiagonal import block_tridiagonal_log_det as block_tridiagonal_log_det
-from ._default_solver import factorize
-from ._linearization import Linearization, Tangent
+from .._linear._block_tridiagonal import (
+    block_tridiagonal_log_det as block_tridiagonal_log_det,
+)
+from .._linear._default_solver import factorize
+from .._linearization import Linearization, Tangent
 
 
 def normal_log_det(

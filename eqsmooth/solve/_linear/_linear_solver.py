@@ -19,7 +19,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._linearization import (
+from .._linearization import (
     block_diagonal,
     dense_normal_matrix,
     flatten_tangent,
@@ -29,8 +29,8 @@ from ._linearization import (
     Tangent,
     zeros_tangent,
 )
-from ._misc import nan_derivative_if
-from ._solution import RESULTS
+from .._misc import nan_derivative_if
+from .._solution import RESULTS
 
 
 class NormalOperator(lx.AbstractLinearOperator):

@@ -24,7 +24,14 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..factors import Var
+from ...factors import Var
+from .._linearization import (
+    block_diagonal,
+    FactorLinearization,
+    Linearization,
+    Tangent,
+)
+from .._misc import preconditioned_cg
 from ._block_tridiagonal import (
     assemble_chain,
     chain_plan,
@@ -32,13 +39,6 @@ from ._block_tridiagonal import (
     cyclic_reduction_solve,
 )
 from ._linear_solver import AbstractNormalSolver, all_finite, NormalOperator
-from ._linearization import (
-    block_diagonal,
-    FactorLinearization,
-    Linearization,
-    Tangent,
-)
-from ._misc import preconditioned_cg
 from ._small_blocks import block_cho_solve, block_cholesky
 
 

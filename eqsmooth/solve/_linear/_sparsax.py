@@ -16,13 +16,13 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ..factors import GroupLayout
+from ...factors import GroupLayout
+from .._linearization import flatten_layout, unflatten_layout
 from ._linear_solver import (
     AbstractFactorization,
     AbstractNormalSolver,
     normal_operator_of,
 )
-from ._linearization import flatten_layout, unflatten_layout
 from ._sparse import _Pattern, assemble_sparse
 
 

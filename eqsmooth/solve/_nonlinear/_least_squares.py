@@ -16,11 +16,12 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import PyTree
 
-from ..factors import FactorGraph
-from ..factors._graph import graph_cost
+from ...factors import FactorGraph
+from ...factors._graph import graph_cost
+from .._derivatives import recomputed, refuse_derivative
+from .._linear._default_solver import default_linear_solver
+from .._solution import raise_unless_successful, RESULTS, Solution
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
-from ._default_solver import default_linear_solver
-from ._derivatives import recomputed, refuse_derivative
 from ._diagnose import failure_detail
 from ._graph_solver import (
     AbstractGraphSolver,
@@ -29,7 +30,6 @@ from ._graph_solver import (
     HISTORY,
     VERBOSE,
 )
-from ._solution import raise_unless_successful, RESULTS, Solution
 
 
 Values = dict[str, PyTree]

@@ -18,10 +18,10 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
 
-from ..factors import FactorGraph
-from ..lie import AbstractLieGroup
-from ._derivatives import stop_arrays
-from ._solution import RESULTS
+from ...factors import FactorGraph
+from ...lie import AbstractLieGroup
+from .._derivatives import stop_arrays
+from .._solution import RESULTS
 
 
 Values = dict[str, PyTree]

@@ -10,14 +10,14 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..factors import GroupLayout
+from ...factors import GroupLayout
+from .._linearization import flatten_layout, unflatten_layout
 from ._linear_solver import (
     AbstractNormalSolver,
     flat_damping,
     normal_operator_of,
     NormalOperator,
 )
-from ._linearization import flatten_layout, unflatten_layout
 
 
 class _Term(NamedTuple):

@@ -7,9 +7,9 @@ import jax
 import numpy as np
 from jaxtyping import PyTree
 
-from ..factors import FactorGraph
-from ._linearization import dense_jacobian, group_offsets, linearize
-from ._solution import RESULTS
+from ...factors import FactorGraph
+from .._linearization import dense_jacobian, group_offsets, linearize
+from .._solution import RESULTS
 
 
 def _rows(mask: np.ndarray) -> str:

@@ -7,7 +7,26 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._default_solver import linear_solver_for
+from .._linear._default_solver import linear_solver_for
+from .._linear._linear_solver import solve_unless
+from .._linearization import (
+    gradient,
+    Linearization,
+    linearize_graph,
+    placeholder_linearization,
+    retract_values,
+    Tangent,
+    zeros_tangent,
+)
+from .._misc import (
+    converged_test,
+    finite_lin,
+    max_abs,
+    nan_derivative_if,
+    sq_norm,
+    tree_where,
+)
+from .._solution import RESULTS
 from ._graph_solver import (
     AbstractConvergingSolver,
     AbstractFixedStepSolver,
@@ -19,25 +38,6 @@ from ._graph_solver import (
     record_iteration,
     to_optx_result,
 )
-from ._linear_solver import solve_unless
-from ._linearization import (
-    gradient,
-    Linearization,
-    linearize_graph,
-    placeholder_linearization,
-    retract_values,
-    Tangent,
-    zeros_tangent,
-)
-from ._misc import (
-    converged_test,
-    finite_lin,
-    max_abs,
-    nan_derivative_if,
-    sq_norm,
-    tree_where,
-)
-from ._solution import RESULTS
 
 
 class GaussNewtonState(eqx.Module):

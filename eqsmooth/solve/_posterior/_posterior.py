@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._linearization import Linearization
-from ._solution import Solution
+from .._linearization import Linearization
+from .._solution import Solution
 
 
 def as_linearization(

@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, PyTree
 
-from ..factors import FactorGraph
-from ..factors._graph import graph_cost
+from ...factors import FactorGraph
+from ...factors._graph import graph_cost
+from .._linearization import retract_values, Tangent
+from .._solution import raise_unless_successful, RESULTS, Solution
 from ._graph_solver import manifold_residuals
-from ._linearization import retract_values, Tangent
-from ._solution import raise_unless_successful, RESULTS, Solution
 
 
 Values = dict[str, PyTree]

@@ -1,0 +1,2 @@
+"""Posterior quantities of a solution: marginal covariances and log-determinants;
+built on the linear floor."""
