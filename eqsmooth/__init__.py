@@ -38,6 +38,7 @@ from .factors import (
     PoseToPointFactor as PoseToPointFactor,
     PriorFactor as PriorFactor,
     RangeFactor as RangeFactor,
+    RobustNoise as RobustNoise,
     shared_field as shared_field,
     SqrtInformationNoise as SqrtInformationNoise,
     StudentTNoise as StudentTNoise,

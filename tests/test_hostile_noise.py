@@ -186,15 +186,15 @@ def test_robust_scale_not_positive(robust):
 
 
 def _robust_kernels() -> list[str]:
-    """Every concrete robust kernel that `import eqsmooth` exports."""
+    """The named constructor of every robust kernel that eqsmooth exports."""
     import inspect
 
     eqs = _eqs()
     return sorted(
-        name
-        for name, obj in vars(eqs).items()
+        obj.name
+        for obj in vars(eqs.factors).values()
         if inspect.isclass(obj)
-        and issubclass(obj, eqs.factors.AbstractRobustNoise)
+        and issubclass(obj, eqs.factors.AbstractKernel)
         and not inspect.isabstract(obj)
     )
 

@@ -295,7 +295,10 @@ def test_mask_bases():
     with raises(TypeError, "StudentTNoise.base cannot be a MaskedNoise"):
         eqs.StudentTNoise(eqs.MaskedNoise(N1, on), 3.0)
     # A robust kernel around a mask is the documented composition.
-    assert isinstance(eqs.HuberNoise(eqs.MaskedNoise(N1, on), 1.0), eqs.HuberNoise)
+    robust = eqs.HuberNoise(eqs.MaskedNoise(N1, on), 1.0)
+    assert isinstance(robust, eqs.RobustNoise) and isinstance(
+        robust.kernel, eqs.factors.Huber
+    )
 
 
 def test_mask_of_the_wrong_length():

@@ -24,20 +24,31 @@ from ._masked_noise import MaskedNoise as MaskedNoise
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
     AbstractRobustNoise as AbstractRobustNoise,
-    CauchyNoise as CauchyNoise,
     DiagonalNoise as DiagonalNoise,
     gaussian_log_normalizer as gaussian_log_normalizer,
-    HuberNoise as HuberNoise,
     IsotropicNoise as IsotropicNoise,
     SqrtInformationNoise as SqrtInformationNoise,
 )
 from ._robust_kernels import (
+    AbstractKernel as AbstractKernel,
+    Cauchy as Cauchy,
+    CauchyNoise as CauchyNoise,
+    DCS as DCS,
     DCSNoise as DCSNoise,
+    Fair as Fair,
     FairNoise as FairNoise,
+    GemanMcClure as GemanMcClure,
     GemanMcClureNoise as GemanMcClureNoise,
+    Huber as Huber,
+    HuberNoise as HuberNoise,
+    L2WithDeadZone as L2WithDeadZone,
     L2WithDeadZoneNoise as L2WithDeadZoneNoise,
+    RobustNoise as RobustNoise,
+    TruncatedQuadratic as TruncatedQuadratic,
     TruncatedQuadraticNoise as TruncatedQuadraticNoise,
+    Tukey as Tukey,
     TukeyNoise as TukeyNoise,
+    Welsch as Welsch,
     WelschNoise as WelschNoise,
 )
 from ._student_t import StudentTNoise as StudentTNoise

@@ -481,7 +481,10 @@ class AbstractRobustNoise(AbstractNoiseModel):
 
     Whitening, shapes and `log_det_sqrt_information` are those of `base`;
     subclasses give `ρ(s)` and `ρ'(s)` of the whitened squared norm
-    `s = ‖R r‖²` through `rho`. Solvers use IRLS weights `√ρ'(s)` on
+    `s = ‖R r‖²` through `rho` ([`eqsmooth.factors.RobustNoise`][] with an
+    [`eqsmooth.factors.AbstractKernel`][], built by `HuberNoise`,
+    `TukeyNoise`, ...), and the name messages use (`label`). Solvers use
+    IRLS weights `√ρ'(s)` on
     residuals and Jacobians, whose Gauss-Newton gradient equals the gradient
     of the true cost `½ρ(s)`; the reported cost is `½ρ(s)`. Filters (which
     are Gaussian) reject robust models.
@@ -497,22 +500,27 @@ class AbstractRobustNoise(AbstractNoiseModel):
     scale: eqx.AbstractVar[Float[Array, "*rows"]]
     is_gaussian: ClassVar[bool] = False
 
+    @property
+    @abc.abstractmethod
+    def label(self) -> str:
+        """The name messages give this model (e.g. `"HuberNoise"`)."""
+
     def __check_init__(self):
         if not isinstance(self.base, AbstractNoiseModel):
             raise TypeError(
-                f"{type(self).__name__}.base must be a Gaussian noise model such as "
+                f"{self.label}.base must be a Gaussian noise model such as "
                 f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
             )
         if not self.base.is_gaussian:
             # The kernel acts on the base's whitened residual only: an inner
             # kernel's ρ would be silently dropped.
             raise TypeError(
-                f"{type(self).__name__}.base must be a Gaussian noise model such as "
-                f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}, "
+                f"{self.label}.base must be a Gaussian noise model such as "
+                f"IsotropicNoise or DiagonalNoise, got {noise_name(self.base)}, "
                 "which is not Gaussian: kernels do not nest (the inner one would "
                 "be ignored); wrap the Gaussian model in one kernel"
             )
-        _check_scale(type(self).__name__, self.scale)
+        _check_scale(self.label, self.scale)
 
     def whiten(self, r):
         return self.base.whiten(r)
@@ -530,59 +538,14 @@ class AbstractRobustNoise(AbstractNoiseModel):
         self.base.check_shapes(factor_name, n, m)
         if self.scale.shape not in ((), (n,)):
             raise ValueError(
-                f"{factor_name}: {type(self).__name__}.scale has shape "
+                f"{factor_name}: {self.label}.scale has shape "
                 f"{self.scale.shape}; expected () or ({n},)"
             )
 
 
-class HuberNoise(AbstractRobustNoise):
-    """Huber robust loss on top of a Gaussian model.
-
-    With whitened squared norm `s = ‖R r‖²` and scale `k` (in whitened units):
-    `ρ(s) = s` for `s ≤ k²`, else `2k√s − k²`. Conventions of
-    [`eqsmooth.factors.AbstractRobustNoise`][].
-
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: threshold `k > 0`, shared `()` or per row `(n,)`; learnable.
-    """
-
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
-
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k = self.scale.astype(s.dtype)
-        inside = s <= k * k
-        safe_s = jnp.where(inside, k * k, s)  # never sqrt(0) in the untaken branch
-        root = jnp.sqrt(safe_s)
-        value = jnp.where(inside, s, 2 * k * root - k * k)
-        deriv = jnp.where(inside, jnp.ones_like(s), k / root)
-        return value, deriv
-
-
-class CauchyNoise(AbstractRobustNoise):
-    """Cauchy (Lorentzian) robust loss: `ρ(s) = k² log(1 + s/k²)`.
-
-    Conventions of [`eqsmooth.factors.AbstractRobustNoise`][].
-
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: `k > 0`, shared `()` or per row `(n,)`; learnable.
-    """
-
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
-
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k2 = (self.scale * self.scale).astype(s.dtype)
-        return k2 * jnp.log1p(s / k2), 1.0 / (1.0 + s / k2)
+def noise_name(noise: AbstractNoiseModel) -> str:
+    """A noise model's name in messages: a robust model's label (`HuberNoise`),
+    otherwise its type."""
+    if isinstance(noise, AbstractRobustNoise):
+        return noise.label
+    return type(noise).__name__

@@ -1,4 +1,10 @@
-"""More robust kernels on [`eqsmooth.factors.AbstractRobustNoise`][].
+"""Robust noise as a composition: a Gaussian model and a robust kernel.
+
+[`eqsmooth.factors.RobustNoise`][] holds a Gaussian `base`, an
+[`eqsmooth.factors.AbstractKernel`][] (the M-estimator: `ρ` and `ρ'` as
+functions of the whitened squared norm and the scale) and the learnable
+`scale`, as GTSAM composes `Robust(mEstimator, noise)`. The named
+constructors (`HuberNoise(base, k)`, `TukeyNoise(base, k)`, ...) build one.
 
 Every kernel is written in terms of the whitened squared norm `s = ‖R r‖²`
 and returns `(ρ(s), ρ'(s))`; the factor's cost is `½ρ(s)` and the IRLS
@@ -14,6 +20,10 @@ scale is differentiable (learnable) and no branch produces `nan` in reverse
 mode.
 """
 
+import abc
+from typing import ClassVar
+
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -26,28 +36,118 @@ def _safe_sqrt(s: Array) -> Array:
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, s, jnp.ones_like(s))), 0.0)
 
 
-class TukeyNoise(AbstractRobustNoise):
+class AbstractKernel(eqx.Module):
+    """A robust kernel (M-estimator) of [`eqsmooth.factors.RobustNoise`][].
+
+    Subclasses implement `rho(s, scale) -> (ρ(s), ρ'(s))` of the whitened
+    squared norms `s` (shape `(n,)`) with the scale `k` (shared `()` or per
+    row `(n,)`), and name the constructor that builds them (`name`, for
+    messages). A kernel holds no parameters: the scale lives on the noise
+    model, where it is learnable.
+    """
+
+    name: ClassVar[str]
+
+    @abc.abstractmethod
+    def rho(
+        self, s: Float[Array, " n"], scale: Float[Array, "*rows"]
+    ) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
+        """`(ρ(s), ρ'(s))` at the whitened squared norms `s`."""
+
+
+class RobustNoise(AbstractRobustNoise):
+    """A Gaussian noise model with a robust kernel: `½ ρ(‖R r‖²)` per row.
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model (a [`eqsmooth.factors.MaskedNoise`][]
+        may be one).
+    - `kernel`: an [`eqsmooth.factors.AbstractKernel`][], e.g. `Huber()`.
+    - `scale`: the kernel's scale `k > 0` (whitened units; DCS: `Φ` in
+        squared units), shared `()` or per row `(n,)`; learnable.
+    """
+
+    base: AbstractNoiseModel
+    kernel: AbstractKernel
+    scale: Float[Array, "*rows"]
+
+    def __init__(
+        self,
+        base: AbstractNoiseModel,
+        kernel: AbstractKernel,
+        scale: Float[ArrayLike, "*rows"],
+    ):
+        if not isinstance(kernel, AbstractKernel):
+            raise TypeError(
+                "RobustNoise.kernel must be an AbstractKernel such as Huber() or "
+                f"Tukey(), got {type(kernel).__name__}"
+            )
+        self.base = base
+        self.kernel = kernel
+        self.scale = robust_scale(kernel.name, scale)
+
+    @property
+    def label(self) -> str:
+        return self.kernel.name
+
+    def rho(self, s):
+        return self.kernel.rho(s, self.scale)
+
+
+class Huber(AbstractKernel):
+    """Huber robust loss on top of a Gaussian model.
+
+    With whitened squared norm `s = ‖R r‖²` and scale `k` (in whitened units):
+    `ρ(s) = s` for `s ≤ k²`, else `2k√s − k²`. Conventions of
+    [`eqsmooth.factors.AbstractRobustNoise`][].
+
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
+    """
+
+    name: ClassVar[str] = "HuberNoise"
+
+    def rho(self, s, scale):
+        k = scale.astype(s.dtype)
+        inside = s <= k * k
+        safe_s = jnp.where(inside, k * k, s)  # never sqrt(0) in the untaken branch
+        root = jnp.sqrt(safe_s)
+        value = jnp.where(inside, s, 2 * k * root - k * k)
+        deriv = jnp.where(inside, jnp.ones_like(s), k / root)
+        return value, deriv
+
+
+class Cauchy(AbstractKernel):
+    """Cauchy (Lorentzian) robust loss: `ρ(s) = k² log(1 + s/k²)`.
+
+    Conventions of [`eqsmooth.factors.AbstractRobustNoise`][].
+
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
+    """
+
+    name: ClassVar[str] = "CauchyNoise"
+
+    def rho(self, s, scale):
+        k2 = (scale * scale).astype(s.dtype)
+        return k2 * jnp.log1p(s / k2), 1.0 / (1.0 + s / k2)
+
+
+class Tukey(AbstractKernel):
     """Tukey's biweight: outliers beyond `k` get zero weight.
 
     `ρ(s) = (k²/3)(1 − (1 − s/k²)³)` and `ρ'(s) = (1 − s/k²)²` for `s ≤ k²`;
     `ρ = k²/3`, `ρ' = 0` beyond. Not convex: start near the solution (or
     from a convex kernel's solution).
 
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
     """
 
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
+    name: ClassVar[str] = "TukeyNoise"
 
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k2 = jnp.square(self.scale).astype(s.dtype)
+    def rho(self, s, scale):
+        k2 = jnp.square(scale).astype(s.dtype)
         u = jnp.clip(1.0 - s / k2, 0.0, None)
         # `where`, not `u * u`: beyond k the weight is exactly 0, and the
         # solvers' IRLS weight √ρ' has an infinite derivative there; `where`
@@ -56,46 +156,32 @@ class TukeyNoise(AbstractRobustNoise):
         return k2 / 3.0 * (1.0 - u**3), jnp.where(u > 0, u * u, 0.0)
 
 
-class GemanMcClureNoise(AbstractRobustNoise):
+class GemanMcClure(AbstractKernel):
     """Geman-McClure: `ρ(s) = k² s / (k² + s)`, `ρ'(s) = k⁴ / (k² + s)²`.
 
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
     """
 
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
+    name: ClassVar[str] = "GemanMcClureNoise"
 
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k2 = jnp.square(self.scale).astype(s.dtype)
+    def rho(self, s, scale):
+        k2 = jnp.square(scale).astype(s.dtype)
         d = k2 + s
         return k2 * s / d, jnp.square(k2 / d)
 
 
-class WelschNoise(AbstractRobustNoise):
+class Welsch(AbstractKernel):
     """Welsch (Leclerc): `ρ(s) = k² (1 − exp(−s/k²))`, `ρ'(s) = exp(−s/k²)`.
 
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
     """
 
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
+    name: ClassVar[str] = "WelschNoise"
 
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k2 = jnp.square(self.scale).astype(s.dtype)
+    def rho(self, s, scale):
+        k2 = jnp.square(scale).astype(s.dtype)
         w = jnp.exp(-s / k2)
         # exp underflows to exactly 0 beyond s ≈ 745 k² (an outlier of 27
         # scales); as for Tukey, `where` keeps the infinite derivative of the
@@ -103,28 +189,21 @@ class WelschNoise(AbstractRobustNoise):
         return k2 * (1.0 - w), jnp.where(w > 0, w, 0.0)
 
 
-class DCSNoise(AbstractRobustNoise):
+class DCS(AbstractKernel):
     """Dynamic covariance scaling (Agarwal et al. 2013).
 
     With `Φ = scale` (note: in SQUARED whitened units, as in the paper and in
     GTSAM's `mEstimator.DCS`): `ρ(s) = s`, `ρ' = 1` for `s ≤ Φ`; beyond,
     `ρ(s) = Φ(3s − Φ)/(Φ + s)` and `ρ'(s) = 4Φ²/(Φ + s)²`.
 
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: `Φ > 0`, shared `()` or per row `(n,)`; learnable.
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
     """
 
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
+    name: ClassVar[str] = "DCSNoise"
 
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        phi = self.scale.astype(s.dtype)
+    def rho(self, s, scale):
+        phi = scale.astype(s.dtype)
         inside = s <= phi
         d = phi + s
         value = jnp.where(inside, s, phi * (3.0 * s - phi) / d)
@@ -132,26 +211,19 @@ class DCSNoise(AbstractRobustNoise):
         return value, deriv
 
 
-class FairNoise(AbstractRobustNoise):
+class Fair(AbstractKernel):
     """Fair: with `e = √s`, `ρ(s) = 2k² (e/k − log(1 + e/k))`, `ρ'(s) = 1/(1 + e/k)`.
 
     Convex, with continuous derivatives of every order away from zero.
 
-    **Arguments:**
-
-    - `base`: the Gaussian noise model.
-    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
     """
 
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
+    name: ClassVar[str] = "FairNoise"
 
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k = self.scale.astype(s.dtype)
+    def rho(self, s, scale):
+        k = scale.astype(s.dtype)
         x = _safe_sqrt(s) / k
         # ρ = 2k²(x − log(1 + x)) written as 2 s φ(x), φ(x) = (x − log1p(x))/x²
         # (φ → ½ at 0; a series below x = 1e-3, where the quotient cancels).
@@ -170,7 +242,175 @@ class FairNoise(AbstractRobustNoise):
         return 2.0 * s * phi, 1.0 / (1.0 + x)
 
 
-class L2WithDeadZoneNoise(AbstractRobustNoise):
+class L2WithDeadZone(AbstractKernel):
+    """Quadratic outside a dead zone: with `e = √s`, `ρ(s) = (e − k)²` and
+    `ρ'(s) = 1 − k/e` for `e > k`; zero inside (`e ≤ k`).
+
+    Errors smaller than `k` cost nothing (an ε-insensitive loss). A graph
+    whose every residual can sit in its dead zone has a singular normal
+    matrix at the solution: anchor it with other factors.
+
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
+    """
+
+    name: ClassVar[str] = "L2WithDeadZoneNoise"
+
+    def rho(self, s, scale):
+        k = scale.astype(s.dtype)
+        outside = s > k * k
+        e = jnp.sqrt(jnp.where(outside, s, k * k))  # ≥ k > 0 where used
+        value = jnp.where(outside, jnp.square(e - k), jnp.zeros_like(s))
+        deriv = jnp.where(outside, 1.0 - k / e, jnp.zeros_like(s))
+        return value, deriv
+
+
+class TruncatedQuadratic(AbstractKernel):
+    """Truncated least squares: `ρ(s) = min(s, k²)`; `ρ' = 1` for `s < k²`, else 0.
+
+    Residuals beyond `k` are ignored entirely (weight zero), as in
+    GTSAM's `mEstimator.TruncatedLeastSquares` and the TLS cost of
+    graduated non-convexity. Not convex; the cost is flat in `k` once every
+    residual is inside, so a learned `k` only gets a gradient from the
+    rows it truncates.
+
+    `scale` is the kernel's `k` (see the noise constructor); the kernel
+    itself holds no parameters.
+    """
+
+    name: ClassVar[str] = "TruncatedQuadraticNoise"
+
+    def rho(self, s, scale):
+        k2 = jnp.square(scale).astype(s.dtype)
+        inside = s < k2
+        value = jnp.where(inside, s, k2 * jnp.ones_like(s))
+        return value, jnp.where(inside, jnp.ones_like(s), jnp.zeros_like(s))
+
+
+def HuberNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Huber robust loss on top of a Gaussian model.
+
+    With whitened squared norm `s = ‖R r‖²` and scale `k` (in whitened units):
+    `ρ(s) = s` for `s ≤ k²`, else `2k√s − k²`. Conventions of
+    [`eqsmooth.factors.AbstractRobustNoise`][].
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: threshold `k > 0`, shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, Huber(), scale)`.
+    """
+    return RobustNoise(base, Huber(), scale)
+
+
+def CauchyNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Cauchy (Lorentzian) robust loss: `ρ(s) = k² log(1 + s/k²)`.
+
+    Conventions of [`eqsmooth.factors.AbstractRobustNoise`][].
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: `k > 0`, shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, Cauchy(), scale)`.
+    """
+    return RobustNoise(base, Cauchy(), scale)
+
+
+def TukeyNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Tukey's biweight: outliers beyond `k` get zero weight.
+
+    `ρ(s) = (k²/3)(1 − (1 − s/k²)³)` and `ρ'(s) = (1 − s/k²)²` for `s ≤ k²`;
+    `ρ = k²/3`, `ρ' = 0` beyond. Not convex: start near the solution (or
+    from a convex kernel's solution).
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, Tukey(), scale)`.
+    """
+    return RobustNoise(base, Tukey(), scale)
+
+
+def GemanMcClureNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Geman-McClure: `ρ(s) = k² s / (k² + s)`, `ρ'(s) = k⁴ / (k² + s)²`.
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, GemanMcClure(), scale)`.
+    """
+    return RobustNoise(base, GemanMcClure(), scale)
+
+
+def WelschNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Welsch (Leclerc): `ρ(s) = k² (1 − exp(−s/k²))`, `ρ'(s) = exp(−s/k²)`.
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, Welsch(), scale)`.
+    """
+    return RobustNoise(base, Welsch(), scale)
+
+
+def DCSNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Dynamic covariance scaling (Agarwal et al. 2013).
+
+    With `Φ = scale` (note: in SQUARED whitened units, as in the paper and in
+    GTSAM's `mEstimator.DCS`): `ρ(s) = s`, `ρ' = 1` for `s ≤ Φ`; beyond,
+    `ρ(s) = Φ(3s − Φ)/(Φ + s)` and `ρ'(s) = 4Φ²/(Φ + s)²`.
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: `Φ > 0`, shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, DCS(), scale)`.
+    """
+    return RobustNoise(base, DCS(), scale)
+
+
+def FairNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
+    """Fair: with `e = √s`, `ρ(s) = 2k² (e/k − log(1 + e/k))`, `ρ'(s) = 1/(1 + e/k)`.
+
+    Convex, with continuous derivatives of every order away from zero.
+
+    **Arguments:**
+
+    - `base`: the Gaussian noise model.
+    - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, Fair(), scale)`.
+    """
+    return RobustNoise(base, Fair(), scale)
+
+
+def L2WithDeadZoneNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
     """Quadratic outside a dead zone: with `e = √s`, `ρ(s) = (e − k)²` and
     `ρ'(s) = 1 − k/e` for `e > k`; zero inside (`e ≤ k`).
 
@@ -182,25 +422,15 @@ class L2WithDeadZoneNoise(AbstractRobustNoise):
 
     - `base`: the Gaussian noise model.
     - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, L2WithDeadZone(), scale)`.
     """
-
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
-
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k = self.scale.astype(s.dtype)
-        outside = s > k * k
-        e = jnp.sqrt(jnp.where(outside, s, k * k))  # ≥ k > 0 where used
-        value = jnp.where(outside, jnp.square(e - k), jnp.zeros_like(s))
-        deriv = jnp.where(outside, 1.0 - k / e, jnp.zeros_like(s))
-        return value, deriv
+    return RobustNoise(base, L2WithDeadZone(), scale)
 
 
-class TruncatedQuadraticNoise(AbstractRobustNoise):
+def TruncatedQuadraticNoise(
+    base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]
+) -> "RobustNoise":
     """Truncated least squares: `ρ(s) = min(s, k²)`; `ρ' = 1` for `s < k²`, else 0.
 
     Residuals beyond `k` are ignored entirely (weight zero), as in
@@ -213,17 +443,7 @@ class TruncatedQuadraticNoise(AbstractRobustNoise):
 
     - `base`: the Gaussian noise model.
     - `scale`: `k > 0` (whitened units), shared `()` or per row `(n,)`; learnable.
+
+    **Returns:** `RobustNoise(base, TruncatedQuadratic(), scale)`.
     """
-
-    base: AbstractNoiseModel
-    scale: Float[Array, "*rows"]
-
-    def __init__(self, base: AbstractNoiseModel, scale: Float[ArrayLike, "*rows"]):
-        self.base = base
-        self.scale = robust_scale(type(self).__name__, scale)
-
-    def rho(self, s):
-        k2 = jnp.square(self.scale).astype(s.dtype)
-        inside = s < k2
-        value = jnp.where(inside, s, k2 * jnp.ones_like(s))
-        return value, jnp.where(inside, jnp.ones_like(s), jnp.zeros_like(s))
+    return RobustNoise(base, TruncatedQuadratic(), scale)

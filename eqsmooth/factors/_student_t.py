@@ -15,6 +15,7 @@ from ._noise import (
     _positive_under_jit,
     AbstractNoiseModel,
     gaussian_log_normalizer,
+    noise_name,
 )
 
 
@@ -69,7 +70,7 @@ class StudentTNoise(AbstractNoiseModel):
         if not isinstance(self.base, AbstractNoiseModel) or not self.base.is_gaussian:
             raise TypeError(
                 "StudentTNoise.base must be a Gaussian noise model such as "
-                f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
+                f"IsotropicNoise or DiagonalNoise, got {noise_name(self.base)}"
             )
         if isinstance(self.base, MaskedNoise):
             raise TypeError(
