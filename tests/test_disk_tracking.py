@@ -134,7 +134,7 @@ def test_model_shapes_and_noise_heads():
     def build(key):
         return (
             M.VirtualSensor(key),
-            M.HeteroscedasticNoise(4.0, key),
+            M.heteroscedastic_noise(4.0, key),
             M.HeatmapSensor(key, channels=4),
             M.LstmTracker(key, bidirectional=True, num_features=4, hidden=8),
         )
@@ -146,8 +146,8 @@ def test_model_shapes_and_noise_heads():
         return {
             "features": sensor.features(img),
             "sensor": sensor(img),
-            "const": M.ConstantNoise(4.0)(counts),
-            "het": het(counts),
+            "const": M.constant_noise(4.0)(counts[:, None]),
+            "het": het(counts[:, None]),
             "fast": fast.outputs(img),
             "fast_features": fast.features(img),
             "big": big(img),
@@ -262,9 +262,11 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
     import jax.numpy as jnp
     from disk_tracking import data as D, models as M, train as T
 
-    class Gate(M.AbstractNoiseHead):
-        def __call__(self, visible_pixels):
-            return jnp.where(visible_pixels > 0, 1.0, 0.01)
+    import eqsmooth as eqs
+
+    class Gate(eqs.learn.AbstractNoiseHead):
+        def __call__(self, features):
+            return jnp.where(features[..., 0] > 0, 1.0, 0.01)
 
     rng = np.random.default_rng(0)
     states = []

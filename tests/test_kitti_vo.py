@@ -285,7 +285,7 @@ def _check_losses():
 
     w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
     sig = np.array([1.0, 0.1])
-    hetero = M.Estimator(M.HeteroscedasticNoise(sig, jax.random.key(0)))
+    hetero = M.Estimator(M.heteroscedastic_noise(sig, jax.random.key(0)))
     for loss in (M.surrogate_loss, M.nll_loss, M.ekf_loss):
         value, grads = eqx.filter_value_and_grad(loss)(hetero, w)
         assert np.isfinite(float(value))

@@ -15,6 +15,11 @@ from ._checkpoint import (
     TrainState as TrainState,
 )
 from ._losses import joint_nll as joint_nll, surrogate_loss as surrogate_loss
+from ._noise_heads import (
+    AbstractNoiseHead as AbstractNoiseHead,
+    ConstantNoiseHead as ConstantNoiseHead,
+    HeteroscedasticNoiseHead as HeteroscedasticNoiseHead,
+)
 from ._optim import (
     make_optimizer as make_optimizer,
     standard_promotion as standard_promotion,

@@ -20,8 +20,6 @@ this reproduction):
   from the ground-truth first state.
 """
 
-import abc
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 import eqsmooth as eqs
+import eqsmooth.learn as L
 
 from . import data as D
 
@@ -217,66 +216,31 @@ def predict_positions(sensor: VirtualSensor, images: Array) -> Float[Array, "*b 
 # ---------------------------------------------------------------------------
 
 
-class AbstractNoiseHead(eqx.Module):
-    """Maps visible-pixel counts `(T,)` to square-root precisions `(T,)` (1/px)."""
-
-    @abc.abstractmethod
-    def __call__(self, visible_pixels: Float[Array, " T"]) -> Float[Array, " T"]:
-        """Square-root precision for each frame."""
+def constant_noise(sigma: float, dtype=jnp.float32) -> L.ConstantNoiseHead:
+    """One learned square-root precision shared by every frame, starting at
+    `1/sigma` (never below `SQRT_PRECISION_FLOOR`)."""
+    return L.ConstantNoiseHead(sigma, floor=SQRT_PRECISION_FLOOR, dtype=dtype)
 
 
-def _above_floor(sigma: float) -> float:
-    return max(1.0 / sigma - SQRT_PRECISION_FLOOR, 1e-3)
-
-
-class ConstantNoise(AbstractNoiseHead):
-    """One learned square-root precision shared by every frame.
-
-    `σ⁻¹ = floor + exp(θ)`, starting at `σ⁻¹ = 1/sigma`.
-    """
-
-    log_sqrt_precision: Float[Array, ""]
-
-    def __init__(self, sigma: float, dtype=jnp.float32):
-        self.log_sqrt_precision = jnp.asarray(np.log(_above_floor(sigma)), dtype=dtype)
-
-    def __call__(self, visible_pixels):
-        s = SQRT_PRECISION_FLOOR + jnp.exp(self.log_sqrt_precision)
-        return jnp.broadcast_to(s, visible_pixels.shape)
-
-
-class HeteroscedasticNoise(AbstractNoiseHead):
-    """`σ⁻¹(c) = floor + s₀ softplus(MLP(ĉ) + softplus⁻¹(1))`, `ĉ` the normalised count.
-
-    The MLP has 4 hidden layers of 64 ReLU units; its last layer starts at
-    zero, so training starts from the constant `σ⁻¹ = 1/sigma` (the inverse
-    of the virtual sensor's validation RMSE).
-    """
-
-    mlp: eqx.nn.MLP
-    base: float = eqx.field(static=True)
-
-    def __init__(self, sigma: float, key: PRNGKeyArray, dtype=jnp.float32):
-        mlp = eqx.nn.MLP(
-            1, 1, width_size=64, depth=4, activation=jax.nn.relu, key=key, dtype=dtype
-        )
-        last = mlp.layers[-1]
-        last = eqx.tree_at(
-            lambda lin: (lin.weight, lin.bias),
-            last,
-            (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)),
-        )
-        self.mlp = eqx.tree_at(lambda m: m.layers[-1], mlp, last)
-        self.base = _above_floor(sigma)
-
-    def __call__(self, visible_pixels):
-        dtype = self.mlp.layers[0].weight.dtype
-        c = (visible_pixels.astype(dtype) - D.VISIBLE_PIXELS_MEAN) / (
-            D.VISIBLE_PIXELS_STD
-        )
-        out = jax.vmap(self.mlp)(c[:, None])[:, 0]
-        shift = float(np.log(np.expm1(1.0)))  # softplus(shift) = 1
-        return SQRT_PRECISION_FLOOR + self.base * jax.nn.softplus(out + shift)
+def heteroscedastic_noise(
+    sigma: float, key: PRNGKeyArray, dtype=jnp.float32
+) -> L.HeteroscedasticNoiseHead:
+    """The square-root precision of each frame from its visible-pixel count
+    (the head's one feature, normalised with the training statistics): an
+    MLP of 4 hidden layers of 64 ReLU units, starting at the constant
+    `1/sigma` (the inverse of the virtual sensor's validation RMSE).
+    Called as `head(visible_pixels[:, None])`."""
+    return L.HeteroscedasticNoiseHead(
+        sigma,
+        1,
+        width=64,
+        depth=4,
+        key=key,
+        floor=SQRT_PRECISION_FLOOR,
+        shift=D.VISIBLE_PIXELS_MEAN,
+        scale=D.VISIBLE_PIXELS_STD,
+        dtype=dtype,
+    )
 
 
 # ---------------------------------------------------------------------------

@@ -280,7 +280,7 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
             continue
         if name == "smoother_hetero_finetune":
             model = model.smoother
-        sigma = 1.0 / np.asarray(model.noise(counts))
+        sigma = 1.0 / np.asarray(model.noise(counts[:, None]))
         ls = "-" if "hetero" in name else ":"
         ax.plot(np.asarray(counts), sigma, ls, label=name.replace("_", " "))
     # Empirical sensor error per visible-pixel bin (validation split).

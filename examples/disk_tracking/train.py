@@ -360,7 +360,7 @@ class SmootherModel(eqx.Module):
     """A noise head plus the (fixed or learned) dynamics square-root precision,
     and optionally the learned weight of an out-of-view factor (ours)."""
 
-    noise: M.AbstractNoiseHead
+    noise: eqs.learn.AbstractNoiseHead
     log_dynamics_sqrt_precision: jax.Array
     learn_dynamics: bool = eqx.field(static=True, default=False)
     log_view_sqrt_precision: jax.Array | None = None
@@ -378,7 +378,7 @@ class SmootherModel(eqx.Module):
             view = (jnp.exp(self.log_view_sqrt_precision).astype(dtype), hidden)
         return M.build_smoother_graph(
             measurements,
-            self.noise(visible_pixels),
+            self.noise(visible_pixels[..., None]),
             jnp.exp(log_dyn),
             x0,
             view,
@@ -408,9 +408,9 @@ def make_smoother_model(
     kind: str, sigma: float, key, dtype, view: str | None = None
 ) -> SmootherModel:
     if kind == "const":
-        noise = M.ConstantNoise(sigma, dtype=dtype)
+        noise = M.constant_noise(sigma, dtype=dtype)
     elif kind == "hetero":
-        noise = M.HeteroscedasticNoise(sigma, key, dtype=dtype)
+        noise = M.heteroscedastic_noise(sigma, key, dtype=dtype)
     else:
         raise ValueError(f"unknown noise kind {kind!r}")
     if view not in VIEW_FACTORS:

@@ -280,9 +280,9 @@ def build_model(method: str, sigmas, key):
     if method == "lstm":
         return M.LstmOdometry(key)
     if "hetero" in method:
-        noise = M.HeteroscedasticNoise(sigmas, key)
+        noise = M.heteroscedastic_noise(sigmas, key)
     else:
-        noise = M.ConstantNoise(sigmas)
+        noise = M.constant_noise(sigmas)
     return M.Estimator(noise)
 
 

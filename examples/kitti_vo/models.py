@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 import eqsmooth as eqs
+import eqsmooth.learn as L
 from eqsmooth.factors import (
     vehicle_motion,
     VehicleDynamicsFactor,
@@ -41,6 +42,7 @@ IMAGE_MEAN = 110.0
 IMAGE_STD = 60.0
 FEATURES = 64
 SQRT_PRECISION_FLOOR = np.array([0.05, 1.0], np.float32)  # σ ≤ 20 m/s, 1 rad/s
+_FLOOR = tuple(SQRT_PRECISION_FLOOR.tolist())
 PRIOR_SIGMAS = np.array([0.01, 0.01, 0.001, 0.05, 0.01], np.float32)
 INITIAL_DYNAMICS_SIGMAS = np.array([0.1, 0.1, 0.01, 1.0, 0.1], np.float32)
 # Smallest dynamics σ (x, y, θ, v, ω). The ground-truth velocities integrate
@@ -144,54 +146,24 @@ def sensor_loss(sensor: VelocitySensor, batch: dict) -> tuple[Array, dict]:
 # ---------------------------------------------------------------------------
 
 
-class ConstantNoise(eqx.Module):
+def constant_noise(sigmas) -> L.ConstantNoiseHead:
     """One learned square-root precision per component, shared by every frame."""
-
-    log_sqrt_precision: Float[Array, " 2"]
-
-    def __init__(self, sigmas):
-        sp = 1.0 / np.asarray(sigmas, np.float32) - SQRT_PRECISION_FLOOR
-        self.log_sqrt_precision = jnp.asarray(np.log(np.maximum(sp, 1e-3)))
-
-    def __call__(self, features, log_sigma):
-        s = jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(self.log_sqrt_precision)
-        return jnp.broadcast_to(s, log_sigma.shape)
+    return L.ConstantNoiseHead(sigmas, floor=_FLOOR)
 
 
-class HeteroscedasticNoise(eqx.Module):
+def heteroscedastic_noise(sigmas, key: PRNGKeyArray) -> L.HeteroscedasticNoiseHead:
     """Per-frame square-root precisions from the sensor's own log σ.
 
-    `σ⁻¹ = floor + base · softplus(MLP(log σ) + softplus⁻¹(1))`, with a small
-    MLP (2 → 16 → 2); its last layer starts at zero, so training starts from
-    a constant. An MLP on the 64 sensor features as well (66 inputs)
-    overfitted the 480 training windows on fold 0: its σ of v sat at the cap
-    on most test frames and the smoother reached 0.2393 m/m, against 0.2077
-    with this head (dead reckoning 0.2061).
+    A small MLP (2 → 16 → 2) whose last layer starts at zero, and a learned
+    scale per component. An MLP on the 64 sensor features as well (66
+    inputs) overfitted the 480 training windows on fold 0: its σ of v sat at
+    the cap on most test frames and the smoother reached 0.2393 m/m, against
+    0.2077 with this head (dead reckoning 0.2061). Called as
+    `head(log_sigma)`.
     """
-
-    mlp: eqx.nn.MLP
-    log_base: Float[Array, " 2"]
-
-    def __init__(self, sigmas, key: PRNGKeyArray):
-        mlp = eqx.nn.MLP(2, 2, 16, 1, activation=jax.nn.relu, key=key)
-        last = mlp.layers[-1]
-        last = eqx.tree_at(
-            lambda lin: (lin.weight, lin.bias),
-            last,
-            (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)),
-        )
-        self.mlp = eqx.tree_at(lambda m: m.layers[-1], mlp, last)
-        sp = 1.0 / np.asarray(sigmas, np.float32) - SQRT_PRECISION_FLOOR
-        self.log_base = jnp.asarray(np.log(np.maximum(sp, 1e-3)))
-
-    def __call__(self, features, log_sigma):
-        del features  # see the class docstring
-        lead = log_sigma.shape[:-1]
-        out = jax.vmap(self.mlp)(log_sigma.reshape(-1, 2)).reshape(lead + (2,))
-        shift = float(np.log(np.expm1(1.0)))
-        return jnp.asarray(SQRT_PRECISION_FLOOR) + jnp.exp(
-            self.log_base
-        ) * jax.nn.softplus(out + shift)
+    return L.HeteroscedasticNoiseHead(
+        sigmas, 2, width=16, depth=1, key=key, floor=_FLOOR, learn_scale=True
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -202,7 +174,7 @@ class HeteroscedasticNoise(eqx.Module):
 class Estimator(eqx.Module):
     """What the smoother and the EKF learn: a noise head and the dynamics noise."""
 
-    noise: ConstantNoise | HeteroscedasticNoise
+    noise: L.AbstractNoiseHead
     log_dynamics_sqrt_precision: Float[Array, " 5"]
 
     def __init__(self, noise, dynamics_sigmas=INITIAL_DYNAMICS_SIGMAS):
@@ -228,7 +200,7 @@ class Estimator(eqx.Module):
             eqs.DiagonalNoise(sqrt_precision=self.dynamics_sqrt_precision()),
             dt=D.DT,
         )
-        sp = self.noise(window["features"], window["log_sigma"])
+        sp = self.noise(window["log_sigma"])
         meas = VelocityMeasurementFactor(
             eqs.Var("x", t), z, eqs.DiagonalNoise(sqrt_precision=sp)
         )
@@ -242,7 +214,7 @@ class Estimator(eqx.Module):
         return eqs.FactorGraph(list(self.factors(window)))
 
     def measurement_sigmas(self, window: dict) -> Array:
-        return 1.0 / self.noise(window["features"], window["log_sigma"])
+        return 1.0 / self.noise(window["log_sigma"])
 
 
 def truth_state(window: dict) -> VehicleState:

@@ -391,9 +391,8 @@ def figures(state: dict, fold: int, out: Path) -> None:
     m = "smoother_hetero_e2e" if "smoother_hetero_e2e" in models else None
     if m is None:
         return
-    feats = jnp.asarray(cache["features"])
     ls = jnp.asarray(cache["log_sigma"])
-    sigma = np.asarray(1.0 / eqx.filter_jit(models[m].noise)(feats, ls))
+    sigma = np.asarray(1.0 / eqx.filter_jit(models[m].noise)(ls))
     frames = np.arange(int(cache["first"]), int(cache["first"]) + sigma.shape[0])
     vel = D.velocities(tr.poses)[frames]
     err = np.abs(cache["z"] - vel)
