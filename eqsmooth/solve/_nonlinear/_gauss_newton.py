@@ -13,7 +13,6 @@ from .._linearization import (
     gradient,
     Linearization,
     linearize_graph,
-    placeholder_linearization,
     retract_values,
     Tangent,
     zeros_tangent,
@@ -30,12 +29,10 @@ from .._solution import RESULTS
 from ._graph_solver import (
     AbstractConvergingSolver,
     AbstractFixedStepSolver,
-    checked_graph,
     cost_record,
-    fn_error_if,
     graph_of,
-    initial_status,
     record_iteration,
+    start,
     to_optx_result,
 )
 
@@ -78,22 +75,16 @@ class GaussNewtonState(eqx.Module):
 
 
 def _init(fn, values, args, options, f_struct, who: str) -> GaussNewtonState:
-    graph, mismatch = checked_graph(fn, values, args, who, options)
-    lin = placeholder_linearization(graph, values, f_struct)
-    done, result = initial_status(values)
-    # No cost before the first linearisation: NaN where the solve ends
-    # before it (non-finite initial values).
-    no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
-    lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
+    lin, done, result, step = start(fn, values, args, options, f_struct, who)
     return GaussNewtonState(
         lin=lin,
         delta=zeros_tangent(lin),
-        step=fn_error_if(jnp.array(0), mismatch, who),
+        step=step,
         num_accepted=jnp.array(0),
         done=done,
         result=result,
         last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
-        initial_cost=no_cost.astype(lin.dtype),
+        initial_cost=lin.cost.astype(lin.dtype),
         cost_history=cost_record(options, lin.dtype),
     )
 

@@ -9,6 +9,7 @@ update the values on the manifold (`x ⊕ δ`).
 """
 
 import abc
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,11 +17,12 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, PyTree
+from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ...factors import FactorGraph
 from ...lie import AbstractLieGroup
 from .._derivatives import stop_arrays
+from .._linearization import Linearization, placeholder_linearization
 from .._solution import RESULTS
 
 
@@ -224,6 +226,30 @@ def initial_status(values: Values) -> tuple[Bool[Array, ""], RESULTS]:
     for leaf in jax.tree_util.tree_leaves(values):
         finite = finite & jnp.all(jnp.isfinite(leaf))
     return ~finite, RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_problem)
+
+
+class Start(NamedTuple):
+    """What every eqsmooth solver's initial state starts from."""
+
+    lin: Linearization  # placeholder zeros; cost NaN where `done`
+    done: Bool[Array, ""]
+    result: RESULTS
+    step: Int[Array, ""]  # 0, with the check of `fn` attached
+
+
+def start(fn, values, args, options, f_struct, who: str) -> Start:
+    """The shared beginning of the solvers' `init`: the graph passed as
+    `args` (and `fn` checked against it), a placeholder linearisation shaped
+    from optimistix's `f_struct` (no trace of the linearisation for shapes),
+    and the initial `done`/`result` (`initial_status`)."""
+    graph, mismatch = checked_graph(fn, values, args, who, options)
+    lin = placeholder_linearization(graph, values, f_struct)
+    done, result = initial_status(values)
+    # No cost before the first linearisation: NaN where the solve ends
+    # before it (non-finite initial values).
+    no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
+    lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
+    return Start(lin, done, result, fn_error_if(jnp.array(0), mismatch, who))
 
 
 def fn_error_if(x, mismatch: Bool[Array, ""] | None, who: str):

@@ -14,7 +14,6 @@ from .._linearization import (
     gradient,
     Linearization,
     linearize_graph,
-    placeholder_linearization,
     retract_values,
     Tangent,
     zeros_tangent,
@@ -23,12 +22,10 @@ from .._misc import converged_test, finite_lin, max_abs, sq_norm, tree_where
 from .._solution import RESULTS
 from ._graph_solver import (
     AbstractConvergingSolver,
-    checked_graph,
     cost_record,
-    fn_error_if,
     graph_of,
-    initial_status,
     record_iteration,
+    start,
     to_optx_result,
 )
 
@@ -138,25 +135,21 @@ class LevenbergMarquardt(AbstractConvergingSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del aux_struct, tags
-        graph, mismatch = checked_graph(fn, y, args, "LevenbergMarquardt", options)
-        lin = placeholder_linearization(graph, y, f_struct)
-        done, result = initial_status(y)
-        # No cost before the first linearisation: NaN where the solve ends
-        # before it (non-finite initial values).
-        no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
-        lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
+        lin, done, result, step = start(
+            fn, y, args, options, f_struct, "LevenbergMarquardt"
+        )
         return LevenbergMarquardtState(
             lin=lin,
             delta=zeros_tangent(lin),
             solved=jnp.array(True),
-            step=fn_error_if(jnp.array(0), mismatch, "LevenbergMarquardt"),
+            step=step,
             num_accepted=jnp.array(0),
             damping=jnp.asarray(self.initial_damping, lin.dtype),
             nu=jnp.asarray(2.0, lin.dtype),
             done=done,
             result=result,
             last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
-            initial_cost=no_cost.astype(lin.dtype),
+            initial_cost=lin.cost.astype(lin.dtype),
             cost_history=cost_record(options, lin.dtype),
         )
 
