@@ -511,57 +511,45 @@ def _half_log(x, u):
     return jnp.stack([0.0 * x[0], jnp.log(x[0])])
 
 
-@pytest.mark.parametrize("feature", [_half_sqrt, _half_log])
-def test_candidate_not_finite_on_half_the_states(feature):
+def _dyn(x, u, params):
+    return x
+
+
+def _meas_first(x, params):
+    return x[:1]
+
+
+def _finite(x, u):
+    return jnp.stack([0.0 * x[0], jnp.sqrt(jnp.abs(x[0]))])
+
+
+def _feature_scales(name, feature):
+    """`feature_scales` of a one-candidate model at six states from -1 to 1."""
     import eqsmooth.discover as dc
     from eqsmooth.discover._fit import feature_scales
 
-    def dyn(x, u, params):
-        return x
-
-    def meas(x, params):
-        return x[:1]
-
     model = dc.ChainModel(
-        dyn,
-        meas,
+        _dyn,
+        _meas_first,
         jnp.asarray(0.0),
         np.array([0.1, 0.1]),
         np.array([0.1]),
         np.array([1.0, 1.0]),
-        [dc.Candidate("half-defined", feature)],
+        [dc.Candidate(name, feature)],
     )
     states = np.stack([np.linspace(-1, 1, 6), np.zeros(6)], -1)[None]
     data = dc.Sequences(states[..., :1], np.zeros((1, 2)))
+    return feature_scales(model, data, states)
+
+
+@pytest.mark.parametrize("feature", [_half_sqrt, _half_log])
+def test_candidate_not_finite_on_half_the_states(feature):
     with raises(ValueError, "Candidate 'half-defined'", "not finite at 3 of 6"):
-        feature_scales(model, data, states)
+        _feature_scales("half-defined", feature)
 
 
 def test_candidate_finite_everywhere_passes():
-    import eqsmooth.discover as dc
-    from eqsmooth.discover._fit import feature_scales
-
-    def dyn(x, u, params):
-        return x
-
-    def meas(x, params):
-        return x[:1]
-
-    def fine(x, u):
-        return jnp.stack([0.0 * x[0], jnp.sqrt(jnp.abs(x[0]))])
-
-    model = dc.ChainModel(
-        dyn,
-        meas,
-        jnp.asarray(0.0),
-        np.array([0.1, 0.1]),
-        np.array([0.1]),
-        np.array([1.0, 1.0]),
-        [dc.Candidate("defined", fine)],
-    )
-    states = np.stack([np.linspace(-1, 1, 6), np.zeros(6)], -1)[None]
-    data = dc.Sequences(states[..., :1], np.zeros((1, 2)))
-    assert np.all(np.isfinite(feature_scales(model, data, states)))
+    assert np.all(np.isfinite(_feature_scales("defined", _finite)))
 
 
 # ------------------------------------------------------------ failed-solve diagnosis
