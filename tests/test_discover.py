@@ -659,7 +659,7 @@ def test_detection_with_clean_diagnostics_is_not_unnamed_structure(monkeypatch):
     data = _simulate(1, "drag", 0.02)
     found = dc.find(_model(), data)
     assert found["detected"]
-    found["_state"]["alpha"] = 1e-300  # no candidate can pass the gate
+    found.state["alpha"] = 1e-300  # no candidate can pass the gate
     monkeypatch.setattr(W, "_diagnostics_significant", lambda innov, alpha: False)
     named = dc.name(found, data)
     assert named["named"] == [] and not named["unnamed_residual_structure"]

@@ -13,6 +13,7 @@ from ._laplace import (
     laplace_log_marginal as laplace_log_marginal,
 )
 from ._model import ChainModel as ChainModel, Sequences as Sequences
+from ._report import StepReport as StepReport
 from ._workflow import (
     add as add,
     bootstrap as bootstrap,

@@ -19,6 +19,7 @@ from ._model import (
     Sequences,
     simulate,
 )
+from ._report import StepReport
 from ._stats import (
     chi2_sf,
     chi2_two_sided,
@@ -440,8 +441,8 @@ def find(
         are then nuisance parameters of the score test).
     - `covariance`: `"auto"`, `"opg"` or `"hessian"` (see `score_test`).
 
-    **Returns:** a dict (JSON-serialisable except the `"_state"` entry, which
-    later steps reuse).
+    **Returns:** a [`eqsmooth.discover.StepReport`][]: the report as a dict
+    (JSON-serialisable), with what later steps reuse as its `state`.
     """
     check_inputs("find", model, data)
     K = len(model.candidates)
@@ -545,19 +546,19 @@ def find(
             c.name for c, ok in zip(model.candidates, ident) if not ok
         ],
         "localisation": localisation_table(nominal, data, ev.xhat),
-        "_state": {
-            "model": model,
-            "evaluation": ev,
-            "scales": scales,
-            "nuisance": nuis,
-            "I_eff": I_eff,
-            "alpha": alpha,
-            "settings": settings,
-            "identifiable": ident,
-            "diagnostics_significant": _diagnostics_significant(innov, alpha),
-        },
     }
-    return report
+    state = {
+        "model": model,
+        "evaluation": ev,
+        "scales": scales,
+        "nuisance": nuis,
+        "I_eff": I_eff,
+        "alpha": alpha,
+        "settings": settings,
+        "identifiable": ident,
+        "diagnostics_significant": _diagnostics_significant(innov, alpha),
+    }
+    return StepReport(report, state)
 
 
 def _diagnostics_significant(innov: dict, alpha: float) -> bool:
@@ -620,9 +621,9 @@ def _safe_innovation_tests(model, data, xhat, flags: list[str]) -> dict:
     }
 
 
-def _failed_find(model: ChainModel, settings: dict, why: str) -> dict:
+def _failed_find(model: ChainModel, settings: dict, why: str) -> "StepReport":
     """The report of a find whose evidence could not be evaluated (no raise)."""
-    return {
+    report = {
         "status": "failed",
         "flags": [why],
         "detected": False,
@@ -634,13 +635,14 @@ def _failed_find(model: ChainModel, settings: dict, why: str) -> dict:
         },
         "candidates": [],
         "not_identifiable": [],
-        "_state": {
-            "failed": True,
-            "model": model,
-            "settings": settings,
-            "alpha": settings["alpha"],
-        },
     }
+    state = {
+        "failed": True,
+        "model": model,
+        "settings": settings,
+        "alpha": settings["alpha"],
+    }
+    return StepReport(report, state)
 
 
 def name(
@@ -679,12 +681,13 @@ def name(
     - `max_terms`: at most this many named terms.
     - `equivalence_corr`: information-correlation threshold for equivalence.
 
-    **Returns:** a dict with `verdict` (a sentence), `named` (list of names),
+    **Returns:** a [`eqsmooth.discover.StepReport`][] with `verdict` (a
+    sentence), `named` (list of names),
     `steps` (the selection table), `equivalence_sets`, `ambiguous`,
     `tentative`, `flags` and `alarms` (which of "detected",
     "unnamed_structure", "ambiguous" and "leftover_structure" were raised).
     """
-    st = found["_state"]
+    st = found.state
     out = {
         "named": [],
         "steps": [],
@@ -697,8 +700,7 @@ def name(
     }
     if st.get("failed"):
         out["verdict"] = "no decision: " + "; ".join(found["flags"])
-        out["_state"] = {"evaluation": None, "active": []}
-        return out
+        return StepReport(out, {"evaluation": None, "active": []})
     model, ev0, scales, nuis = (
         st["model"],
         st["evaluation"],
@@ -718,8 +720,7 @@ def name(
             out["unnamed_residual_structure"] = True
             out["alarms"]["unnamed_structure"] = True
         out["smallest_detectable"] = mde
-        out["_state"] = {"evaluation": ev0, "active": []}
-        return out
+        return StepReport(out, {"evaluation": ev0, "active": []})
     active: list[int] = []
     current = ev0
     for _ in range(max_terms):
@@ -821,8 +822,7 @@ def name(
             "test and the residual diagnostics are clean"
         )
     out["verdict"] = "; ".join(parts)
-    out["_state"] = {"evaluation": current, "active": active}
-    return out
+    return StepReport(out, {"evaluation": current, "active": active})
 
 
 def bootstrap(
@@ -864,7 +864,7 @@ def bootstrap(
     """
     if num_resamples < 1:
         raise ValueError(f"bootstrap: num_resamples must be >= 1, got {num_resamples}")
-    st = found["_state"]
+    st = found.state
     model = st["model"]
     settings = st["settings"]
     if named is None:
@@ -919,7 +919,7 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
     that did not converge, an information matrix that is not positive
     definite, a coefficient without a standard error).
     """
-    st = found["_state"]
+    st = found.state
     if st.get("failed"):
         model = st["model"]
         return {
@@ -930,8 +930,8 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
             "flags": ["no fit: find failed"],
         }
     model, scales, nuis = st["model"], st["scales"], st["nuisance"]
-    active = named["_state"]["active"]
-    start = named["_state"]["evaluation"]
+    active = named.state["active"]
+    start = named.state["evaluation"]
     free = np.concatenate([np.asarray(active, int), nuis])
     ev = fit(model, data, free, start.z, start.xhat, scales) if len(free) else start
     flags = [] if ev.converged else ["fit did not converge"]
@@ -1105,8 +1105,8 @@ def discover(
             num_resamples=bootstrap_resamples,
             max_terms=max_terms,
         )
-    if heldout is not None and not found["_state"].get("failed"):
-        before = fitted_model(found["_state"]["model"], found["_state"]["evaluation"].z)
+    if heldout is not None and not found.state.get("failed"):
+        before = fitted_model(found.state["model"], found.state["evaluation"].z)
         report["show"] = show(
             before, added["model"], heldout, horizon=horizon, burn_in=burn_in
         )
