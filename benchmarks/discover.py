@@ -78,7 +78,7 @@ import numpy as np  # noqa: E402
 from _common import machine, write_json  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
-from eqsmooth.discover._workflow import score_test  # noqa: E402
+from eqsmooth.discover import score_test  # noqa: E402
 
 
 B, T = 24, 40

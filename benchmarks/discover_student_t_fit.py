@@ -22,8 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import discover as B  # noqa: E402
 
+import eqsmooth.discover._add as A  # noqa: E402
+import eqsmooth.discover._find as Fi  # noqa: E402
 import eqsmooth.discover._fit as F  # noqa: E402
-import eqsmooth.discover._workflow as W  # noqa: E402
+import eqsmooth.discover._name as N  # noqa: E402
 
 
 def inspect(model, data, free, ev):
@@ -60,7 +62,8 @@ def main():
             inspect(model, data, free, ev)
         return ev
 
-    W.fit = traced  # the workflow's own fits, observed
+    for step in (Fi, N, A):
+        step.fit = traced  # the workflow's own fits, observed
     model = B.make_model(4.0)
     coef = B.calibrate((0.4,))["viscous"][0.4]
     tag = list(B.EFFECTS).index("viscous") + 1

@@ -430,7 +430,7 @@ def test_failed_evaluation_is_a_result_not_an_exception(monkeypatch):
     import equinox as eqx
 
     import eqsmooth.discover as dc
-    import eqsmooth.discover._workflow as W
+    import eqsmooth.discover._find as W
 
     def broken(*args, **kwargs):
         raise eqx.EquinoxRuntimeError("A linear solver received non-finite input")
@@ -654,7 +654,7 @@ def test_detection_with_clean_diagnostics_is_not_unnamed_structure(monkeypatch):
     diagnostics, raises only the "detected" alarm: "unnamed residual
     structure" needs the diagnostics."""
     import eqsmooth.discover as dc
-    from eqsmooth.discover import _workflow as W
+    from eqsmooth.discover import _name as W
 
     data = _simulate(1, "drag", 0.02)
     found = dc.find(_model(), data)

@@ -276,7 +276,8 @@ def test_student_t_diagnostics_do_not_alarm_on_innovation_size():
     from scipy import integrate, optimize
 
     import eqsmooth.discover as dc
-    from eqsmooth.discover._workflow import _diagnostics_significant, innovation_tests
+    from eqsmooth.discover._diagnostics import innovation_tests
+    from eqsmooth.discover._find import _diagnostics_significant
 
     def expected_nll(scale):
         def integrand(x):

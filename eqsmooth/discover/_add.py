@@ -1,0 +1,96 @@
+"""Add: fit the named candidates' coefficients, with standard errors and intervals."""
+
+import numpy as np
+
+from ._fit import (
+    fit,
+    fitted_model,
+    null_z,
+)
+from ._model import (
+    Sequences,
+)
+from ._stats import (
+    normal_quantile,
+)
+
+
+def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> dict:
+    """Fit the named coefficients (and noise scales) and give confidence intervals.
+
+    The coefficients maximise the Laplace marginal likelihood (not a plug-in
+    regression on smoothed states, which is biased); the intervals come from
+    the curvature of the log marginal likelihood (observed information,
+    noise scales profiled out).
+
+    **Returns:** a dict with `model` (the fitted
+    [`eqsmooth.discover.ChainModel`][]), `coefficients` (name, value,
+    standard error, interval, sign check), `noise_scales` and `flags` (a fit
+    that did not converge, an information matrix that is not positive
+    definite, a coefficient without a standard error).
+    """
+    st = found.state
+    if st.get("failed"):
+        model = st["model"]
+        return {
+            "model": fitted_model(model, null_z(model)),
+            "log_marginal": float("nan"),
+            "coefficients": [],
+            "noise_scales": {},
+            "flags": ["no fit: find failed"],
+        }
+    model, scales, nuis = st["model"], st["scales"], st["nuisance"]
+    active = named.state["active"]
+    start = named.state["evaluation"]
+    free = np.concatenate([np.asarray(active, int), nuis])
+    ev = fit(model, data, free, start.z, start.xhat, scales) if len(free) else start
+    flags = [] if ev.converged else ["fit did not converge"]
+    K = len(model.candidates)
+    coefs = []
+    if active:
+        info = -ev.hessian[np.ix_(free, free)]
+        try:
+            cov = np.linalg.pinv(info)
+        except np.linalg.LinAlgError:
+            cov = np.full(info.shape, np.nan)
+            flags.append("information matrix could not be inverted")
+        sym = 0.5 * (info + info.T)
+        if np.all(np.isfinite(sym)):
+            smallest = float(np.linalg.eigvalsh(sym).min())
+            if smallest <= 0:
+                flags.append(
+                    "information matrix is not positive definite (smallest "
+                    f"eigenvalue {smallest:.3g}): the fit is not a strict maximum "
+                    "of the evidence, so standard errors are unreliable"
+                )
+        zq = normal_quantile(0.5 + level / 2)
+        for i, k in enumerate(active):
+            c = model.candidates[k]
+            value = float(ev.z[k])
+            se = float(np.sqrt(cov[i, i])) if cov[i, i] >= 0 else float("nan")
+            if not np.isfinite(se):
+                flags.append(
+                    f"no standard error for {c.name!r}: its variance from the "
+                    f"(pseudo-)inverse information is {float(cov[i, i]):.3g}"
+                )
+            coefs.append(
+                {
+                    "name": c.name,
+                    "value": value,
+                    "std_error": se,
+                    "interval": [value - zq * se, value + zq * se],
+                    "level": level,
+                    "sign_ok": bool(c.sign == 0 or np.sign(value) in (0, c.sign)),
+                }
+            )
+    return {
+        "model": fitted_model(model, ev.z),
+        "log_marginal": ev.log_marginal,
+        "coefficients": coefs,
+        "noise_scales": {
+            "process": float(np.exp(ev.z[K])),
+            "measurement": float(np.exp(ev.z[K + 1])),
+            "prior": float(np.exp(ev.z[K + 2])),
+        },
+        "flags": flags,
+    }

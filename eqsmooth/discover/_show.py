@@ -1,0 +1,167 @@
+"""Show: the held-out gap before and after, and the whole workflow in one call."""
+
+import numpy as np
+
+from ._add import add
+from ._find import _safe_innovation_tests, _short, find
+from ._fit import (
+    evaluate,
+    EVALUATION_ERRORS,
+    fitted_model,
+)
+from ._model import (
+    ChainModel,
+    k_step_errors,
+    NUM_SCALES,
+    Sequences,
+)
+from ._name import bootstrap, name
+
+
+def _model_metrics(
+    model: ChainModel, data: Sequences, horizon: int, burn_in: int
+) -> dict:
+    K = len(model.candidates)
+    z = np.concatenate([np.asarray(model.coefficients), np.zeros(NUM_SCALES)])
+    B, T = data.num_sequences, data.length
+    flags: list[str] = []
+    try:
+        ev = evaluate(
+            model, data, z, np.asarray(data.initial_states), np.ones(max(K, 1))
+        )
+        errs = np.asarray(k_step_errors(model, data, ev.xhat, horizon, burn_in))
+    except EVALUATION_ERRORS as e:
+        nan = float("nan")
+        return {
+            "log_marginal_per_step": nan,
+            "nis_mean": nan,
+            "nis_p_value": nan,
+            "whiteness_p_values": [],
+            "k_step_rmse": [nan] * horizon,
+            "flags": [f"held-out evaluation: {_short(e)}"],
+        }
+    innov = _safe_innovation_tests(model, data, ev.xhat, flags)
+    return {
+        "flags": flags,
+        "log_marginal_per_step": ev.log_marginal / (B * T),
+        "nis_mean": innov["nis_mean"],
+        "nis_p_value": innov["nis_p_value"],
+        "whiteness_p_values": [w["p_value"] for w in innov["whiteness"]],
+        "k_step_rmse": np.sqrt(errs.mean(axis=1)).tolist(),
+    }
+
+
+def show(
+    before: ChainModel,
+    after: ChainModel,
+    heldout: Sequences,
+    *,
+    horizon: int = 10,
+    burn_in: int = 0,
+) -> dict:
+    """Held-out before/after comparison of two fitted models.
+
+    Log marginal likelihood per time step (Laplace), NIS with its two-sided
+    p-value, Ljung-Box p-values and the k-step open-loop prediction RMSE for
+    `k = 1..horizon` (predictions start from the filtered state at `t` and
+    run the model's mean dynamics, so they are genuine forecasts). Start
+    times `t < burn_in` are left out of the k-step errors: their filtered
+    states rest on few measurements and a diffuse prior.
+    """
+    if burn_in < 0 or heldout.length <= horizon + burn_in + 1:
+        raise ValueError(
+            f"show: held-out sequences of length {heldout.length} are too short for "
+            f"horizon {horizon} after a burn-in of {burn_in} (or burn_in < 0)"
+        )
+    b = _model_metrics(before, heldout, horizon, burn_in)
+    a = _model_metrics(after, heldout, horizon, burn_in)
+    return {
+        "before": b,
+        "after": a,
+        "log_marginal_gain_per_step": a["log_marginal_per_step"]
+        - b["log_marginal_per_step"],
+        "k_step_rmse_ratio": (
+            np.asarray(a["k_step_rmse"]) / np.asarray(b["k_step_rmse"])
+        ).tolist(),
+    }
+
+
+def discover(
+    model: ChainModel,
+    data: Sequences,
+    heldout: Sequences | None = None,
+    *,
+    alpha: float = 0.05,
+    fit_noise: bool = True,
+    covariance: str = "auto",
+    max_terms: int = 3,
+    horizon: int = 10,
+    burn_in: int = 0,
+    bootstrap_resamples: int = 0,
+) -> dict:
+    """Run find, name, add and (with held-out data) show; return one report.
+
+    **Arguments:**
+
+    - `model`: the nominal [`eqsmooth.discover.ChainModel`][] with its library.
+    - `data`: identification sequences.
+    - `heldout`: validation sequences for the before/after comparison, or
+        `None`.
+    - `alpha`, `fit_noise`, `covariance`: see [`eqsmooth.discover.find`][].
+    - `max_terms`: see [`eqsmooth.discover.name`][].
+    - `horizon`, `burn_in`: see [`eqsmooth.discover.show`][].
+    - `bootstrap_resamples`: if positive, also run
+        [`eqsmooth.discover.bootstrap`][] with this many resamples (each
+        costs one find + name).
+
+    **Returns:** a JSON-serialisable dict with `verdict`, `find`, `name`,
+    `add`, `show` (with held-out data) and `bootstrap` (when asked), plus
+    the fitted model under the key `"model"` (remove it before serialising,
+    or use [`eqsmooth.discover.to_json`][]).
+    """
+    found = find(model, data, alpha=alpha, fit_noise=fit_noise, covariance=covariance)
+    named = name(found, data, max_terms=max_terms)
+    added = add(found, named, data)
+    report = {
+        "verdict": named["verdict"],
+        "find": found,
+        "name": named,
+        "add": {k: v for k, v in added.items() if k != "model"},
+        "model": added["model"],
+    }
+    if bootstrap_resamples > 0:
+        report["bootstrap"] = bootstrap(
+            found,
+            data,
+            named=named,
+            num_resamples=bootstrap_resamples,
+            max_terms=max_terms,
+        )
+    if heldout is not None and not found.state.get("failed"):
+        before = fitted_model(found.state["model"], found.state["evaluation"].z)
+        report["show"] = show(
+            before, added["model"], heldout, horizon=horizon, burn_in=burn_in
+        )
+    return report
+
+
+def to_json(report: dict) -> dict:
+    """A copy of a report without internal state, models or arrays."""
+
+    def clean(x):
+        if isinstance(x, dict):
+            return {
+                str(k): clean(v)
+                for k, v in x.items()
+                if not str(k).startswith("_")
+                and k not in ("model", "whitened_innovations")
+            }
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return x.tolist()
+        if isinstance(x, np.floating | np.integer | np.bool_):
+            return x.item()
+        return x
+
+    return clean(report)
