@@ -23,17 +23,9 @@ rewritten after each fold.
 import argparse
 import dataclasses
 import json
-import sys
 from pathlib import Path
 
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-try:
-    import eqsmooth  # noqa: F401
-except ImportError:  # not installed (e.g. a bare GPU image): use the checkout
-    sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
-
-from disk_tracking import protocol, report, train  # noqa: E402
+from disk_tracking import protocol, report, train
 
 
 _INT = ("sequences_per_fold", "sensor_steps", "sensor_batch", "fg_steps", "fg_batch")

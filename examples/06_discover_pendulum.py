@@ -50,11 +50,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-try:
-    import eqsmooth  # noqa: F401
-except ImportError:  # not installed: use the checkout
-    sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
 
 from pendulum_friction import experiment as E, report as R  # noqa: E402
 from pendulum_friction.data import DEFAULT_DATA  # noqa: E402

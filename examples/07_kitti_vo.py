@@ -37,19 +37,10 @@ budgeted at 90 minutes.
 import argparse
 import dataclasses
 import gc
-import sys
 from pathlib import Path
 
 import jax
-
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-try:
-    import eqsmooth  # noqa: F401
-except ImportError:  # not installed: use the checkout
-    sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
-
-from kitti_vo import data as D, experiment as E, report  # noqa: E402
+from kitti_vo import data as D, experiment as E, report
 
 
 def parse_args(argv=None):

@@ -1,15 +1,10 @@
 """Visual disk tracking example: data generator, models, a tiny training run."""
 
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-
 from disk_tracking import data as D  # noqa: E402
 
 

@@ -1,16 +1,11 @@
 """KITTI visual odometry example: loader, renderer, folds, metrics (tiny and quick)."""
 
 import struct
-import sys
 import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-
 from kitti_vo import data as D  # noqa: E402
 
 

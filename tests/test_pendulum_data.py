@@ -6,15 +6,8 @@ al. 2022) is not part of the repository; the tests that read it skip when it
 is absent.
 """
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-
 from pendulum_friction import data as D, energy as EN, model as M  # noqa: E402
 
 
