@@ -316,3 +316,59 @@ def test_read_poses_refuses_non_finite_lines(tmp_path, token):
     path.write_text("\n".join([good, good, bad, good]) + "\n")
     with pytest.raises(ValueError, match=r"05\.txt: lines \[3\] hold non-finite"):
         D.read_poses(path)
+
+
+def _fake_release(root: Path, num_frames: int) -> None:
+    """A tree laid out like the preprocessed KITTI-10 release (issue 33): for
+    each of the 11 sequences, `NN/image_2/*.png`, `NN/image_3/*.png`,
+    `NN_image1.txt` and `NN_image2.txt`, with the first `num_frames` frames of
+    the real trajectory and rendered views of them."""
+    for seq in range(11):
+        lines = (D.DEFAULT_POSES_DIR / f"{seq:02d}.txt").read_text().splitlines()
+        trajs = D.rendered_sequence(seq)
+        for traj, pose_file in zip(trajs, ("image1", "image2")):
+            folder = root / f"{seq:02d}" / traj.camera
+            folder.mkdir(parents=True)
+            images = traj.images(np.arange(num_frames))
+            for f in range(num_frames):
+                _write_png(folder / f"{seq:02d}_{f:06d}.png", images[f])
+            text = "\n".join(lines[:num_frames]) + "\n"
+            (root / f"{seq:02d}_{pose_file}.txt").write_text(text)
+
+
+def test_real_data_dir_runs_end_to_end(tmp_path):
+    """`07_kitti_vo.py --quick --real-data-dir` on a generated release tree:
+    the protocol as shipped, from the loader to the fold's JSON."""
+    import json
+    import subprocess
+    import sys
+
+    from helpers import child_env
+
+    if not (D.DEFAULT_POSES_DIR / "00.txt").exists():
+        pytest.skip(f"KITTI ground-truth poses not found in {D.DEFAULT_POSES_DIR}")
+    release, out = tmp_path / "release", tmp_path / "out"
+    _fake_release(release, num_frames=260)  # sequence 04 has 271
+    script = Path(__file__).resolve().parents[1] / "examples" / "07_kitti_vo.py"
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--quick",
+            "--real-data-dir",
+            str(release),
+            "--out",
+            str(out),
+        ],
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads((out / "fold_3.json").read_text())
+    assert result["config"]["real_data_dir"] == str(release)
+    for method in result["config"]["methods"]:
+        row = result["rows"][method]
+        assert np.isfinite(row["trans_m_per_m"]), method
+        assert np.isfinite(row["rot_deg_per_m"]), method
