@@ -187,16 +187,9 @@ def test_robust_scale_not_positive(robust):
 
 def _robust_kernels() -> list[str]:
     """The named constructor of every robust kernel that eqsmooth exports."""
-    import inspect
+    from eqsmooth.factors._robust_kernels import KERNELS
 
-    eqs = _eqs()
-    return sorted(
-        obj.name
-        for obj in vars(eqs.factors).values()
-        if inspect.isclass(obj)
-        and issubclass(obj, eqs.factors.AbstractKernel)
-        and not inspect.isabstract(obj)
-    )
+    return sorted(k.name for k in KERNELS)
 
 
 ROBUST = _robust_kernels()

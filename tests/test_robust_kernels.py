@@ -303,3 +303,59 @@ def test_outlier_graph_matches_gtsam(name):
     np.testing.assert_allclose(float(graph.cost({"x": sol})), g.error(ref), rtol=1e-9)
     # The outliers are down-weighted: the solution stays near the truth.
     assert np.max(np.abs(np.asarray(sol.translation()) - truth[:, :2])) < 0.5
+
+
+def test_kernel_sweep_as_data_compiles_once():
+    """KernelChoice: the kernel is data, so a sweep over all nine kernels on
+    one graph is one compiled solve (issue 34), and each solve equals the one
+    with the named kernel."""
+    import jax
+    from helpers import compiled_programs
+
+    import eqsmooth as eqs
+    from eqsmooth.factors._robust_kernels import KERNELS
+
+    rng = np.random.default_rng(0)
+    T = 8
+    truth = np.cumsum(rng.normal(size=(T, 2)), axis=0)
+    meas = truth + 0.1 * rng.normal(size=(T, 2))
+    meas[3] += 6.0  # an outlier
+    t = np.arange(T)
+
+    def graph(noise):
+        return eqs.FactorGraph(
+            [
+                eqs.PriorFactor(eqs.Var("x", t), jnp.asarray(meas), noise),
+                eqs.BetweenFactor(
+                    eqs.Var("x", t[:-1]),
+                    eqs.Var("x", t[1:]),
+                    jnp.asarray(np.diff(truth, axis=0)),
+                    eqs.IsotropicNoise.from_sigma(0.1),
+                ),
+            ]
+        )
+
+    base = eqs.IsotropicNoise.from_sigma(0.1)
+    solver = eqs.LevenbergMarquardt(eqs.DenseCholesky())
+    init = {"x": jnp.asarray(meas)}
+    # The first solve compiles; the eight others must not.
+    k = jnp.asarray(2.0)
+    first = eqs.RobustNoise(base, eqs.factors.KernelChoice(KERNELS[0]), k)
+    eqs.least_squares(graph(first), init, solver, throw=False)
+    with compiled_programs() as names:
+        swept = {}
+        for K in KERNELS:
+            noise = eqs.RobustNoise(base, eqs.factors.KernelChoice(K), k)
+            swept[K] = eqs.least_squares(graph(noise), init, solver, throw=False)
+        jax.block_until_ready([s.value for s in swept.values()])
+    assert names == [], names
+    for K in KERNELS:
+        named = eqs.least_squares(
+            graph(eqs.RobustNoise(base, K(), jnp.asarray(2.0))),
+            init,
+            solver,
+            throw=False,
+        )
+        np.testing.assert_allclose(
+            swept[K].value["x"], named.value["x"], rtol=1e-9, atol=1e-9, err_msg=K.name
+        )

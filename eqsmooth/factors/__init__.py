@@ -41,6 +41,7 @@ from ._robust_kernels import (
     GemanMcClureNoise as GemanMcClureNoise,
     Huber as Huber,
     HuberNoise as HuberNoise,
+    KernelChoice as KernelChoice,
     L2WithDeadZone as L2WithDeadZone,
     L2WithDeadZoneNoise as L2WithDeadZoneNoise,
     RobustNoise as RobustNoise,

@@ -24,8 +24,9 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._noise import AbstractNoiseModel, AbstractRobustNoise, robust_scale
 
@@ -447,3 +448,49 @@ def TruncatedQuadraticNoise(
     **Returns:** `RobustNoise(base, TruncatedQuadratic(), scale)`.
     """
     return RobustNoise(base, TruncatedQuadratic(), scale)
+
+
+# The kernels a KernelChoice selects from, in this order.
+KERNELS: tuple[type[AbstractKernel], ...] = (
+    Huber,
+    Cauchy,
+    Tukey,
+    GemanMcClure,
+    Welsch,
+    DCS,
+    Fair,
+    L2WithDeadZone,
+    TruncatedQuadratic,
+)
+
+
+class KernelChoice(AbstractKernel):
+    """One of the nine kernels, chosen by data rather than by type.
+
+    Each kernel class is part of a compiled solve's static structure, so a
+    sweep over kernels (`HuberNoise`, then `TukeyNoise`, ...) compiles the
+    solve once per kernel. A `KernelChoice` holds the choice as an integer
+    array, and `rho` selects the kernel at run time (`lax.switch`): a sweep
+    over kernels is one program, compiled once, whose solves differ only in
+    data. The price is a program that contains all nine kernels (a little
+    more to compile the first time).
+
+    **Arguments:**
+
+    - `kernel`: a kernel class (`Huber`, `Tukey`, ...) or its name
+        (`"Huber"`).
+    """
+
+    index: Int[Array, ""]
+    name: ClassVar[str] = "KernelChoice"
+
+    def __init__(self, kernel: type[AbstractKernel] | str):
+        names = [k.__name__ for k in KERNELS]
+        key = kernel if isinstance(kernel, str) else kernel.__name__
+        if key not in names:
+            raise ValueError(f"KernelChoice: unknown kernel {kernel!r}; one of {names}")
+        self.index = jnp.asarray(names.index(key), jnp.int32)
+
+    def rho(self, s, scale):
+        branches = [lambda s, k, K=K: K().rho(s, k) for K in KERNELS]
+        return jax.lax.switch(self.index, branches, s, scale)

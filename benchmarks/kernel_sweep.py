@@ -1,0 +1,117 @@
+"""A robust-kernel sweep on one graph: named kernels against KernelChoice.
+
+GTSAM users try several robust kernels on the same problem. With the named
+constructors (`HuberNoise`, `TukeyNoise`, ...) each kernel class is part of
+the compiled solve's static structure, so the sweep compiles once per
+kernel; with `RobustNoise(base, KernelChoice(K), k)` the kernel is data and
+the sweep is one program. Each mode runs in a fresh process (so neither
+profits from the other's compilations): the 5-pose SE(2) loop of
+`first_call.py` with Huber odometry noise replaced by each of the nine
+kernels, Levenberg-Marquardt, and the wall time and number of XLA
+compilations of the whole sweep.
+
+    python benchmarks/kernel_sweep.py --json benchmarks/results/kernel_sweep.json
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+
+
+def child(mode: str) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax import monitoring
+
+    import eqsmooth as eqs
+    from eqsmooth.factors._robust_kernels import KERNELS
+
+    jax.config.update("jax_enable_x64", True)
+    compiles = []  # (program name, seconds)
+
+    def on_duration(event, secs, **kw):
+        if event.endswith("backend_compile_duration"):
+            compiles.append((kw.get("fun_name"), secs))
+
+    monitoring.register_event_duration_secs_listener(on_duration)
+
+    def poses(xyt):
+        xyt = np.asarray(xyt, np.float64)
+        return eqs.SE2.from_xy_theta(*(jnp.asarray(c) for c in xyt.T))
+
+    odo = poses([[2, 0, 0], [2, 0, np.pi / 2], [2, 0, np.pi / 2], [2, 0, np.pi / 2]])
+    init = poses([[0.4, 0.1, 0.15], [2.3, 0.1, -0.2], [4.1, 0.2, 1.6], [4.0, 2.1, 3.1]])
+    base = eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1]))
+    prior = eqs.PriorFactor(
+        eqs.Var("x", [0]),
+        poses([[0, 0, 0]]),
+        eqs.DiagonalNoise.from_sigmas(jnp.array([0.3, 0.3, 0.1])),
+    )
+    scale = jnp.asarray(1.345)
+    t0 = time.perf_counter()
+    for K in KERNELS:
+        kernel = eqs.factors.KernelChoice(K) if mode == "choice" else K()
+        graph = eqs.FactorGraph(
+            [
+                prior,
+                eqs.BetweenFactor(
+                    eqs.Var("x", [0, 1, 2, 3]),
+                    eqs.Var("x", [1, 2, 3, 0]),
+                    odo,
+                    eqs.RobustNoise(base, kernel, scale),
+                ),
+            ]
+        )
+        sol = eqs.least_squares(graph, {"x": init}, eqs.LevenbergMarquardt())
+        jax.block_until_ready(sol.value)
+    solves = [c for c in compiles if "least_squares" in str(c[0])]
+    return {
+        "mode": mode,
+        "kernels": len(KERNELS),
+        "sweep_s": time.perf_counter() - t0,
+        "compilations": len(compiles),
+        "solve_compilations": len(solves),
+        "compile_s": sum(c[1] for c in compiles),
+    }
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--child", choices=["named", "choice"])
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--json", type=Path)
+    a = p.parse_args()
+    if a.child:
+        print(json.dumps(child(a.child)))
+        return
+    rows = []
+    for _ in range(a.repeats):
+        for mode in ("named", "choice"):
+            out = subprocess.run(
+                [sys.executable, __file__, "--child", mode],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            r = rows[-1]
+            print(
+                f"{r['mode']:6s} {r['kernels']} kernels: sweep {r['sweep_s']:.2f} s, "
+                f"{r['solve_compilations']} solve programs compiled, "
+                f"{r['compilations']} compilations in all "
+                f"({r['compile_s']:.2f} s of XLA)"
+            )
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
