@@ -15,6 +15,9 @@ from . import (
     manifold as manifold,
     solve as solve,
 )
+from ._compilation_cache import (
+    enable_compilation_cache as enable_compilation_cache,
+)
 from ._xla_flags import set_xla_cpu_flags as set_xla_cpu_flags
 from .factors import (
     AbstractAnalyticFactor as AbstractAnalyticFactor,

@@ -40,6 +40,10 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import eqsmooth as eqs  # noqa: E402
+
+
+# Compiled programs are kept on disk: a second run answers sooner.
+eqs.enable_compilation_cache()
 from eqsmooth.io import load_g2o, save_g2o, synthetic_pose_graph_2d  # noqa: E402
 
 

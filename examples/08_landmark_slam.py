@@ -33,6 +33,10 @@ import numpy as np  # noqa: E402
 import eqsmooth as eqs  # noqa: E402
 
 
+# Compiled programs are kept on disk: a second run answers sooner.
+eqs.enable_compilation_cache()
+
+
 def make_problem(num_poses: int, num_landmarks: int, seed: int):
     """Ground truth, measurements and a dead-reckoning initial guess."""
     rng = np.random.default_rng(seed)

@@ -37,6 +37,10 @@ import numpy as np  # noqa: E402
 import eqsmooth as eqs  # noqa: E402
 
 
+# Compiled programs are kept on disk: a second run answers sooner.
+eqs.enable_compilation_cache()
+
+
 ODO_SIGMA = np.array([0.05, 0.05, 0.01])
 GPS_SIGMA = 0.5
 
