@@ -70,6 +70,7 @@ from .solve import (
     ImplicitAdjoint as ImplicitAdjoint,
     joint_marginal_covariance as joint_marginal_covariance,
     least_squares as least_squares,
+    least_squares_batch as least_squares_batch,
     LevenbergMarquardt as LevenbergMarquardt,
     linearize as linearize,
     marginal_covariances as marginal_covariances,

@@ -1,10 +1,10 @@
 """Learning through the solver: losses, training loop, data parallelism."""
 
+from .._stack import stack_trees as stack_trees
 from ..manifold import (
     manifold_errors as manifold_errors,
     manifold_mse as manifold_mse,
 )
-from ._batch import stack_trees as stack_trees
 from ._checkpoint import (
     atomic_write as atomic_write,
     CheckpointError as CheckpointError,

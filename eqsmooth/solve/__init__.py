@@ -44,6 +44,7 @@ from ._nonlinear._adjoint import (
     TruncatedAdjoint as TruncatedAdjoint,
     UnrolledAdjoint as UnrolledAdjoint,
 )
+from ._nonlinear._batch import least_squares_batch as least_squares_batch
 from ._nonlinear._gauss_newton import (
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,

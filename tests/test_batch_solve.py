@@ -1,0 +1,66 @@
+"""eqsmooth.least_squares_batch: many graphs of one structure in one call
+equal the graphs solved one by one; failures are named by graph."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hostile import raises
+
+import eqsmooth as eqs
+
+
+T = 5
+
+
+def _graph(meas, sigma=0.5):
+    t = np.arange(T)
+    return eqs.FactorGraph(
+        [
+            eqs.PriorFactor(
+                eqs.Var("x", t), meas, eqs.IsotropicNoise.from_sigma(sigma)
+            ),
+            eqs.BetweenFactor(
+                eqs.Var("x", t[:-1]),
+                eqs.Var("x", t[1:]),
+                jnp.ones((T - 1, 2)),
+                eqs.IsotropicNoise.from_sigma(1.0),
+            ),
+        ]
+    )
+
+
+def test_batch_equals_one_by_one():
+    rng = np.random.default_rng(0)
+    graphs = [_graph(jnp.asarray(rng.normal(size=(T, 2)))) for _ in range(4)]
+    inits = [{"x": jnp.asarray(rng.normal(size=(T, 2)))} for _ in range(4)]
+    solver = eqs.GaussNewton(eqs.DenseCholesky())
+    sol = eqs.least_squares_batch(graphs, inits, solver)
+    assert sol.value["x"].shape == (4, T, 2)
+    for i, (g, v) in enumerate(zip(graphs, inits)):
+        one = eqs.least_squares(g, v, solver)
+        np.testing.assert_allclose(sol.value["x"][i], one.value["x"], atol=1e-10)
+
+
+def test_batch_failures_are_named():
+    meas = jnp.zeros((T, 2))
+    graphs = [_graph(meas), _graph(meas.at[2, 0].set(jnp.nan)), _graph(meas)]
+    inits = [{"x": jnp.zeros((T, 2))}] * 3
+    solver = eqs.GaussNewton(eqs.DenseCholesky())
+    with raises(eqx.EquinoxRuntimeError, "graphs [1] (1 of 3)", "non-finite"):
+        eqs.least_squares_batch(graphs, inits, solver)
+    sol = eqs.least_squares_batch(graphs, inits, solver, throw=False)
+    assert [bool(r) for r in (sol.result == eqs.RESULTS.successful)] == [
+        True,
+        False,
+        True,
+    ]
+
+
+def test_batch_of_different_structures_is_refused():
+    with pytest.raises(ValueError, match="stack_trees"):
+        eqs.least_squares_batch(
+            [_graph(jnp.zeros((T, 2))), _graph(jnp.zeros((T, 2)), sigma=np.ones(T))],
+            [{"x": jnp.zeros((T, 2))}] * 2,
+            eqs.GaussNewton(),
+        )
