@@ -169,6 +169,18 @@ _COINCIDENT = (
 )
 
 
+def _checked_rows(x: Array, ok, concrete_message, traced_message: str) -> Array:
+    """`x`, where every row must be `ok`: concretely, a `ValueError` from
+    `concrete_message(bad_rows)`; traced, an `eqx.error_if` with
+    `traced_message` (the landmark factors' one validation rule)."""
+    if _is_concrete(ok):
+        bad = np.flatnonzero(~np.asarray(ok))
+        if bad.size:
+            raise ValueError(concrete_message(bad[:8]))
+        return x
+    return eqx.error_if(x, ~jnp.all(ok), traced_message)
+
+
 def _ranges(name: str, range) -> Array:
     """Validated measured ranges: `(n,)`, positive and finite (a `ValueError`
     naming the rows, or `eqx.error_if` under `jit`). A zero range is refused
@@ -176,20 +188,15 @@ def _ranges(name: str, range) -> Array:
     no derivative (use a `PoseToPointFactor` or `TranslationPriorFactor` for
     "at the same place")."""
     range = _as_rows(range, f"{name}.range", ())
-    ok = jnp.isfinite(range) & (range > 0)
-    if _is_concrete(ok):
-        bad = np.flatnonzero(~np.asarray(ok))
-        if bad.size:
-            raise ValueError(
-                f"{name}.range: rows {bad[:8].tolist()} are not positive and finite "
-                f"(got {np.asarray(range)[bad[:8]].tolist()}); a zero range has no "
-                "derivative at its solution: for 'at the same place' use "
-                "PoseToPointFactor or TranslationPriorFactor"
-            )
-        return range
-    return eqx.error_if(
+    return _checked_rows(
         range,
-        ~jnp.all(ok),
+        jnp.isfinite(range) & (range > 0),
+        lambda bad: (
+            f"{name}.range: rows {bad.tolist()} are not positive and finite "
+            f"(got {np.asarray(range)[bad].tolist()}); a zero range has no "
+            "derivative at its solution: for 'at the same place' use "
+            "PoseToPointFactor or TranslationPriorFactor"
+        ),
         f"{name}.range must be positive and finite (checked under jit)",
     )
 
@@ -200,14 +207,15 @@ def _ranges(name: str, range) -> Array:
 def _finite_rows(name: str, x: Array) -> Array:
     """`x`, with a `ValueError` naming its non-finite rows when it is concrete
     (traced measurements reach the solve, which reports a non-finite problem)."""
-    if _is_concrete(x):
-        ok = np.isfinite(np.asarray(x)).reshape(x.shape[0], -1).all(axis=1)
-        bad = np.flatnonzero(~ok)
-        if bad.size:
-            raise ValueError(
-                f"{name}: rows {bad[:8].tolist()} are not finite (nan or inf)"
-            )
-    return x
+    if not _is_concrete(x):
+        return x
+    ok = np.isfinite(np.asarray(x)).reshape(x.shape[0], -1).all(axis=1)
+    return _checked_rows(
+        x,
+        ok,
+        lambda bad: f"{name}: rows {bad.tolist()} are not finite (nan or inf)",
+        "",
+    )
 
 
 def _bearings(name: str, bearing) -> Array:
@@ -224,21 +232,16 @@ def _bearings(name: str, bearing) -> Array:
     if bearing.ndim == 1:
         return _finite_rows(f"{name}.bearing", bearing)
     norm = jnp.sqrt(jnp.sum(bearing * bearing, axis=1))
-    ok = jnp.isfinite(norm) & (norm > 0)
-    if _is_concrete(ok):
-        bad = np.flatnonzero(~np.asarray(ok))
-        if bad.size:
-            raise ValueError(
-                f"{name}.bearing: rows {bad[:8].tolist()} are zero or non-finite "
-                "directions (a 3-D bearing is a direction; it is normalised to a "
-                "unit vector)"
-            )
-    else:
-        norm = eqx.error_if(
-            norm,
-            ~jnp.all(ok),
-            f"{name}.bearing has a zero or non-finite direction (checked under jit)",
-        )
+    norm = _checked_rows(
+        norm,
+        jnp.isfinite(norm) & (norm > 0),
+        lambda bad: (
+            f"{name}.bearing: rows {bad.tolist()} are zero or non-finite "
+            "directions (a 3-D bearing is a direction; it is normalised to a "
+            "unit vector)"
+        ),
+        f"{name}.bearing has a zero or non-finite direction (checked under jit)",
+    )
     return bearing / norm[:, None]
 
 
