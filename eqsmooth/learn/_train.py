@@ -300,6 +300,52 @@ def _resume(ckpt: Path, like: TrainState, seed: int, metadata: dict) -> TrainSta
     )
 
 
+def _check_options(
+    model,
+    optimizer,
+    filter_spec,
+    *,
+    on_nonfinite,
+    num_steps,
+    batch_size,
+    eval_every,
+    checkpoint_every,
+    log_every,
+    seed,
+    paths,
+) -> None:
+    """`train`'s argument checks, each naming the argument at fault."""
+    if on_nonfinite not in ("raise", "skip"):
+        raise ValueError(
+            f"train: on_nonfinite must be 'raise' or 'skip', got {on_nonfinite!r}"
+        )
+    if num_steps < 0 or batch_size < 1 or eval_every < 1 or checkpoint_every < 1:
+        raise ValueError(
+            "train: need num_steps >= 0, batch_size >= 1, eval_every >= 1 and "
+            f"checkpoint_every >= 1; got {num_steps}, {batch_size}, {eval_every}, "
+            f"{checkpoint_every}"
+        )
+    if log_every < 1:
+        raise ValueError(f"train: log_every must be >= 1, got {log_every}")
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise TypeError(
+            "train: optimizer must be an optax.GradientTransformation (e.g. "
+            f"optax.adam(1e-3) or eqsmooth.learn.make_optimizer), got "
+            f"{type(optimizer).__name__}"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"train: seed must be an int >= 0, got {seed!r}")
+    if not jax.tree_util.tree_leaves(eqx.filter(model, filter_spec)):
+        raise ValueError(
+            "train: the model has no trainable leaves (none selected by "
+            "filter_spec; by default floating-point JAX arrays: a Python float "
+            "field is a constant, wrap it in jnp.asarray)"
+        )
+    for label, path in paths.items():
+        if path is not None and Path(path).is_dir():
+            raise ValueError(f"train: {label} {path} is a directory; give a file path")
+
+
 def train(
     model: PyTree,
     loss_fn: Callable[..., Any],
@@ -392,35 +438,19 @@ def train(
 
     **Returns:** a [`eqsmooth.learn.TrainResult`][].
     """
-    if on_nonfinite not in ("raise", "skip"):
-        raise ValueError(
-            f"train: on_nonfinite must be 'raise' or 'skip', got {on_nonfinite!r}"
-        )
-    if num_steps < 0 or batch_size < 1 or eval_every < 1 or checkpoint_every < 1:
-        raise ValueError(
-            "train: need num_steps >= 0, batch_size >= 1, eval_every >= 1 and "
-            f"checkpoint_every >= 1; got {num_steps}, {batch_size}, {eval_every}, "
-            f"{checkpoint_every}"
-        )
-    if log_every < 1:
-        raise ValueError(f"train: log_every must be >= 1, got {log_every}")
-    if not isinstance(optimizer, optax.GradientTransformation):
-        raise TypeError(
-            "train: optimizer must be an optax.GradientTransformation (e.g. "
-            f"optax.adam(1e-3) or eqsmooth.learn.make_optimizer), got "
-            f"{type(optimizer).__name__}"
-        )
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"train: seed must be an int >= 0, got {seed!r}")
-    if not jax.tree_util.tree_leaves(eqx.filter(model, filter_spec)):
-        raise ValueError(
-            "train: the model has no trainable leaves (none selected by "
-            "filter_spec; by default floating-point JAX arrays: a Python float "
-            "field is a constant, wrap it in jnp.asarray)"
-        )
-    for label, path in (("checkpoint_path", checkpoint_path), ("log_path", log_path)):
-        if path is not None and Path(path).is_dir():
-            raise ValueError(f"train: {label} {path} is a directory; give a file path")
+    _check_options(
+        model,
+        optimizer,
+        filter_spec,
+        on_nonfinite=on_nonfinite,
+        num_steps=num_steps,
+        batch_size=batch_size,
+        eval_every=eval_every,
+        checkpoint_every=checkpoint_every,
+        log_every=log_every,
+        seed=seed,
+        paths={"checkpoint_path": checkpoint_path, "log_path": log_path},
+    )
     data = _to_host(train_data)
     n = _num_examples(data, "train_data")
     if n < batch_size:
