@@ -36,6 +36,53 @@ class _Term(NamedTuple):
     segments: np.ndarray
 
 
+def _block_products(layout, variables, offsets, dims) -> list:
+    """The block products of the normal matrix: one entry per (stack, pair
+    of variables, triangle): `(stack, rows, row slice, column slice, shape,
+    first scalar row and column of the canonical block, per row)`; `stack`
+    None for the diagonal block of every variable, touched or not."""
+    raw: list = []
+    for g in layout:  # every variable's diagonal block, touched or not
+        starts = offsets[g.name] + np.arange(g.count) * g.dim
+        raw.append((None, None, None, None, (g.dim, g.dim), starts, starts))
+    for stack, vars_ in enumerate(variables):
+        if not vars_ or len(np.asarray(vars_[0].ids)) == 0:
+            continue
+        starts = [offsets[v.group] + np.asarray(v.ids) * dims[v.group] for v in vars_]
+        vdims = [dims[v.group] for v in vars_]
+        col0 = np.concatenate([[0], np.cumsum(vdims)]).astype(int)
+        sl = [(int(col0[k]), int(col0[k + 1])) for k in range(len(vars_))]
+        for k in range(len(vars_)):
+            for j in range(k, len(vars_)):
+                if k == j:
+                    shape = (vdims[k], vdims[k])
+                    raw.append((stack, None, sl[k], sl[k], shape, starts[k], starts[k]))
+                    continue
+                # Rows where k's block comes first add J_kᵀJ_j to (k, j);
+                # the others add J_jᵀJ_k to (j, k). Both when k and j are
+                # the same variable (its diagonal block gets both).
+                for a, b, mask in (
+                    (k, j, starts[k] <= starts[j]),
+                    (j, k, starts[j] <= starts[k]),
+                ):
+                    rows = np.nonzero(mask)[0]
+                    if len(rows) == 0:
+                        continue
+                    every = len(rows) == len(mask)
+                    raw.append(
+                        (
+                            stack,
+                            None if every else rows,
+                            sl[a],
+                            sl[b],
+                            (vdims[a], vdims[b]),
+                            starts[a][rows],
+                            starts[b][rows],
+                        )
+                    )
+    return raw
+
+
 class _Pattern:
     """The static sparsity pattern of `JᵀJ + diag(damping)` in CSC form, and
     how its values are assembled.
@@ -58,51 +105,7 @@ class _Pattern:
             offsets[g.name] = start
             start += g.count * g.dim
         dims = {g.name: g.dim for g in layout}
-        # Block products: (stack, rows, row slice, column slice, shape, first
-        # scalar row and column of the canonical block, per row).
-        raw: list = []
-        for g in layout:  # every variable's diagonal block, touched or not
-            starts = offsets[g.name] + np.arange(g.count) * g.dim
-            raw.append((None, None, None, None, (g.dim, g.dim), starts, starts))
-        for stack, vars_ in enumerate(variables):
-            if not vars_ or len(np.asarray(vars_[0].ids)) == 0:
-                continue
-            starts = [
-                offsets[v.group] + np.asarray(v.ids) * dims[v.group] for v in vars_
-            ]
-            vdims = [dims[v.group] for v in vars_]
-            col0 = np.concatenate([[0], np.cumsum(vdims)]).astype(int)
-            sl = [(int(col0[k]), int(col0[k + 1])) for k in range(len(vars_))]
-            for k in range(len(vars_)):
-                for j in range(k, len(vars_)):
-                    if k == j:
-                        shape = (vdims[k], vdims[k])
-                        raw.append(
-                            (stack, None, sl[k], sl[k], shape, starts[k], starts[k])
-                        )
-                        continue
-                    # Rows where k's block comes first add J_kᵀJ_j to (k, j);
-                    # the others add J_jᵀJ_k to (j, k). Both when k and j are
-                    # the same variable (its diagonal block gets both).
-                    for a, b, mask in (
-                        (k, j, starts[k] <= starts[j]),
-                        (j, k, starts[j] <= starts[k]),
-                    ):
-                        rows = np.nonzero(mask)[0]
-                        if len(rows) == 0:
-                            continue
-                        every = len(rows) == len(mask)
-                        raw.append(
-                            (
-                                stack,
-                                None if every else rows,
-                                sl[a],
-                                sl[b],
-                                (vdims[a], vdims[b]),
-                                starts[a][rows],
-                                starts[b][rows],
-                            )
-                        )
+        raw = _block_products(layout, variables, offsets, dims)
         # Number the distinct blocks of each shape.
         shapes = list(dict.fromkeys(t[4] for t in raw))
         tables, segments = [], {}
