@@ -124,35 +124,31 @@ def find(
         [abs(I_eff[k, k]) > 1e-3 * max(abs(raw[k]), 1e-300) for k in range(len(test))]
     )
     decision = score_test(ev, test[ident], nuis, covariance)
-    z_power = normal_quantile(1 - alpha / 2) + normal_quantile(0.8)
-    per_candidate = []
-    # Correlation of the candidates' information (after the noise scales):
-    # near ±1, the data cannot tell the two effects apart.
-    dd = np.sqrt(np.maximum(np.abs(np.diag(I_eff)), 1e-300))
-    corr = I_eff / np.outer(dd, dd)
-    np.fill_diagonal(corr, 0.0)
-    for k, c in enumerate(model.candidates):
-        info = I_eff[k, k] if I_eff[k, k] > 0 else raw[k]
-        identifiable = bool(ident[k]) and info > 0
-        zk = g[k] / np.sqrt(info) if identifiable else float("nan")
-        j = int(np.argmax(np.abs(corr[k]))) if K > 1 else k
-        per_candidate.append(
-            {
-                "name": c.name,
-                "target": c.target,
-                "identifiable": identifiable,
-                "most_correlated_with": model.candidates[j].name if K > 1 else None,
-                "information_correlation": float(corr[k, j]) if K > 1 else 0.0,
-                "score_z": float(zk),
-                "score_p_value": normal_two_sided(zk) if identifiable else 1.0,
-                "smallest_detectable": float(z_power / np.sqrt(info))
-                if identifiable
-                else float("inf"),
-                "feature_scale": float(scales[k]),
-            }
-        )
+    per_candidate = _candidate_table(model, I_eff, g, raw, ident, scales, alpha)
     innov = _safe_innovation_tests(nominal, data, ev.xhat, flags)
-    report = {
+    report = _report(
+        model, data, nominal, ev, innov, flags, decision, per_candidate, ident, alpha
+    )
+    state = {
+        "model": model,
+        "evaluation": ev,
+        "scales": scales,
+        "nuisance": nuis,
+        "I_eff": I_eff,
+        "alpha": alpha,
+        "settings": settings,
+        "identifiable": ident,
+        "diagnostics_significant": _diagnostics_significant(innov, alpha),
+    }
+    return StepReport(report, state)
+
+
+def _report(
+    model, data, nominal, ev, innov, flags, decision, per_candidate, ident, alpha
+) -> dict:
+    """The JSON-serialisable report of a successful `find`."""
+    K = len(model.candidates)
+    return {
         "status": "ok",
         "flags": flags,
         "log_marginal": ev.log_marginal,
@@ -180,18 +176,41 @@ def find(
         ],
         "localisation": localisation_table(nominal, data, ev.xhat),
     }
-    state = {
-        "model": model,
-        "evaluation": ev,
-        "scales": scales,
-        "nuisance": nuis,
-        "I_eff": I_eff,
-        "alpha": alpha,
-        "settings": settings,
-        "identifiable": ident,
-        "diagnostics_significant": _diagnostics_significant(innov, alpha),
-    }
-    return StepReport(report, state)
+
+
+def _candidate_table(model, I_eff, g, raw, ident, scales, alpha) -> list[dict]:
+    """Per candidate: its score `z` and p-value after the nuisance parameters,
+    its smallest detectable coefficient (power 0.8 at level `alpha`), and the
+    candidate whose information it is most correlated with."""
+    K = len(model.candidates)
+    z_power = normal_quantile(1 - alpha / 2) + normal_quantile(0.8)
+    per_candidate = []
+    # Correlation of the candidates' information (after the noise scales):
+    # near ±1, the data cannot tell the two effects apart.
+    dd = np.sqrt(np.maximum(np.abs(np.diag(I_eff)), 1e-300))
+    corr = I_eff / np.outer(dd, dd)
+    np.fill_diagonal(corr, 0.0)
+    for k, c in enumerate(model.candidates):
+        info = I_eff[k, k] if I_eff[k, k] > 0 else raw[k]
+        identifiable = bool(ident[k]) and info > 0
+        zk = g[k] / np.sqrt(info) if identifiable else float("nan")
+        j = int(np.argmax(np.abs(corr[k]))) if K > 1 else k
+        per_candidate.append(
+            {
+                "name": c.name,
+                "target": c.target,
+                "identifiable": identifiable,
+                "most_correlated_with": model.candidates[j].name if K > 1 else None,
+                "information_correlation": float(corr[k, j]) if K > 1 else 0.0,
+                "score_z": float(zk),
+                "score_p_value": normal_two_sided(zk) if identifiable else 1.0,
+                "smallest_detectable": float(z_power / np.sqrt(info))
+                if identifiable
+                else float("inf"),
+                "feature_scale": float(scales[k]),
+            }
+        )
+    return per_candidate
 
 
 def _diagnostics_significant(innov: dict, alpha: float) -> bool:
