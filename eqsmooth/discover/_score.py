@@ -22,6 +22,79 @@ def _efficient_information(info: np.ndarray, test: np.ndarray, nuis: np.ndarray)
     return Icc
 
 
+def _opg_statistic(G, test, nuisance) -> tuple[float, int]:
+    """The score statistic with the outer product of the per-sequence scores
+    as covariance (regressing 1 on the standardised scores), and its degrees
+    of freedom after the nuisance parameters."""
+    B, k = G.shape[0], len(test)
+    cols = np.concatenate([test, nuisance])
+    Gs = G[:, cols]
+    Gs = Gs / (np.sqrt(np.mean(Gs * Gs, axis=0)) + 1e-300)
+    beta, _, rank, _ = np.linalg.lstsq(Gs, np.ones(B), rcond=1e-10)
+    fitted = Gs @ beta
+    stat = float(fitted @ fitted)
+    _, _, rank_n, _ = (
+        np.linalg.lstsq(Gs[:, k:], np.ones(B), rcond=1e-10)
+        if len(nuisance)
+        else (None, None, 0, None)
+    )
+    df = int(rank) - int(rank_n)
+    return stat, df
+
+
+def _hessian_test(ev, G, test, rank_cut) -> dict:
+    """The score test with the candidates' own observed information (see
+    `score_test`): the combination of the joint test over the informative
+    directions and the largest single standardised score."""
+    k = len(test)
+    covariance = "hessian"
+    # The candidates' own observed information, noise scales held at their
+    # null estimates. Adjusting for the nuisance parameters would give the
+    # efficient information, but at a misspecified null fit (noise scales
+    # inflated to absorb the missing effect) that adjustment is often
+    # indefinite; the unadjusted block is positive definite and makes the
+    # test conservative (a smaller statistic), never anti-conservative.
+    I_eff = -ev.hessian[np.ix_(test, test)]
+    g = np.sum(G, axis=0)[test]
+    # Standardise first (the statistic is invariant to the units of the
+    # coefficients, the rank cut-off must be too): the raw information of
+    # candidates spans many decades (cubic stiffness ~ p⁶ against a sensor
+    # bias ~ 1), and a cut-off relative to the largest raw eigenvalue
+    # silently dropped the small-information candidates (constant force,
+    # Coulomb friction, sensor bias) from the test.
+    I_eff = 0.5 * (I_eff + I_eff.T)
+    d = np.sqrt(np.maximum(np.abs(np.diag(I_eff)), 1e-300))
+    g = g / d
+    w, V = np.linalg.eigh(I_eff / np.outer(d, d))
+    # Directions with little information relative to a unit diagonal.
+    # A weak direction carries a score whose variance exceeds its
+    # information (higher-order terms of the Laplace evidence), which
+    # inflates the statistic: on null data of four systems a cut at 1e-8
+    # rejected 12% at α = 5%, one at 1e-3 5%; on a driven oscillator the
+    # standardised scores of directions at relative information 7.5e-4 to
+    # 1.4e-2 had variance 1.33-1.37 (1 expected) and a cut at 1e-3
+    # rejected 8.3% of 400 null sets, one at 3e-2 3.0%; two coupled
+    # axes 7% and 4% of 100; the undriven oscillator 2.0% at both of 200
+    # (issue 19; calibration streams, not the benchmark's).
+    keep = w > rank_cut * max(w.max(), 1e-300)
+    proj = V[:, keep].T @ g
+    stat = float(np.sum(proj * proj / w[keep]))
+    df = int(np.sum(keep))
+    # g is already standardised by the diagonal: g_j is candidate j's z.
+    j = int(np.argmax(np.abs(g)))
+    p_joint = chi2_sf(stat, df)
+    p_single = min(1.0, k * normal_two_sided(g[j]))
+    return {
+        "statistic": stat,
+        "df": df,
+        "p_value": min(1.0, 2.0 * min(p_joint, p_single)),
+        "joint_p_value": p_joint,
+        "single_p_value": p_single,
+        "largest_z": {"index": j, "z": float(g[j])},
+        "covariance": covariance,
+    }
+
+
 def score_test(
     ev,
     test: np.ndarray,
@@ -76,64 +149,9 @@ def score_test(
     if covariance == "auto":
         covariance = "opg" if B >= 10 * (k + len(nuisance)) else "hessian"
     if covariance == "opg":
-        cols = np.concatenate([test, nuisance])
-        Gs = G[:, cols]
-        Gs = Gs / (np.sqrt(np.mean(Gs * Gs, axis=0)) + 1e-300)
-        beta, _, rank, _ = np.linalg.lstsq(Gs, np.ones(B), rcond=1e-10)
-        fitted = Gs @ beta
-        stat = float(fitted @ fitted)
-        _, _, rank_n, _ = (
-            np.linalg.lstsq(Gs[:, k:], np.ones(B), rcond=1e-10)
-            if len(nuisance)
-            else (None, None, 0, None)
-        )
-        df = int(rank) - int(rank_n)
+        stat, df = _opg_statistic(G, test, nuisance)
     elif covariance == "hessian":
-        # The candidates' own observed information, noise scales held at their
-        # null estimates. Adjusting for the nuisance parameters would give the
-        # efficient information, but at a misspecified null fit (noise scales
-        # inflated to absorb the missing effect) that adjustment is often
-        # indefinite; the unadjusted block is positive definite and makes the
-        # test conservative (a smaller statistic), never anti-conservative.
-        I_eff = -ev.hessian[np.ix_(test, test)]
-        g = np.sum(G, axis=0)[test]
-        # Standardise first (the statistic is invariant to the units of the
-        # coefficients, the rank cut-off must be too): the raw information of
-        # candidates spans many decades (cubic stiffness ~ p⁶ against a sensor
-        # bias ~ 1), and a cut-off relative to the largest raw eigenvalue
-        # silently dropped the small-information candidates (constant force,
-        # Coulomb friction, sensor bias) from the test.
-        I_eff = 0.5 * (I_eff + I_eff.T)
-        d = np.sqrt(np.maximum(np.abs(np.diag(I_eff)), 1e-300))
-        g = g / d
-        w, V = np.linalg.eigh(I_eff / np.outer(d, d))
-        # Directions with little information relative to a unit diagonal.
-        # A weak direction carries a score whose variance exceeds its
-        # information (higher-order terms of the Laplace evidence), which
-        # inflates the statistic: on null data of four systems a cut at 1e-8
-        # rejected 12% at α = 5%, one at 1e-3 5%; on a driven oscillator the
-        # standardised scores of directions at relative information 7.5e-4 to
-        # 1.4e-2 had variance 1.33-1.37 (1 expected) and a cut at 1e-3
-        # rejected 8.3% of 400 null sets, one at 3e-2 3.0%; two coupled
-        # axes 7% and 4% of 100; the undriven oscillator 2.0% at both of 200
-        # (issue 19; calibration streams, not the benchmark's).
-        keep = w > rank_cut * max(w.max(), 1e-300)
-        proj = V[:, keep].T @ g
-        stat = float(np.sum(proj * proj / w[keep]))
-        df = int(np.sum(keep))
-        # g is already standardised by the diagonal: g_j is candidate j's z.
-        j = int(np.argmax(np.abs(g)))
-        p_joint = chi2_sf(stat, df)
-        p_single = min(1.0, k * normal_two_sided(g[j]))
-        return {
-            "statistic": stat,
-            "df": df,
-            "p_value": min(1.0, 2.0 * min(p_joint, p_single)),
-            "joint_p_value": p_joint,
-            "single_p_value": p_single,
-            "largest_z": {"index": j, "z": float(g[j])},
-            "covariance": covariance,
-        }
+        return _hessian_test(ev, G, test, rank_cut)
     else:
         raise ValueError(
             f"covariance must be 'auto', 'opg' or 'hessian', got {covariance!r}"
