@@ -23,18 +23,13 @@ def enable_compilation_cache(
     by every later process instead of being compiled again.
 
     Every new graph structure (factor types, stack sizes, variable indices)
-    is a new program for XLA; compiling it dominates the first answer
-    (about 2 s for a 5-pose SE(2) graph on a laptop-class CPU core, against
-    1-2 ms per later solve). With the cache, a second process that solves a
-    graph of the same structure reads the compiled program from disk
-    (1.2 s to the first answer instead of 2.0 s on the project machine,
-    `benchmarks/first_call.py`). Call it once, before the first JAX
-    computation (the flags are read when JAX starts its backend); it
-    changes nothing else, and nothing is cached unless you call it.
-
-    Programs that differentiate through a linear solve carry a host
-    callback (lineax's transpose rule checks the solve) and are not written
-    to the cache by JAX; see the performance page.
+    is a new program for XLA, and compiling it dominates the first answer;
+    later solves of the same structure take milliseconds. With the cache, a
+    second process that solves a graph of a structure solved before reads
+    the compiled program from disk instead (measurements on the performance
+    page). Call it once, before the first JAX computation (the flags are
+    read when JAX starts its backend); it changes nothing else, and nothing
+    is cached unless you call it.
 
     **Arguments:**
 

@@ -34,7 +34,7 @@ def least_squares_batch(
     initial values may differ. They are stacked along a new leading axis and
     solved by one `jax.vmap`-ed, compiled [`eqsmooth.solve.least_squares`][]:
     one Python call and one program for the whole batch, instead of one
-    dispatch per graph (`benchmarks/small_graph_batch.py`).
+    dispatch per graph.
 
     **Arguments:**
 
