@@ -345,6 +345,7 @@ def test_real_data_dir_runs_end_to_end(tmp_path):
 
     from helpers import child_env
 
+    pytest.importorskip("matplotlib", reason="the run draws figures (examples extra)")
     if not (D.DEFAULT_POSES_DIR / "00.txt").exists():
         pytest.skip(f"KITTI ground-truth poses not found in {D.DEFAULT_POSES_DIR}")
     release, out = tmp_path / "release", tmp_path / "out"

@@ -1,6 +1,5 @@
 """Atomic, resumable training checkpoints."""
 
-import glob
 import hashlib
 import io
 import json
@@ -126,10 +125,6 @@ def save_checkpoint(
     }
     line = (json.dumps(header, sort_keys=True) + "\n").encode()
     path = Path(path)
-    # Temporary files of a run killed while writing this checkpoint: never
-    # renamed into place, so never read; removed here (one writer per path).
-    for stale in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
-        stale.unlink(missing_ok=True)
     if path.exists():
         # A hard link keeps the old file's contents under the second name
         # while the new file is renamed over the first.
