@@ -359,3 +359,29 @@ def test_kernel_sweep_as_data_compiles_once():
         np.testing.assert_allclose(
             swept[K].value["x"], named.value["x"], rtol=1e-9, atol=1e-9, err_msg=K.name
         )
+
+
+def test_kernel_choice_scale_gradient_matches_finite_differences():
+    """d/dk of the robust cost with the kernel chosen by data (lax.switch)."""
+    import jax
+
+    import eqsmooth as eqs
+    from eqsmooth.factors._robust_kernels import KERNELS
+
+    r = jnp.asarray(np.random.default_rng(3).normal(size=(6, 2)) * 2.0)
+    t = np.arange(6)
+    for K in KERNELS:
+
+        def cost(log_k, K=K):
+            noise = eqs.RobustNoise(
+                eqs.IsotropicNoise.from_sigma(1.0),
+                eqs.factors.KernelChoice(K),
+                jnp.exp(log_k),
+            )
+            g = eqs.FactorGraph([eqs.PriorFactor(eqs.Var("x", t), r, noise)])
+            return eqs.factors._graph.graph_cost(g, {"x": jnp.zeros((6, 2))})
+
+        g = jax.grad(cost)(jnp.asarray(0.4))
+        h = 1e-6
+        fd = (cost(jnp.asarray(0.4 + h)) - cost(jnp.asarray(0.4 - h))) / (2 * h)
+        np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-9, err_msg=K.name)
