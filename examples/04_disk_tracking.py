@@ -25,7 +25,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from disk_tracking import protocol, report, train
+from disk_tracking import fresh, protocol, report, train
 
 
 _INT = ("sequences_per_fold", "sensor_steps", "sensor_batch", "fg_steps", "fg_batch")
@@ -59,6 +59,12 @@ def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
         choices=[*train.Config().methods, *train.EXTRA_METHODS],
     )
     p.add_argument("--sensor", choices=["heatmap", "paper"])
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="fresh-data confirmation of finished folds: retrain their heads from "
+        "the committed sensors and evaluate once on a never-seen set (fold 10)",
+    )
     p.add_argument(
         "--docs", type=Path, help="also write the summary table into this page"
     )
@@ -100,6 +106,8 @@ def main(argv=None):
     a.out.mkdir(parents=True, exist_ok=True)
     label = "QUICK RUN" if cfg.quick else "full protocol"
     print(f"Disk tracking ({label}): test folds {list(cfg.test_folds)}")
+    if a.fresh:
+        return main_fresh(cfg, a)
     for k in cfg.test_folds:
         finished = (a.out / f"fold_{k}.json").exists()
         if finished and not a.rerun:
@@ -137,6 +145,32 @@ def main(argv=None):
     _, table = report.write_summary(a.out, cfg.num_folds)
     if a.docs is not None:
         report.update_docs(a.docs, table)
+    if (a.out / "fresh").is_dir():
+        table += "\n" + fresh.summarise(a.out)[1]
+        (a.out / "summary.md").write_text(table)
+    print("\n" + table + f"\nresults in {a.out}")
+
+
+def main_fresh(cfg: train.Config, a: argparse.Namespace) -> None:
+    """`--fresh`: the never-seen set, fold by fold (finished ones skipped)."""
+    for k in cfg.test_folds:
+        if (a.out / "fresh" / f"fold_{k}.json").exists() and not a.rerun:
+            print(f"fold {k}: fresh evaluation already finished, skipped")
+            continue
+        log_file = a.out / "fresh" / f"fold_{k}.log"
+        log_file.parent.mkdir(parents=True, exist_ok=True)
+
+        def log(msg, log_file=log_file):
+            print(msg, flush=True)
+            with open(log_file, "a") as f:
+                f.write(msg + "\n")
+
+        work = a.work / "fresh"
+        path = fresh.run(cfg, k, a.out, work, a.work / "cache", log)
+        log(f"fold {k}: fresh evaluation written to {path}")
+    _, table = report.write_summary(a.out, cfg.num_folds)
+    table += "\n" + fresh.summarise(a.out)[1]
+    (a.out / "summary.md").write_text(table)
     print("\n" + table + f"\nresults in {a.out}")
 
 

@@ -438,6 +438,22 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     assert "QUICK" in table and "smoother, heteroscedastic" in table
     assert record["folds"] == [0] and (out / "summary.json").exists()
 
+    # Fresh-data confirmation from the committed sensor: the finished heads
+    # are reloaded from `work` (no retraining here), evaluated on fold 10.
+    from disk_tracking import fresh
+
+    with jax.numpy_dtype_promotion("standard"):
+        path = fresh.run(cfg, 0, out, work, cache, log=lambda *a: None)
+    rows = json.loads(path.read_text())["records"]
+    assert set(rows) == {"virtual_sensor", *cfg.methods}
+    for name in cfg.methods:
+        assert np.isfinite(rows[name]["fresh_rmse"]), name
+        assert rows[name]["test_rmse"] == recs[name]["test_rmse"], name
+        assert (out / "heads" / "fold_0" / f"{name}.eqx").exists()
+    record, table = fresh.summarise(out)
+    assert (out / "fresh.json").exists() and "fold 10" in table
+    assert record["rows"]["lstm_uni"]["max_abs_retrain_drift"] == 0.0
+
 
 def test_docs_table_is_the_committed_results(tmp_path):
     import shutil

@@ -53,7 +53,7 @@ def main(argv=None) -> None:
     fold_dir = a.work / f"fold_{a.fold}"
     train, val, test = T.make_splits(cfg, a.fold, a.work / "cache")
     for name, split in (("train", train), ("val", val), ("test", test)):
-        P._cached_outputs(None, split, cfg, fold_dir / f"sensor_{name}.npz")
+        P.cached_outputs(None, split, cfg, fold_dir / f"sensor_{name}.npz")
     sigma = T.rmse(val.sensor, val.fold.positions)
     _, k_noise, k_lstm = jax.random.split(jax.random.key(cfg.model_seed), 3)
     flags = a.smoother.split("_")[3:]

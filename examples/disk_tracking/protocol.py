@@ -52,7 +52,7 @@ class StageTimer:
             eqs.learn.atomic_write(self.path, lambda f: f.write(text.encode()))
 
 
-def _cached_outputs(sensor, split: T.Split, cfg: T.Config, path: Path) -> None:
+def cached_outputs(sensor, split: T.Split, cfg: T.Config, path: Path) -> None:
     """Fill `split.sensor` and `split.features`, from `path` when it exists."""
     z = D.load_cache(path, ("positions", "features"))
     if z is not None:
@@ -84,8 +84,72 @@ def _record(result: eqs.learn.TrainResult, pred, truth, seconds: float) -> dict:
     )
 
 
-def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) -> dict:
-    """Run (or resume) every stage for one test fold; return its results."""
+def _train_method(cfg, method, train, val, sensor, sigma, models, keys, fold_dir):
+    """Train (or resume, or load when finished) the stage `method`."""
+    k_noise, k_lstm = keys
+    parts = method.split("_")
+    if method == "smoother_hetero_finetune":
+        start = models.get("smoother_hetero_surrogate")
+        if start is None:
+            start = T.make_smoother_model("hetero", sigma, k_noise, cfg.dtype)
+        return T.train_finetune(cfg, train, val, sensor, start, fold_dir, method)
+    if parts[0] == "smoother":
+        return T.train_smoother(
+            cfg,
+            parts[1],
+            parts[2],
+            train,
+            val,
+            sigma,
+            k_noise,
+            fold_dir,
+            method,
+            learn_dynamics="learndyn" in parts[3:],
+            view=T.view_factor(method),
+        )
+    if parts[0] == "ekf":
+        return T.train_ekf(
+            cfg, parts[1], parts[2], train, val, sigma, k_noise, fold_dir, method
+        )
+    if parts[0] == "lstm":
+        return T.train_lstm(cfg, parts[1] == "bi", train, val, k_lstm, fold_dir, method)
+    raise ValueError(f"unknown method {method!r}")
+
+
+def predict(cfg: T.Config, method: str, model, split: T.Split):
+    """`method`'s positions `(N, T, 2)` on `split`, and for smoothers how each
+    test-time solve ended (an index into `SOLVE_OUTCOMES` per sequence; None
+    for the other methods)."""
+    steps = cfg.eval_solver_steps
+    kind = method.split("_")[0]
+    if method == "smoother_hetero_finetune":
+        return T.predict_split(
+            lambda m, b: T.finetune_smoothed(m, b, steps),
+            model,
+            T._finetune_data(split, cfg.dtype),
+            batch=8,
+        )
+    if kind == "smoother":
+        return T.predict_split(
+            lambda m, b: T.smoothed(m, b, steps), model, split.sequences(cfg.dtype)
+        )
+    if kind == "ekf":
+        pred = T.predict_split(T.ekf_positions, model, split.sequences(cfg.dtype))
+    elif kind == "lstm":
+        pred = T.predict_split(T.lstm_positions, model, T._lstm_data(split, cfg.dtype))
+    else:
+        raise ValueError(f"unknown method {method!r}")
+    return pred, None
+
+
+def run_fold(
+    cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print, sensor=None
+) -> dict:
+    """Run (or resume) every stage for one test fold; return its results.
+
+    `sensor`: a trained virtual sensor to use instead of pretraining one (the
+    committed `sensor_foldK.eqx`, for heads retrained from it).
+    """
     fold_dir = Path(work) / f"fold_{test_fold}"
     fold_dir.mkdir(parents=True, exist_ok=True)
     code_version = report.git_hash()  # the code this process runs
@@ -96,86 +160,40 @@ def run_fold(cfg: T.Config, test_fold: int, work: Path, cache_dir, log=print) ->
         f"fold {test_fold}: {train.n} training, {val.n} validation, {test.n} test "
         f"sequences of {cfg.num_frames} frames"
     )
-    k_sensor, k_noise, k_lstm = jax.random.split(jax.random.key(cfg.model_seed), 3)
+    k_sensor, *keys = jax.random.split(jax.random.key(cfg.model_seed), 3)
     records: dict[str, dict] = {}
     models: dict[str, Any] = {}
     truth = test.fold.positions
 
-    with timer("sensor"):
-        fit = T.pretrain_sensor(cfg, train, val, k_sensor, fold_dir)
-    sensor = fit.best_model
+    fit = None
+    if sensor is None:
+        with timer("sensor"):
+            fit = T.pretrain_sensor(cfg, train, val, k_sensor, fold_dir)
+        sensor = fit.best_model
     with timer("sensor_outputs"):
         for name, split in (("train", train), ("val", val), ("test", test)):
-            _cached_outputs(sensor, split, cfg, fold_dir / f"sensor_{name}.npz")
+            cached_outputs(sensor, split, cfg, fold_dir / f"sensor_{name}.npz")
     assert test.sensor is not None and val.sensor is not None
-    records["virtual_sensor"] = _record(
-        fit, test.sensor, truth, timer.seconds["sensor"]
-    )
     sigma = T.rmse(val.sensor, val.fold.positions)
+    if fit is None:  # given, not trained here
+        records["virtual_sensor"] = dict(
+            test_rmse=T.rmse(test.sensor, truth), val_rmse=sigma
+        )
+    else:
+        records["virtual_sensor"] = _record(
+            fit, test.sensor, truth, timer.seconds["sensor"]
+        )
     log(
         f"virtual sensor: val RMSE {sigma:.3f} px, test RMSE "
         f"{records['virtual_sensor']['test_rmse']:.3f} px"
     )
     predictions: dict[str, np.ndarray] = {"virtual_sensor": test.sensor}
-    steps = cfg.eval_solver_steps
     for method in cfg.methods:
-        parts = method.split("_")
-        outcomes = None  # smoothers: SOLVE_OUTCOMES index per test sequence
         with timer(method):
-            if method == "smoother_hetero_finetune":
-                start = models.get("smoother_hetero_surrogate")
-                if start is None:
-                    start = T.make_smoother_model("hetero", sigma, k_noise, cfg.dtype)
-                res = T.train_finetune(cfg, train, val, sensor, start, fold_dir, method)
-                pred, outcomes = T.predict_split(
-                    lambda m, b: T.finetune_smoothed(m, b, steps),
-                    res.best_model,
-                    T._finetune_data(test, cfg.dtype),
-                    batch=8,
-                )
-            elif parts[0] == "smoother":
-                res = T.train_smoother(
-                    cfg,
-                    parts[1],
-                    parts[2],
-                    train,
-                    val,
-                    sigma,
-                    k_noise,
-                    fold_dir,
-                    method,
-                    learn_dynamics="learndyn" in parts[3:],
-                    view=T.view_factor(method),
-                )
-                pred, outcomes = T.predict_split(
-                    lambda m, b: T.smoothed(m, b, steps),
-                    res.best_model,
-                    test.sequences(cfg.dtype),
-                )
-            elif parts[0] == "ekf":
-                res = T.train_ekf(
-                    cfg,
-                    parts[1],
-                    parts[2],
-                    train,
-                    val,
-                    sigma,
-                    k_noise,
-                    fold_dir,
-                    method,
-                )
-                pred = T.predict_split(
-                    T.ekf_positions, res.best_model, test.sequences(cfg.dtype)
-                )
-            elif parts[0] == "lstm":
-                res = T.train_lstm(
-                    cfg, parts[1] == "bi", train, val, k_lstm, fold_dir, method
-                )
-                pred = T.predict_split(
-                    T.lstm_positions, res.best_model, T._lstm_data(test, cfg.dtype)
-                )
-            else:
-                raise ValueError(f"unknown method {method!r}")
+            res = _train_method(
+                cfg, method, train, val, sensor, sigma, models, keys, fold_dir
+            )
+            pred, outcomes = predict(cfg, method, res.best_model, test)
         models[method] = res.best_model
         predictions[method] = pred
         records[method] = _record(res, pred, truth, timer.seconds[method])
