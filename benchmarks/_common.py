@@ -1,5 +1,7 @@
-"""Shared helpers for the benchmark scripts (timing, machine info, output)."""
+"""Shared scaffolding of the benchmark scripts: timing, machine record, output,
+optional imports and the 5-pose SE(2) graph several workloads use."""
 
+import importlib
 import json
 import os
 import platform
@@ -12,77 +14,130 @@ from pathlib import Path
 import jax
 
 
-def _git_hash(where: Path) -> str:
-    """The short hash of HEAD of the checkout holding `where`."""
+HERE = Path(__file__).resolve().parent
+
+
+def git(*args: str, where: Path = HERE) -> str:
+    """Output of `git ARGS` in the checkout holding `where` ("" if unavailable)."""
     try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=where,
-        ).stdout.strip()
+        out = subprocess.run(["git", *args], capture_output=True, text=True, cwd=where)
     except OSError:
-        return "unknown"
+        return ""
+    return out.stdout.strip()
+
+
+def dirty(*paths: str) -> list[str]:
+    """Paths (relative to the repository root) with uncommitted changes."""
+    out = git("status", "--porcelain", "--untracked-files=no", "--", *paths)
+    return [line[3:] for line in out.splitlines() if line.strip()]
+
+
+def _proc_field(path: str, key: str) -> str | None:
+    try:
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(key):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
 
 
 def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
-    except OSError:
-        pass
+    """What a timing depends on: hardware, versions, tree, threads, load."""
+    mem = _proc_field("/proc/meminfo", "MemTotal")
     # The eqsmooth actually imported (PYTHONPATH may point at another checkout
     # than the one holding this script, e.g. for a before/after comparison).
     lib = sys.modules.get("eqsmooth")
     lib_dir = Path(lib.__file__).parent if lib is not None else None
-    git = _git_hash(Path(__file__).parent)
-    lib_git = _git_hash(lib_dir) if lib_dir is not None else "not imported"
+    # Thread settings and load change timings by large factors on a shared
+    # 2-core machine (an oversubscribed OpenBLAS made a 400 x 400 Cholesky
+    # 10-100x slower), so they are part of the record.
+    env_keys = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "XLA_FLAGS")
     return {
         "cores": os.cpu_count(),
-        "memory": mem,
-        "cpu": cpu,
+        "memory": f"{int(mem.split()[0]) / 2**20:.1f} GiB" if mem else None,
+        "cpu": _proc_field("/proc/cpuinfo", "model name") or "unknown",
         "python": platform.python_version(),
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "devices": sorted({d.device_kind for d in jax.devices()}),
-        "git": git,
+        "git": git("rev-parse", "--short", "HEAD") or "unknown",
         "eqsmooth": str(lib_dir),
-        "eqsmooth_git": lib_git,
+        "eqsmooth_git": git("rev-parse", "--short", "HEAD", where=lib_dir)
+        if lib_dir
+        else "not imported",
         "command": " ".join([Path(sys.executable).name] + sys.argv),
-        # Thread settings and load change timings by large factors on a
-        # shared 2-core machine (an oversubscribed OpenBLAS made a 400 x 400
-        # Cholesky 10-100x slower), so they are part of the record.
         "env": {
-            k: os.environ[k]
-            for k in (
-                "OPENBLAS_NUM_THREADS",
-                "OMP_NUM_THREADS",
-                "XLA_FLAGS",
-                "GLIBC_TUNABLES",
-            )
-            if k in os.environ
+            k: os.environ[k] for k in env_keys + ("GLIBC_TUNABLES",) if k in os.environ
         },
         "load_average": os.getloadavg(),
     }
+
+
+def optional(module: str, note: str = ""):
+    """The module, or None after printing that it is not installed."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        print(f"note: {module} not installed{note}; not timed")
+
+
+def time_host(fn, repeats: int, budget_s: float = float("inf")):
+    """(first_s, times, last result) of `fn()` (which blocks itself); stops
+    early when another call would exceed `budget_s` (at least one repeat)."""
+    t0 = time.perf_counter()
+    out = fn()
+    first = time.perf_counter() - t0
+    times: list[float] = []
+    start = time.perf_counter()
+    while len(times) < repeats:
+        if times and time.perf_counter() - start + times[-1] > budget_s:
+            break
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return first, times, out
+
+
+def time_fn(fn, *args, repeats: int = 7):
+    """(first_call_s, median_s, all_s) of a function returning JAX arrays."""
+    first, times, _ = time_host(lambda: jax.block_until_ready(fn(*args)), repeats)
+    return first, statistics.median(times), times
+
+
+def write_json(path, records, extra=None):
+    payload = {"machine": machine(), "records": records}
+    if extra:
+        payload.update(extra)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=float))
+    os.replace(tmp, path)
+
+
+def write_text(path, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text if text.endswith("\n") else text + "\n")
+
+
+def markdown_table(rows: list[dict], columns: list[str]) -> str:
+    out = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for r in rows:
+        cells = []
+        for c in columns:
+            v = r.get(c, "")
+            cells.append(f"{v:.4g}" if isinstance(v, float) else str(v))
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
 
 
 def loaded_blas() -> list[str]:
     """The BLAS libraries mapped into this process, other than NumPy's own.
 
     CHOLMOD's supernodal factorisation spends its time in the system BLAS that
-    SuiteSparse was linked against: the reference (netlib) BLAS made torus3D's
-    factorisation 4x slower than OpenBLAS on this machine, so the report says
-    which one was used.
+    SuiteSparse was linked against, so the report says which one was used.
     """
     found = set()
     try:
@@ -99,39 +154,36 @@ def loaded_blas() -> list[str]:
     return sorted(found)
 
 
-def time_fn(fn, *args, repeats: int = 7, min_time: float = 0.0):
-    """Return (first_call_s, median_s, all_s) of a function returning JAX arrays."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    times = []
-    t_start = time.perf_counter()
-    while len(times) < repeats or (time.perf_counter() - t_start) < min_time:
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-        if len(times) > 200:
-            break
-    return first, statistics.median(times), times
+def pose2_problem():
+    """GTSAM's Pose2SLAM example shape: 5 SE(2) poses, a prior, 4 odometry
+    factors and a loop closure 4 -> 1. Returns `(graph, values)`."""
+    import jax.numpy as jnp
+    import numpy as np
 
+    import eqsmooth as eqs
 
-def write_json(path, records, extra=None):
-    payload = {"machine": machine(), "records": records}
-    if extra:
-        payload.update(extra)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=float))
-    os.replace(tmp, path)
+    def poses(xyt):
+        xyt = np.asarray(xyt, np.float64)
+        return eqs.SE2.from_xy_theta(*(jnp.asarray(c) for c in xyt.T))
 
-
-def markdown_table(rows: list[dict], columns: list[str]) -> str:
-    out = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    for r in rows:
-        cells = []
-        for c in columns:
-            v = r.get(c, "")
-            cells.append(f"{v:.4g}" if isinstance(v, float) else str(v))
-        out.append("| " + " | ".join(cells) + " |")
-    return "\n".join(out)
+    h = np.pi / 2
+    odo = [[2.0, 0, 0], [2.1, 0.05, h], [1.9, -0.03, h + 0.02]]
+    odo += [[2.05, 0, h - 0.03], [2.1, 0.1, h + 0.05]]
+    init = [[0.4, 0.1, 0.15], [2.3, 0.1, -0.2], [4.1, 0.2, h]]
+    init += [[4.0, 2.1, np.pi], [2.1, 2.2, -h]]
+    graph = eqs.FactorGraph(
+        [
+            eqs.PriorFactor(
+                eqs.Var("x", [0]),
+                poses([[0.0, 0.0, 0.0]]),
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.3, 0.3, 0.1])),
+            ),
+            eqs.BetweenFactor(
+                eqs.Var("x", [0, 1, 2, 3, 4]),
+                eqs.Var("x", [1, 2, 3, 4, 1]),
+                poses(odo),
+                eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1])),
+            ),
+        ]
+    )
+    return graph, {"x": poses(init)}

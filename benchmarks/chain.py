@@ -1,36 +1,24 @@
 """Time per Gauss-Newton iteration on smoothing chains, per linear solver.
 
-Two problems (see /work/shared/DESIGN.md "Benchmarks convention"):
-
-- `disk`: the paper's disk dynamics with drag, 4-D Euclidean state
-  (p, v), position measurements;
-- `se2vel`: a planar car, state (SE(2) pose, 2-D body velocity) as two
-  variable groups, constant-velocity dynamics, velocity and GPS-like
-  position measurements, a prior on the first pose (block size 5).
+Two problems: `disk` (the paper's disk dynamics with drag, 4-D Euclidean
+state, position measurements) and `se2vel` (a planar car: SE(2) pose and 2-D
+body velocity as two variable groups, constant-velocity dynamics, velocity
+and GPS-like position measurements, a prior on the first pose; block size 5).
 
 One "iteration" = linearise every factor + solve the normal equations +
-retract, jitted. `median_s` is the median over repeats after warm-up;
-`compile_s` is first call minus median; `temp_bytes` is XLA's temporary
-buffer estimate for the compiled iteration.
-
-Each jitted call pays for its scratch buffer: XLA:CPU allocates it per call,
-and for long chains (222 MiB at T = 1e5) the kernel zero-fills every fresh
-page, which is system time that grows with T but is not the solver's work.
-A user's solve runs all its iterations inside one call, so the script also
-times `least_squares(..., FixedStepGaussNewton(solver, num_steps=N))` (the
-public API, N = `--solve-steps`, default 10; N + 1 linearisations, N
-solves and retractions, cost history) and reports `solve_ms_per_step` =
-its median / N, with `solve_compile_s` its compile time. Both figures are
-kept; neither replaces the other.
+retract, jitted. `median_s` is the median over repeats after warm-up,
+`compile_s` the first call minus the median, `temp_MiB` XLA's scratch buffer
+estimate for the compiled iteration, `page_faults` / `sys_ms` the minor page
+faults and system CPU time per call (XLA:CPU allocates its scratch buffer
+per call, and the kernel zero-fills fresh pages: time that grows with T but
+is not the solver's work). A user's solve runs all its iterations inside one
+call, so the script also times `least_squares(..., FixedStepGaussNewton(
+solver, num_steps=N))` (N = `--solve-steps`) and reports
+`solve_ms_per_step` = its median / N and `solve_compile_s`.
 
     python benchmarks/chain.py                 # T = 1e2 .. 1e5
-    python benchmarks/chain.py --quick         # T = 1e2, 1e3 (CI)
+    python benchmarks/chain.py --quick         # T = 1e2, 1e3
     python benchmarks/chain.py --json benchmarks/results/chain.json
-    python benchmarks/chain.py --stages --sizes 10000 100000 --json ...
-
-`--stages` times the parts of one BlockTridiagonal iteration separately
-(linearise, assemble the blocks, factorise, solve, retract), each jitted on
-its own, to show which part grows faster than T.
 """
 
 import argparse
@@ -42,13 +30,6 @@ import numpy as np
 from _common import markdown_table, time_fn, write_json
 
 import eqsmooth as eqs
-from eqsmooth.solve._linear._block_tridiagonal import (
-    assemble_chain,
-    chain_plan,
-    cyclic_reduction_factor,
-    cyclic_reduction_solve,
-)
-from eqsmooth.solve._linearization import linearize, retract_values, zeros_tangent
 
 
 jax.config.update("jax_enable_x64", True)
@@ -67,23 +48,16 @@ def disk_problem(T: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     t = np.arange(T)
     meas = jnp.asarray(rng.normal(scale=20.0, size=(T, 2)))
+    steps = (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]))
+    dyn_noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 2.0, 2.0]))
+    meas_noise = eqs.IsotropicNoise.from_sigma(5.0)
     graph = eqs.FactorGraph(
         [
-            eqs.FunctionFactor(
-                _disk_dyn,
-                (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 2.0, 2.0])),
-            ),
-            eqs.FunctionFactor(
-                _disk_meas,
-                (eqs.Var("x", t),),
-                eqs.IsotropicNoise.from_sigma(5.0),
-                data=meas,
-            ),
+            eqs.FunctionFactor(_disk_dyn, steps, dyn_noise),
+            eqs.FunctionFactor(_disk_meas, (eqs.Var("x", t),), meas_noise, data=meas),
         ]
     )
-    values = {"x": jnp.concatenate([meas, jnp.zeros((T, 2))], axis=1)}
-    return graph, values
+    return graph, {"x": jnp.concatenate([meas, jnp.zeros((T, 2))], axis=1)}
 
 
 DT = 0.1
@@ -107,33 +81,18 @@ def se2vel_problem(T: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     t = np.arange(T)
     vel = jnp.asarray(np.stack([5 + rng.normal(size=T), 0.3 * np.sin(t / 50)], 1))
-    gps = (
-        jnp.asarray(rng.normal(scale=1.0, size=(T, 2))) + jnp.cumsum(vel[:, :1], 0) * DT
-    )
+    gps = jnp.asarray(rng.normal(scale=1.0, size=(T, 2)))
+    gps = gps + jnp.cumsum(vel[:, :1], 0) * DT
+    pose, v = (eqs.Var("pose", t), eqs.Var("vel", t))
+    steps = (eqs.Var("pose", t[:-1]), eqs.Var("vel", t[:-1]))
+    steps += (eqs.Var("pose", t[1:]), eqs.Var("vel", t[1:]))
+    dyn_noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.05, 0.05, 0.01, 0.5, 0.1]))
+    iso = eqs.IsotropicNoise.from_sigma
     graph = eqs.FactorGraph(
         [
-            eqs.FunctionFactor(
-                _car_dyn,
-                (
-                    eqs.Var("pose", t[:-1]),
-                    eqs.Var("vel", t[:-1]),
-                    eqs.Var("pose", t[1:]),
-                    eqs.Var("vel", t[1:]),
-                ),
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.05, 0.05, 0.01, 0.5, 0.1])),
-            ),
-            eqs.FunctionFactor(
-                _car_vel,
-                (eqs.Var("vel", t),),
-                eqs.IsotropicNoise.from_sigma(0.5),
-                data=vel,
-            ),
-            eqs.FunctionFactor(
-                _car_gps,
-                (eqs.Var("pose", t),),
-                eqs.IsotropicNoise.from_sigma(2.0),
-                data=gps,
-            ),
+            eqs.FunctionFactor(_car_dyn, steps, dyn_noise),
+            eqs.FunctionFactor(_car_vel, (v,), iso(0.5), data=vel),
+            eqs.FunctionFactor(_car_gps, (pose,), iso(2.0), data=gps),
             eqs.PriorFactor(
                 eqs.Var("pose", [0]),
                 eqs.SE2.identity((1,)),
@@ -141,19 +100,16 @@ def se2vel_problem(T: int, seed: int = 0):
             ),
         ]
     )
-    values = {
-        "pose": eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3)))),
-        "vel": vel,
-    }
-    return graph, values
+    poses = eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3))))
+    return graph, {"pose": poses, "vel": vel}
 
 
 def make_iteration(linear_solver):
     @jax.jit
     def iteration(graph, values):
-        lin = linearize(graph, values)
+        lin = eqs.linearize(graph, values)
         delta, result = eqs.solve.solve_normal(linear_solver, lin)
-        return retract_values(values, delta), lin.cost
+        return {k: eqs.retract(v, delta[k]) for k, v in values.items()}, lin.cost
 
     return iteration
 
@@ -170,12 +126,7 @@ def make_solve(linear_solver, num_steps: int):
 
 
 def _faults_per_call(fn, *args, calls: int = 5) -> tuple[float, float]:
-    """Minor page faults and system CPU seconds per call, after warm-up.
-
-    XLA:CPU allocates a program's scratch buffer on every call; when malloc
-    hands out fresh pages the kernel zero-fills each one (see
-    docs/getting-started.md), which shows up here.
-    """
+    """Minor page faults and system CPU seconds per call, after warm-up."""
     jax.block_until_ready(fn(*args))
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     for _ in range(calls):
@@ -184,40 +135,64 @@ def _faults_per_call(fn, *args, calls: int = 5) -> tuple[float, float]:
     return (r1.ru_minflt - r0.ru_minflt) / calls, (r1.ru_stime - r0.ru_stime) / calls
 
 
-def stage_records(problem: str, build, T: int) -> list[dict]:
-    """Median time of each part of one BlockTridiagonal iteration, jitted apart."""
-    graph, values = build(T)
-    lin_fn = jax.jit(linearize)
-    lin = lin_fn(graph, values)
-    plan = chain_plan(lin)
-    assemble = jax.jit(lambda lin: assemble_chain(lin, plan, None))
-    diag, upper, grad = assemble(lin)
-    factor = jax.jit(cyclic_reduction_factor)
-    state = factor(diag, upper)
-    stages = {
-        "linearize": (lin_fn, (graph, values)),
-        "assemble": (assemble, (lin,)),
-        "factor": (factor, (diag, upper)),
-        "solve": (jax.jit(cyclic_reduction_solve), (state, grad)),
-        "retract": (jax.jit(retract_values), (values, zeros_tangent(lin))),
+def measure(problem, T, graph, values, name, ls, solve_steps) -> dict:
+    it = make_iteration(ls)
+    first, median, _ = time_fn(it, graph, values, repeats=7 if T < 1e5 else 5)
+    faults, sys_s = _faults_per_call(it, graph, values)
+    mem = it.lower(graph, values).compile().memory_analysis()
+    rec = {
+        "benchmark": "chain",
+        "config": {"problem": problem, "T": T, "solver": name, "dtype": "float64"},
+        "problem": problem,
+        "T": T,
+        "solver": name,
+        "median_s": median,
+        "median_ms": median * 1e3,
+        "compile_s": first - median,
+        "temp_MiB": getattr(mem, "temp_size_in_bytes", 0) / 2**20,
+        "page_faults": faults,
+        "sys_ms": sys_s * 1e3,
     }
-    records = []
-    for stage, (fn, args) in stages.items():
-        first, median, _ = time_fn(fn, *args, repeats=7)
-        records.append(
-            {
-                "benchmark": "chain_stages",
-                "config": {"problem": problem, "T": T, "stage": stage},
-                "problem": problem,
-                "T": T,
-                "stage": stage,
-                "median_s": median,
-                "median_ms": median * 1e3,
-                "compile_s": first - median,
-            }
+    text = ""
+    if solve_steps > 0 and name != "DenseCholesky":
+        solve = make_solve(ls, solve_steps)
+        s_first, s_med, _ = time_fn(solve, graph, values, repeats=5 if T < 1e5 else 3)
+        rec["solve_steps"] = solve_steps
+        rec["solve_ms_per_step"] = s_med / solve_steps * 1e3
+        rec["solve_compile_s"] = s_first - s_med
+        text = (
+            f"; in a {solve_steps}-step solve {rec['solve_ms_per_step']:8.2f} "
+            f"ms/step, compile {rec['solve_compile_s']:5.2f} s"
         )
-        print(f"{problem:7s} T={T:<7d} {stage:10s} {median * 1e3:9.2f} ms", flush=True)
-    return records
+    print(
+        f"{problem:7s} T={T:<7d} {name:17s} {median * 1e3:9.2f} ms/iter compile "
+        f"{first - median:6.2f} s {faults:8.0f} page faults {sys_s * 1e3:6.1f} "
+        f"ms sys{text}",
+        flush=True,
+    )
+    return rec
+
+
+def scaling(records) -> None:
+    """t(1e5) / t(1e4) of BlockTridiagonal, added to the T = 1e5 record."""
+    for problem in ("disk", "se2vel"):
+        bt = {r["T"]: r for r in records if r["problem"] == problem}
+        bt = {T: r for T, r in bt.items() if r["solver"] == "BlockTridiagonal"}
+        if 10_000 not in bt or 100_000 not in bt:
+            continue
+        small, large = bt[10_000], bt[100_000]
+        large["ratio_1e5_over_1e4"] = large["median_s"] / small["median_s"]
+        ratio = large["ratio_1e5_over_1e4"]
+        line = f"{problem}: t(1e5)/t(1e4) = {ratio:.2f} per jitted iteration"
+        if "solve_ms_per_step" in small and "solve_ms_per_step" in large:
+            ratio = large["solve_ms_per_step"] / small["solve_ms_per_step"]
+            large["solve_ratio_1e5_over_1e4"] = ratio
+            line += f", {ratio:.2f} per step inside a solve"
+        print(line + " (BlockTridiagonal)")
+
+
+COLUMNS = ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]
+COLUMNS += ["page_faults", "sys_ms", "solve_ms_per_step", "solve_compile_s"]
 
 
 def main(argv=None):
@@ -232,144 +207,35 @@ def main(argv=None):
         default=["BlockTridiagonal", "PCG", "DenseCholesky", "SparseLU"],
     )
     parser.add_argument(
-        "--stages", action="store_true", help="time the parts of an iteration"
+        "--solve-steps", type=int, default=10, help="N of the timed solve (0: skip)"
     )
     parser.add_argument(
-        "--solve-steps",
-        type=int,
-        default=10,
-        help="N of the FixedStepGaussNewton solve timed per configuration "
-        "(0: skip that measurement)",
-    )
-    parser.add_argument(
-        "--tail-size",
-        type=int,
-        default=None,
-        help="BlockTridiagonal(tail_size=...) (1 = cyclic reduction all the way "
-        "down, the behaviour before the sequential tail; default 32)",
+        "--tail-size", type=int, default=None, help="BlockTridiagonal(tail_size=...)"
     )
     args = parser.parse_args(argv)
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
     builders = {"disk": disk_problem, "se2vel": se2vel_problem}
-    if args.stages:
-        records = []
-        for problem in args.problems:
-            for T in sizes:
-                records += stage_records(problem, builders[problem], T)
-        print()
-        print(markdown_table(records, ["problem", "T", "stage", "median_ms"]))
-        if args.json:
-            write_json(args.json, records)
-        return
+    tail = {} if args.tail_size is None else {"tail_size": args.tail_size}
     solvers = {
-        "BlockTridiagonal": (
-            eqs.BlockTridiagonal()
-            if args.tail_size is None
-            else eqs.BlockTridiagonal(tail_size=args.tail_size)
-        ),
+        "BlockTridiagonal": eqs.BlockTridiagonal(**tail),
         "PCG": eqs.PCG(),
         "DenseCholesky": eqs.DenseCholesky(),
         "SparseLU": eqs.solve.SparseLU(),
     }
-    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
+    largest = {"DenseCholesky": 1000, "PCG": 10_000, "SparseLU": 10_000}
     records = []
     for problem in args.problems:
-        build = builders[problem]
         for T in sizes:
-            graph, values = build(T)
-            for name, ls in solvers.items():
-                if name == "DenseCholesky" and T > 1000:
-                    continue
-                if name in ("PCG", "SparseLU") and T > 10_000:
-                    continue
-                it = make_iteration(ls)
-                first, median, _ = time_fn(
-                    it, graph, values, repeats=7 if T < 1e5 else 5
-                )
-                faults, sys_s = _faults_per_call(it, graph, values)
-                mem = it.lower(graph, values).compile().memory_analysis()
-                solve_rec = {}
-                if args.solve_steps > 0 and name != "DenseCholesky":
-                    s_first, s_median, _ = time_fn(
-                        make_solve(ls, args.solve_steps),
-                        graph,
-                        values,
-                        repeats=5 if T < 1e5 else 3,
+            graph, values = builders[problem](T)
+            for name in args.solvers:
+                if T <= largest.get(name, T):
+                    rec = measure(
+                        problem, T, graph, values, name, solvers[name], args.solve_steps
                     )
-                    solve_rec = {
-                        "solve_steps": args.solve_steps,
-                        "solve_ms_per_step": s_median / args.solve_steps * 1e3,
-                        "solve_compile_s": s_first - s_median,
-                    }
-                rec = {
-                    "benchmark": "chain",
-                    "config": {
-                        "problem": problem,
-                        "T": T,
-                        "solver": name,
-                        "dtype": "float64",
-                    },
-                    "problem": problem,
-                    "T": T,
-                    "solver": name,
-                    "median_s": median,
-                    "median_ms": median * 1e3,
-                    "compile_s": first - median,
-                    "temp_MiB": getattr(mem, "temp_size_in_bytes", 0) / 2**20,
-                    "page_faults": faults,
-                    "sys_ms": sys_s * 1e3,
-                    **solve_rec,
-                }
-                records.append(rec)
-                print(
-                    f"{problem:7s} T={T:<7d} {name:17s} {median * 1e3:9.2f} ms/iter "
-                    f"compile {first - median:6.2f} s  {faults:8.0f} page faults "
-                    f"{sys_s * 1e3:6.1f} ms sys"
-                    + (
-                        f"; in a {args.solve_steps}-step solve "
-                        f"{solve_rec['solve_ms_per_step']:8.2f} ms/step, compile "
-                        f"{solve_rec['solve_compile_s']:5.2f} s"
-                        if solve_rec
-                        else ""
-                    ),
-                    flush=True,
-                )
-    # linear-scaling ratio of the structured solver
-    for problem in ("disk", "se2vel"):
-        bt = {
-            r["T"]: r
-            for r in records
-            if r["problem"] == problem and r["solver"] == "BlockTridiagonal"
-        }
-        if 10_000 in bt and 100_000 in bt:
-            ratio = bt[100_000]["median_s"] / bt[10_000]["median_s"]
-            bt[100_000]["ratio_1e5_over_1e4"] = ratio
-            line = f"{problem}: t(1e5)/t(1e4) = {ratio:.2f} per jitted iteration"
-            if "solve_ms_per_step" in bt[10_000] and "solve_ms_per_step" in bt[100_000]:
-                solve_ratio = (
-                    bt[100_000]["solve_ms_per_step"] / bt[10_000]["solve_ms_per_step"]
-                )
-                bt[100_000]["solve_ratio_1e5_over_1e4"] = solve_ratio
-                line += f", {solve_ratio:.2f} per step inside a solve"
-            print(line + " (BlockTridiagonal)")
+                    records.append(rec)
+    scaling(records)
     print()
-    print(
-        markdown_table(
-            records,
-            [
-                "problem",
-                "T",
-                "solver",
-                "median_ms",
-                "compile_s",
-                "temp_MiB",
-                "page_faults",
-                "sys_ms",
-                "solve_ms_per_step",
-                "solve_compile_s",
-            ],
-        )
-    )
+    print(markdown_table(records, COLUMNS))
     if args.json:
         write_json(args.json, records)
 

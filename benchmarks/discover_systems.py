@@ -1,37 +1,29 @@
 """Monte Carlo of the discrepancy workflow on other systems than the 1-D oscillator.
 
 `--system two_axis`: two axes joined by a coupling spring, state
-(p_x, p_y, v_x, v_y), p' = p + v, v' = v − k p − k_c (p − p_swapped) + effect
-+ noise (k = 0.05, k_c = 0.02, process noise std (0.05, 0.05, 0.5, 0.5)),
-each position measured by its own sensor with std 1, first state from the
-model's prior N(0, diag(20², 20², 4², 4²)). The candidate library is the
-whole `mechanical_library` of two axes with two sensors (14 candidates).
-Hidden effects: isotropic quadratic drag, and a constant force on the y axis
-only (which the springs make equivalent to a bias of the y sensor; that set
-counts as correct, a name on the x axis as wrong).
+(p_x, p_y, v_x, v_y), v' = v − k p − k_c (p − p_swapped) + effect + noise
+(k = 0.05, k_c = 0.02, process noise std (0.05, 0.05, 0.5, 0.5)), each
+position measured by its own sensor (std 1); the two-axis
+`mechanical_library` with two sensors (14 candidates). Hidden effects:
+isotropic quadratic drag, and a constant force on the y axis only (which the
+springs make equivalent to a bias of the y sensor: that set counts as
+correct, a name on the x axis as wrong).
 
-`--system driven`: the 1-D oscillator of `benchmarks/discover.py` driven by
-a known input force, p' = p + v, v' = v − k p + u + effect + noise (k = 0.05,
-process noise std (0.05, 0.5), position measured with std 1, prior
-N(0, diag(20², 4²))). Each sequence's input is a sinusoid (amplitude 0.6,
-period 6-20 steps, random phase) plus a random telegraph signal (±0.4,
-switching with probability 0.15 per step), given to the model as `u_t`.
-The library is the one-axis `mechanical_library` with one input: it adds an
-actuator-gain candidate (`v' += c u`) to the 10 of `discover.py`. Hidden
-effects: an actuator gain error, quadratic drag, Coulomb friction and a
-constant force.
+`--system driven`: the oscillator of `discover.py` driven by a known input
+force u (a sinusoid of amplitude 0.6, period 6-20 steps, plus a ±0.4 random
+telegraph switching with probability 0.15 per step); the one-axis library
+with one input (an actuator-gain candidate added). Hidden effects: an
+actuator gain error, quadratic drag, Coulomb friction, a constant force.
 
-Both: B = 24 sequences × T = 40 steps per data set; each effect at a
-per-step signal-to-noise ratio `--level` (the RMS of its velocity increment
-over nominal trajectories, over the velocity noise 0.5); null data: no
-effect. Outcomes and rates as in `benchmarks/discover.py` (Wilson 95%
-intervals).
+Both: B = 24 sequences × T = 40 steps per data set, each effect at the
+per-step signal-to-noise ratio `--level`; null data: no effect. Outcomes and
+rates as in `discover.py`.
 
-    python benchmarks/discover_systems.py --system two_axis --seeds 10 --null 40 \
-        --json benchmarks/results/discover_two_axis.json \
+    python benchmarks/discover_systems.py --system two_axis --seeds 10 --null 40 \\
+        --json benchmarks/results/discover_two_axis.json \\
         --markdown benchmarks/results/discover_two_axis.md
-    python benchmarks/discover_systems.py --system driven --seeds 10 --null 200 \
-        --json benchmarks/results/discover_driven.json \
+    python benchmarks/discover_systems.py --system driven --seeds 10 --null 200 \\
+        --json benchmarks/results/discover_driven.json \\
         --markdown benchmarks/results/discover_driven.md
 """
 
@@ -39,6 +31,7 @@ import argparse
 import dataclasses
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -49,7 +42,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine, write_json  # noqa: E402
+from _common import machine, write_json, write_text  # noqa: E402
 from discover import (  # noqa: E402
     _effect_term,
     _git,
@@ -79,10 +72,6 @@ class System:
     stream: int  # offsets the random streams, so systems never share data
 
 
-# ---------------------------------------------------------------------------
-# Two coupled axes, two sensors
-# ---------------------------------------------------------------------------
-
 SPRING, COUPLING = 0.05, 0.02
 Q2 = np.array([0.05, 0.05, 0.5, 0.5])
 R2 = np.array([1.0, 1.0])
@@ -101,11 +90,9 @@ def _meas2(x, params):
 
 def _increment2(effect: str, v: np.ndarray) -> np.ndarray:
     """Velocity increment `(…, 2)` of a unit coefficient."""
-    if effect == "drag":
-        return -v * np.abs(v)
     if effect == "force_y":
         return np.broadcast_to(np.array([0.0, 1.0]), v.shape)
-    return np.zeros_like(v)
+    return -v * np.abs(v) if effect == "drag" else np.zeros_like(v)
 
 
 def _simulate2(rng, effect: str, coef: float, num: int = B):
@@ -138,36 +125,14 @@ def _calibrate2(level: float) -> dict:
 
 
 def two_axis() -> System:
-    model = dc.ChainModel(
-        _dyn2,
-        _meas2,
-        (jnp.asarray(SPRING), jnp.asarray(COUPLING)),
-        Q2,
-        R2,
-        PRIOR2,
-        dc.mechanical_library(
-            [0, 1],
-            [2, 3],
-            4,
-            measured_positions=[0, 1],
-            axis_names=["x", "y"],
-            coulomb_eps=1.0,
-        ),
-    )
-    return System(
-        "two_axis",
-        "two coupled axes, two sensors",
-        model,
-        {"drag": "quadratic drag", "force_y": "constant force [y]"},
-        _simulate2,
-        _calibrate2,
-        0,
-    )
+    sensors = {"measured_positions": [0, 1], "axis_names": ["x", "y"]}
+    library = dc.mechanical_library([0, 1], [2, 3], 4, **sensors, coulomb_eps=1.0)
+    params = (jnp.asarray(SPRING), jnp.asarray(COUPLING))
+    model = dc.ChainModel(_dyn2, _meas2, params, Q2, R2, PRIOR2, library)
+    effects = {"drag": "quadratic drag", "force_y": "constant force [y]"}
+    title = "two coupled axes, two sensors"
+    return System("two_axis", title, model, effects, _simulate2, _calibrate2, 0)
 
-
-# ---------------------------------------------------------------------------
-# A driven oscillator: one axis, a known input force
-# ---------------------------------------------------------------------------
 
 Q1 = np.array([0.05, 0.5])
 R1 = 1.0
@@ -196,12 +161,9 @@ def _inputs(rng, num: int) -> np.ndarray:
 
 
 def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Velocity increment of a unit coefficient (the other effects as in
-    `benchmarks/discover.py`)."""
-    if effect == "gain":
-        return u
-    if effect == "none":
-        return np.zeros_like(v)
+    """Velocity increment of a unit coefficient (others as in `discover.py`)."""
+    if effect in ("gain", "none"):
+        return u if effect == "gain" else np.zeros_like(v)
     return _effect_term(effect, v)
 
 
@@ -235,31 +197,15 @@ def _calibrate1(level: float) -> dict:
 
 
 def driven() -> System:
-    model = dc.ChainModel(
-        _dyn1,
-        _meas1,
-        jnp.asarray(SPRING),
-        Q1,
-        np.array([R1]),
-        PRIOR1,
-        dc.mechanical_library(
-            [0], [1], 2, measured_positions=[0], coulomb_eps=COULOMB_EPS, num_inputs=1
-        ),
+    library = dc.mechanical_library(
+        [0], [1], 2, measured_positions=[0], coulomb_eps=COULOMB_EPS, num_inputs=1
     )
-    return System(
-        "driven",
-        "a driven oscillator (one axis, a known input force)",
-        model,
-        {
-            "gain": "actuator gain",
-            "drag": "quadratic drag",
-            "coulomb": "Coulomb friction",
-            "force": "constant force",
-        },
-        _simulate1,
-        _calibrate1,
-        100,
-    )
+    nominal = (_dyn1, _meas1, jnp.asarray(SPRING), Q1, np.array([R1]), PRIOR1)
+    model = dc.ChainModel(*nominal, library)
+    effects = {"gain": "actuator gain", "drag": "quadratic drag"}
+    effects |= {"coulomb": "Coulomb friction", "force": "constant force"}
+    title = "a driven oscillator (one axis, a known input force)"
+    return System("driven", title, model, effects, _simulate1, _calibrate1, 100)
 
 
 SYSTEMS = {"two_axis": two_axis, "driven": driven}
@@ -269,76 +215,92 @@ def cell(
     system: System, effect: str | None, coef: float, seeds: int, tag: int, log
 ) -> dict:
     truth = system.effects.get(effect) if effect is not None else None
-    counts = {k: 0 for k in ("exact", "set", "extra", "wrong", "none")}
-    detected = unnamed = flagged = crashes = alarm = named_any = 0
-    coefs, times, names = [], [], {}
-    per_alarm: dict[str, int] = {}
+    c, coefs, times = Counter(), [], []
+    names, per_alarm = Counter(), Counter()
     for s in range(seeds):
         rng = np.random.default_rng(np.random.SeedSequence([2026, 77, tag, s]))
         data = system.simulate(rng, effect or "none", coef)
         out = guarded_run(data, system.model, log, f"{effect} seed {s}")
         if out is None:
-            crashes += 1
+            c["crashes"] += 1
             continue
         times.append(out["seconds"])
-        flagged += bool(out["flags"])
-        detected += out["detected"]
-        unnamed += out["unnamed"]
-        alarm += any(out["alarms"].values())
-        for kind, raised in out["alarms"].items():
-            per_alarm[kind] = per_alarm.get(kind, 0) + bool(raised)
-        named_any += bool(out["named"])
-        for nm in out["named"]:
-            names[nm] = names.get(nm, 0) + 1
+        for key in ("detected", "unnamed"):
+            c[key] += out[key]
+        c["flagged"] += bool(out["flags"])
+        c["alarm"] += any(out["alarms"].values())
+        c["named_any"] += bool(out["named"])
+        per_alarm.update({kind: bool(raised) for kind, raised in out["alarms"].items()})
+        names.update(out["named"])
         if truth is not None:
-            counts[classify(out, truth)] += 1
+            c[classify(out, truth)] += 1
             if truth in out["coefficients"]:
                 coefs.append(out["coefficients"][truth][0])
         elif out["named"] or any(out["alarms"].values()):
             log(f"  null seed {s}: verdict {out['verdict']}")
-    n = seeds - crashes
-    rec = {
-        "effect": effect or "none",
-        "truth": truth,
-        "coefficient": coef,
-        "n": n,
-        "crashes": crashes,
-        "flagged": flagged,
-        "detected": rate(detected, n),
-        "unnamed_structure": rate(unnamed, n),
-        "any_alarm": rate(alarm, n),
+    n = seeds - c["crashes"]
+    rec = {"effect": effect or "none", "truth": truth, "coefficient": coef, "n": n}
+    rec |= {"crashes": c["crashes"], "flagged": c["flagged"]}
+    rec |= {
+        "detected": rate(c["detected"], n),
+        "unnamed_structure": rate(c["unnamed"], n),
+        "any_alarm": rate(c["alarm"], n),
         "alarms": {kind: rate(k, n) for kind, k in per_alarm.items()},
-        "named_counts": names,
+        "named_counts": dict(names),
         "median_s": float(np.median(times)) if times else float("nan"),
     }
-    if truth is not None:
-        rec.update(
-            {
-                "truth_alone": rate(counts["exact"], n),
-                "truth_in_set": rate(counts["set"], n),
-                "correct": rate(counts["exact"] + counts["set"], n),
-                "truth_plus_extra": rate(counts["extra"], n),
-                "wrong_name": rate(counts["wrong"], n),
-                "nothing_named": rate(counts["none"], n),
-                "coefficient_median_rel_error": float(
-                    np.median(np.abs(np.asarray(coefs) - coef) / coef)
-                )
-                if coefs
-                else None,
-            }
+    if truth is None:
+        return rec | {"anything_named": rate(c["named_any"], n)}
+    err = np.median(np.abs(np.asarray(coefs) - coef) / coef) if coefs else None
+    return rec | {
+        "truth_alone": rate(c["exact"], n),
+        "truth_in_set": rate(c["set"], n),
+        "correct": rate(c["exact"] + c["set"], n),
+        "truth_plus_extra": rate(c["extra"], n),
+        "wrong_name": rate(c["wrong"], n),
+        "nothing_named": rate(c["none"], n),
+        "coefficient_median_rel_error": None if err is None else float(err),
+    }
+
+
+def _effect_row(r) -> str:
+    err = r["coefficient_median_rel_error"]
+    cells = [r["truth"], f"{r['coefficient']:.4g}", str(r["n"])]
+    cells += [fmt_rate(r[k]) for k in ("detected", "correct", "truth_alone")]
+    cells += [fmt_rate(r[k]) for k in ("truth_in_set", "truth_plus_extra")]
+    cells += [fmt_rate(r["wrong_name"]), "–" if err is None else f"{err:.3f}"]
+    cells += [fmt_rate(r["any_alarm"]), f"{r['crashes']} / {r['flagged']}"]
+    return "| " + " | ".join(cells + [f"{r['median_s']:.2f}"]) + " |"
+
+
+def _null_lines(r) -> list[str]:
+    lines = [
+        "",
+        f"Null data (n = {r['n']}): detected {fmt_rate(r['detected'])}, unnamed "
+        f"structure {fmt_rate(r['unnamed_structure'])}, any alarm "
+        f"{fmt_rate(r['any_alarm'])}, anything named {fmt_rate(r['anything_named'])};"
+        f" crashes {r['crashes']}, flagged {r['flagged']}; names given: "
+        f"{r['named_counts'] or 'none'}.",
+    ]
+    if r.get("alarms"):
+        worst = max(a["rate"] for a in r["alarms"].values())
+        each = ", ".join(
+            f"{kind.replace('_', ' ')} {fmt_rate(a)}" for kind, a in r["alarms"].items()
         )
-    else:
-        rec["anything_named"] = rate(named_any, n)
-    return rec
+        lines.append(
+            f"- every alarm on null data (target ≤ α = 0.05 each): {each}; largest "
+            f"{worst:.3f}: " + ("met." if worst <= 0.05 else "MISSED.")
+        )
+    return lines
 
 
 def report(system: System, records, info) -> str:
+    m = info["machine"]
     lines = [
         f"# discover benchmark: {system.title}",
         "",
         f"- command: `{info['command']}`",
-        f"- machine: {info['machine']['cores']} cores, {info['machine']['cpu']}; "
-        f"JAX {info['machine']['jax']}",
+        f"- machine: {m['cores']} cores, {m['cpu']}; JAX {m['jax']}",
         f"- git: {info['git']}"
         + (f"; uncommitted: {', '.join(info['dirty'])}" if info["dirty"] else ""),
         f"- library ({len(system.model.names)} candidates): "
@@ -351,43 +313,10 @@ def report(system: System, records, info) -> str:
         "| any alarm | crashes / flagged | median s |",
         "|" + "---|" * 13,
     ]
+    lines += [_effect_row(r) for r in records if r["truth"] is not None]
     for r in records:
         if r["truth"] is None:
-            continue
-        lines.append(
-            f"| {r['truth']} | {r['coefficient']:.4g} | {r['n']} | "
-            f"{fmt_rate(r['detected'])} | {fmt_rate(r['correct'])} | "
-            f"{fmt_rate(r['truth_alone'])} | {fmt_rate(r['truth_in_set'])} | "
-            f"{fmt_rate(r['truth_plus_extra'])} | {fmt_rate(r['wrong_name'])} | "
-            + (
-                f"{r['coefficient_median_rel_error']:.3f}"
-                if r["coefficient_median_rel_error"] is not None
-                else "–"
-            )
-            + f" | {fmt_rate(r['any_alarm'])} | {r['crashes']} / {r['flagged']} | "
-            f"{r['median_s']:.2f} |"
-        )
-    for r in records:
-        if r["truth"] is None:
-            lines += [
-                "",
-                f"Null data (n = {r['n']}): detected {fmt_rate(r['detected'])}, "
-                f"unnamed structure {fmt_rate(r['unnamed_structure'])}, any alarm "
-                f"{fmt_rate(r['any_alarm'])}, anything named "
-                f"{fmt_rate(r['anything_named'])}; crashes {r['crashes']}, flagged "
-                f"{r['flagged']}; names given: {r['named_counts'] or 'none'}.",
-            ]
-            if r.get("alarms"):
-                worst = max(a["rate"] for a in r["alarms"].values())
-                lines.append(
-                    "- every alarm on null data (target ≤ α = 0.05 each): "
-                    + ", ".join(
-                        f"{kind.replace('_', ' ')} {fmt_rate(a)}"
-                        for kind, a in r["alarms"].items()
-                    )
-                    + f"; largest {worst:.3f}: "
-                    + ("met." if worst <= 0.05 else "MISSED.")
-                )
+            lines += _null_lines(r)
     for r in records:
         if r["truth"] is not None and r["named_counts"]:
             lines.append(f"- names given with {r['truth']}: {r['named_counts']}")
@@ -400,11 +329,14 @@ def main(argv=None):
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--null", type=int, default=40)
     parser.add_argument("--level", type=float, default=0.4)
+    parser.add_argument("--quick", action="store_true", help="2 seeds, 2 null sets")
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
     args = parser.parse_args(argv)
+    if args.quick:
+        args.seeds, args.null = min(args.seeds, 2), min(args.null, 2)
     system = SYSTEMS[args.system]()
-    head, dirty = _git()
+    head, changed = _git()
     m = machine()
     start = time.perf_counter()
     coefs = system.calibrate(args.level)
@@ -413,23 +345,18 @@ def main(argv=None):
     warm = system.simulate(np.random.default_rng(99), "drag", coefs["drag"])
     run_workflow(warm, system.model)
     first_s = time.perf_counter() - t0
+    command = " ".join([Path(sys.executable).name] + sys.argv)
     records = []
 
     def save():
-        info = {
-            "command": " ".join([Path(sys.executable).name] + sys.argv),
-            "machine": m,
-            "git": head,
-            "dirty": dirty,
-            "system": system.name,
-            "total_s": time.perf_counter() - start,
-            "first_s": first_s,
-        }
+        info = {"command": command, "machine": m, "git": head, "dirty": changed}
+        info |= {"system": system.name, "total_s": time.perf_counter() - start}
+        info["first_s"] = first_s
         if args.json:
             write_json(args.json, records, extra=info)
         text = report(system, records, info)
         if args.markdown:
-            Path(args.markdown).write_text(text)
+            write_text(args.markdown, text)
         return text
 
     cells = [(None, args.null)] + [(e, args.seeds) for e in system.effects]

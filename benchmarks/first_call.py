@@ -1,61 +1,30 @@
 """Time to the first answer of a fresh process, and of a second one with a warm cache.
 
-A new user meets compile time before anything else: every new graph
-structure is traced, lowered to StableHLO and compiled by XLA before the
-first answer. This script measures that as a user meets it, each case in a
-fresh Python process (a subprocess of this script):
+Cases, each in a fresh Python process: `pose2` (`_common.pose2_problem`,
+`eqs.least_squares(graph, values, LevenbergMarquardt())`), `chain1e4`,
+`chain1e5` (`chain.py`'s SE(2) + velocity chain, a `GaussNewton()` solve of
+at most 20 steps, `throw=False`) and `train200` (`train_step.py`'s training
+step at T = 200, K = 3, unrolled). Each runs in two processes in turn with
+JAX's persistent compilation cache on (a fresh folder, no minimum compile
+time or size): `cold` (empty folder) and `warm` (the same folder).
 
-- `pose2`: GTSAM's Pose2SLAM example shape (5 SE(2) poses, a prior, 4
-  odometry factors and a loop closure), solved by
-  `eqs.least_squares(graph, values, LevenbergMarquardt())`;
-- `chain1e4`, `chain1e5`: the SE(2) + velocity chain of
-  `benchmarks/chain.py` (T = 1e4, 1e5), a whole `GaussNewton()` solve with
-  the default linear solver (block-tridiagonal), at most 20 steps,
-  `throw=False`;
-- `train200`: the training step of `benchmarks/train_step.py` at T = 200,
-  K = 3 (a batch of 32 disk graphs, `jax.value_and_grad` of the surrogate
-  loss through `FixedStepGaussNewton` with the unrolled adjoint).
+The child times the call as a user makes it: `first_answer_s` (wall) and
+`first_answer_cpu_s` (CPU seconds, all threads), split by JAX's monitoring
+events into `trace_s` (the outermost trace), `lower_s`, `compile_s` (XLA)
+and `cache_read_s`; `--staged` instead times `.trace`, `.lower()`,
+`.compile()` and the first run of one outer `jax.jit` apart. `cache_hits` /
+`cache_misses` are JAX's events; `not_written_callbacks` counts programs JAX
+would not cache because they use host callbacks (as `eqx.error_if` does).
+`--trees LABEL=PATH ...` runs every case with `PYTHONPATH=PATH` per label,
+alternating (before and after in one command); `--xla-flags LABEL=FLAGS`
+likewise for `XLA_FLAGS`; `--parts` compiles pieces of the pose2 solve.
 
-Each case runs in two processes in turn, both with JAX's persistent
-compilation cache on (`jax_compilation_cache_dir` set to a fresh folder,
-`jax_persistent_cache_min_compile_time_secs = 0`,
-`jax_persistent_cache_min_entry_size_bytes = 0`): `cold` (the folder is
-empty) and `warm` (the same folder, a second process).
-
-By default the child times the call as a user makes it (the public
-`eqs.least_squares` call for the solves, an `eqx.filter_jit` of the value
-and gradient for the training step): `first_answer_s` (wall) and
-`first_answer_cpu_s` (CPU seconds of the process, all threads: on a loaded
-machine the honest figure) from the call to the answer, split by JAX's
-monitoring events into `trace_s` (the outermost
-`/jax/core/compile/jaxpr_trace_duration`, which includes nested jits),
-`lower_s` (`.../jaxpr_to_mlir_module_duration`), `compile_s` (XLA,
-`.../backend_compile_duration`) and `cache_read_s`. With `--staged` the
-function is instead put under one outer `jax.jit` and taken through JAX's
-stages, each timed (`.trace`, `.lower()`, `.compile()`, the first run), wall
-and CPU. `build_s` (making the problem's arrays, including the small eager
-computations that takes) and `import_s` (`import jax, eqsmooth`) are
-reported beside it. `cache_hits` / `cache_misses` are JAX's events
-`/jax/compilation_cache/cache_hits` and `.../cache_misses`;
-`not_written_callbacks` counts JAX's log lines "Not writing persistent
-cache entry ... because it uses host callbacks" (`jax_explain_cache_misses`
-on): JAX neither writes such a program to the persistent cache nor finds it
-there (jax `_src/compiler.py`, `_cache_write`), and `eqx.error_if` is a host
-callback (a `jax.pure_callback` inside a `lax.cond`).
-
-`--trees LABEL=PATH ...` runs every case with `PYTHONPATH=PATH` per label
-(for example the main branch in a git worktree as `before`, this tree as
-`after`), alternating labels, so that before and after are measured in the
-same command. `--xla-flags LABEL=FLAGS ...` does the same for `XLA_FLAGS`
-settings (an empty value: XLA's defaults), labelled in the `tree` column.
-
-    python benchmarks/first_call.py                      # all cases, this tree
-    python benchmarks/first_call.py --cases pose2        # one case
-    python benchmarks/first_call.py --trees before=/tmp/main after=. \\
-        --json benchmarks/results/first_call.json
+    python benchmarks/first_call.py --json benchmarks/results/first_call.json
+    python benchmarks/first_call.py --cases pose2 --trees before=/tmp/main after=.
     python benchmarks/first_call.py --cases pose2 --xla-flags default= \\
         fast=--xla_cpu_use_fusion_emitters=false
-    python benchmarks/first_call.py --parts   # pieces of the pose2 solve
+    python benchmarks/first_call.py --parts \\
+        --json benchmarks/results/first_call_parts.json
 """
 
 import time
@@ -82,56 +51,17 @@ CASES = ("pose2", "chain1e4", "chain1e5", "train200")
 
 
 def _pose2_case():
-    import jax.numpy as jnp
-    import numpy as np
+    sys.path.insert(0, str(HERE))
+    from _common import pose2_problem
 
     import eqsmooth as eqs
 
-    def poses(xyt):
-        xyt = np.asarray(xyt, np.float64)
-        return eqs.SE2.from_xy_theta(
-            jnp.asarray(xyt[:, 0]), jnp.asarray(xyt[:, 1]), jnp.asarray(xyt[:, 2])
-        )
-
-    odo = np.array(
-        [
-            [2.0, 0.0, 0.0],
-            [2.1, 0.05, np.pi / 2],
-            [1.9, -0.03, np.pi / 2 + 0.02],
-            [2.05, 0.0, np.pi / 2 - 0.03],
-            [2.1, 0.1, np.pi / 2 + 0.05],  # loop closure 4 -> 1
-        ]
-    )
-    init = np.array(
-        [
-            [0.4, 0.1, 0.15],
-            [2.3, 0.1, -0.2],
-            [4.1, 0.2, np.pi / 2],
-            [4.0, 2.1, np.pi],
-            [2.1, 2.2, -np.pi / 2],
-        ]
-    )
-    graph = eqs.FactorGraph(
-        [
-            eqs.PriorFactor(
-                eqs.Var("x", [0]),
-                poses([[0.0, 0.0, 0.0]]),
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.3, 0.3, 0.1])),
-            ),
-            eqs.BetweenFactor(
-                eqs.Var("x", [0, 1, 2, 3, 4]),
-                eqs.Var("x", [1, 2, 3, 4, 1]),
-                poses(odo),
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1])),
-            ),
-        ]
-    )
     solver = eqs.LevenbergMarquardt()
 
     def fn(graph, values):
         return eqs.least_squares(graph, values, solver).value
 
-    return fn, (graph, {"x": poses(init)})
+    return fn, pose2_problem()
 
 
 def _chain_case(T: int):
@@ -154,47 +84,25 @@ def _chain_case(T: int):
 def _train_case(T: int, K: int = 3):
     sys.path.insert(0, str(HERE))
     import equinox as eqx
-    import jax
     import jax.numpy as jnp
-    from train_step import BATCH, build_graph, MEAS_SIGMA, simulate
+    from train_step import BATCH, build_graph, eqsmooth_step, MEAS_SIGMA, simulate
 
     import eqsmooth as eqs
 
-    dtype = jnp.float64
-    truths, meas = simulate(T, BATCH, dtype)
-    graphs = eqx.filter_vmap(lambda m: build_graph(m, dtype))(meas)
-    theta = jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)
-    solver = eqs.FixedStepGaussNewton(eqs.BlockTridiagonal(), num_steps=K)
-
-    def one(theta, graph, truth):
-        graph = eqx.tree_at(lambda g: g.factors[1].noise.sqrt_precision, graph, theta)
-        x = eqs.least_squares(
-            graph,
-            {"x": truth},
-            solver,
-            adjoint=eqs.UnrolledAdjoint(),
-            throw=False,
-        ).value["x"]
-        return jnp.mean((x - truth) ** 2)
-
-    def loss(theta, graphs, truths):
-        per = eqx.filter_vmap(one, in_axes=(None, 0, 0))(theta, graphs, truths)
-        return jnp.mean(per)
-
-    return jax.value_and_grad(loss), (theta, graphs, truths)
+    truths, meas = simulate(T, BATCH, jnp.float64)
+    graphs = eqx.filter_vmap(lambda m: build_graph(m, jnp.float64))(meas)
+    theta = jnp.full((2,), 1.0 / MEAS_SIGMA, jnp.float64)
+    # eqx.filter_jit of jax.value_and_grad, as a user's training step.
+    step = eqsmooth_step(eqs.BlockTridiagonal(), K, eqs.UnrolledAdjoint())
+    return step, (theta, graphs, truths)
 
 
-def child(case: str, cache_dir: str | None, staged: bool) -> dict:
-    t_import = time.perf_counter()
+def _monitor(cache_dir: str | None):
+    """Turn the persistent cache on and collect JAX's compile events."""
     import logging
 
-    import equinox as eqx
     import jax
 
-    import eqsmooth  # noqa: F401
-
-    import_s = time.perf_counter() - t_import
-    jax.config.update("jax_enable_x64", True)
     if cache_dir:
         jax.config.update("jax_compilation_cache_dir", cache_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -220,7 +128,67 @@ def child(case: str, cache_dir: str | None, staged: bool) -> dict:
     logging.getLogger("jax._src.compiler").addHandler(_Capture())
     jax.monitoring.register_event_listener(on_event)
     jax.monitoring.register_event_duration_secs_listener(on_duration)
+    return events, durations, not_written
 
+
+def _staged(fn, args, rec, run=True):
+    """Trace, lower, compile (and run) `fn(*args)` under one outer `jax.jit`,
+    each stage timed apart into `rec` (wall and CPU seconds). Returns the
+    compiled call and the lowered program."""
+    import equinox as eqx
+    import jax
+
+    dynamic, static = eqx.partition(args, eqx.is_array)
+
+    def flat(dynamic):
+        out = fn(*eqx.combine(dynamic, static))
+        return jax.tree_util.tree_leaves(eqx.filter(out, eqx.is_array))
+
+    obj, lowered = jax.jit(flat), None
+    stages = [("trace", lambda o: o.trace(dynamic)), ("lower", lambda o: o.lower())]
+    stages += [("compile", lambda o: o.compile())]
+    stages += [("run", lambda o: (jax.block_until_ready(o(dynamic)), o)[1])] * run
+    for stage, step in stages:
+        t, c = time.perf_counter(), time.process_time()
+        obj = step(obj)
+        rec[f"{stage}_s"] = time.perf_counter() - t
+        rec[f"{stage}_cpu_s"] = time.process_time() - c
+        lowered = obj if stage == "lower" else lowered
+    return lambda: obj(dynamic), lowered
+
+
+def _eager(fn, args, rec, durations):
+    """The call as a user makes it, split by JAX's monitoring events."""
+    import equinox as eqx
+    import jax
+
+    jax.block_until_ready(eqx.filter(fn(*args), eqx.is_array))
+    prefix = "/jax/core/compile/"
+    trace = durations.get(prefix + "jaxpr_trace_duration", [0.0])
+    rec.update(
+        # Nested jits are traced inside the outer one: the outermost trace is
+        # the longest and includes them.
+        trace_s=max(trace),
+        lower_s=sum(durations.get(prefix + "jaxpr_to_mlir_module_duration", [])),
+        compile_s=sum(durations.get(prefix + "backend_compile_duration", [])),
+        cache_read_s=sum(
+            durations.get("/jax/compilation_cache/cache_retrieval_time_sec", [])
+        ),
+        programs_traced=len(trace),
+    )
+    return lambda: fn(*args)
+
+
+def child(case: str, cache_dir: str | None, staged: bool) -> dict:
+    t_import = time.perf_counter()
+    import equinox as eqx
+    import jax
+
+    import eqsmooth  # noqa: F401
+
+    import_s = time.perf_counter() - t_import
+    jax.config.update("jax_enable_x64", True)
+    events, durations, not_written = _monitor(cache_dir)
     t = time.perf_counter()
     if case == "pose2":
         fn, args = _pose2_case()
@@ -235,69 +203,13 @@ def child(case: str, cache_dir: str | None, staged: bool) -> dict:
     events.clear()
     durations.clear()
     not_written.clear()
-
     rec = {"case": case, "import_s": import_s, "build_s": build_s}
+    c0, t0 = time.process_time(), time.perf_counter()
     if staged:
-        # Every stage timed apart, under one outer jax.jit of the arrays.
-        dynamic, static = eqx.partition(args, eqx.is_array)
-
-        def flat(dynamic):
-            out = fn(*eqx.combine(dynamic, static))
-            return jax.tree_util.tree_leaves(eqx.filter(out, eqx.is_array))
-
-        stages = {}
-        c0 = time.process_time()
-        t0 = time.perf_counter()
-        obj = jax.jit(flat)
-        for stage, step in (
-            ("trace", lambda o: o.trace(dynamic)),
-            ("lower", lambda o: o.lower()),
-            ("compile", lambda o: o.compile()),
-            ("run", lambda o: jax.block_until_ready(o(dynamic))),
-        ):
-            t, c = time.perf_counter(), time.process_time()
-            obj = step(obj) if stage != "run" else (obj, step(obj))[0]
-            stages[stage] = (time.perf_counter() - t, time.process_time() - c)
-        first = time.perf_counter() - t0
-        first_cpu = time.process_time() - c0
-        compiled = obj
-
-        def call():
-            return compiled(dynamic)
-
-        for stage, (wall, cpu) in stages.items():
-            rec[f"{stage}_s"] = wall
-            rec[f"{stage}_cpu_s"] = cpu
+        call = _staged(fn, args, rec)[0]
     else:
-        # As a user calls it: the public API (itself jitted) for a solve, an
-        # eqx.filter_jit of value_and_grad for the training step. The split
-        # comes from JAX's monitoring events.
-        call_fn = eqx.filter_jit(fn) if case.startswith("train") else fn
-
-        def call():
-            return call_fn(*args)
-
-        c0 = time.process_time()
-        t0 = time.perf_counter()
-        jax.block_until_ready(eqx.filter(call(), eqx.is_array))
-        first = time.perf_counter() - t0
-        first_cpu = time.process_time() - c0
-        trace = durations.get("/jax/core/compile/jaxpr_trace_duration", [0.0])
-        rec.update(
-            # Nested jits are traced inside the outer one: the outermost trace
-            # is the longest and includes them.
-            trace_s=max(trace),
-            lower_s=sum(
-                durations.get("/jax/core/compile/jaxpr_to_mlir_module_duration", [])
-            ),
-            compile_s=sum(
-                durations.get("/jax/core/compile/backend_compile_duration", [])
-            ),
-            cache_read_s=sum(
-                durations.get("/jax/compilation_cache/cache_retrieval_time_sec", [])
-            ),
-            programs_traced=len(trace),
-        )
+        call = _eager(fn, args, rec, durations)
+    first, first_cpu = time.perf_counter() - t0, time.process_time() - c0
     times = []
     for _ in range(5 if case != "chain1e5" else 3):
         t = time.perf_counter()
@@ -319,18 +231,16 @@ def child(case: str, cache_dir: str | None, staged: bool) -> dict:
 def parts() -> list[dict]:
     """Trace / lower / compile CPU seconds of pieces of the `pose2` solve, one
     process: how much of the whole program the linearisation is."""
-    import equinox as eqx
     import jax
 
     import eqsmooth as eqs
-    from eqsmooth.solve._linearization import linearize
 
     jax.config.update("jax_enable_x64", True)
     _, (graph, values) = _pose2_case()
-    lin = jax.jit(linearize)(graph, values)
+    lin = eqs.linearize(graph, values)
     gn = eqs.GaussNewton()
     pieces = {
-        "linearize alone": (linearize, (graph, values)),
+        "linearize alone": (eqs.linearize, (graph, values)),
         "one dense normal solve alone": (
             lambda lin: eqs.solve.solve_normal(eqs.DenseCholesky(), lin),
             (lin,),
@@ -346,35 +256,16 @@ def parts() -> list[dict]:
     }
     out = []
     for name, (fn, args) in pieces.items():
-        dynamic, static = eqx.partition(args, eqx.is_array)
-
-        def flat(dynamic, fn=fn, static=static):
-            res = fn(*eqx.combine(dynamic, static))
-            return jax.tree_util.tree_leaves(eqx.filter(res, eqx.is_array))
-
-        c = time.process_time()
-        traced = jax.jit(flat).trace(dynamic)
-        trace = time.process_time() - c
-        c = time.process_time()
-        lowered = traced.lower()
-        lower = time.process_time() - c
-        c = time.process_time()
-        lowered.compile()
-        compile_ = time.process_time() - c
-        rec = {
-            "benchmark": "first_call_parts",
-            "config": {"case": "pose2", "piece": name},
-            "piece": name,
-            "trace_cpu_s": trace,
-            "lower_cpu_s": lower,
-            "compile_cpu_s": compile_,
-            "hlo_lines": lowered.as_text().count("\n"),
-            "median_s": float("nan"),
-        }
+        t = {}
+        _, lowered = _staged(fn, args, t, run=False)
+        rec = {"benchmark": "first_call_parts"}
+        rec |= {"config": {"case": "pose2", "piece": name}, "piece": name}
+        rec |= {k: t[k] for k in ("trace_cpu_s", "lower_cpu_s", "compile_cpu_s")}
+        rec |= {"hlo_lines": lowered.as_text().count("\n"), "median_s": float("nan")}
         out.append(rec)
         print(
-            f"{name:52s} trace {trace:5.2f}  lower {lower:5.2f}  compile "
-            f"{compile_:5.2f} CPU s  {rec['hlo_lines']} HLO lines",
+            f"{name:52s} trace {t['trace_cpu_s']:5.2f}  lower {t['lower_cpu_s']:5.2f}"
+            f"  compile {t['compile_cpu_s']:5.2f} CPU s  {rec['hlo_lines']} HLO lines",
             flush=True,
         )
     return out
@@ -405,62 +296,65 @@ def run_child(
     return rec
 
 
+def cold_warm(case, rep, label, tree, env, staged) -> list[dict]:
+    """A cold and a warm process of one case, sharing a fresh cache folder."""
+    out = []
+    with tempfile.TemporaryDirectory(prefix="eqs_jax_cache_") as cache:
+        for state in ("cold", "warm"):
+            rec = run_child(case, cache, tree, env, staged)
+            config = {"case": case, "tree": label, "process": state}
+            rec.update(
+                benchmark="first_call",
+                config=config | {"env": env, "staged": staged},
+                tree=label,
+                process=state,
+                repeat=rep,
+                load_average=os.getloadavg(),
+                median_s=rec["steady_s"],
+            )
+            out.append(rec)
+            print(
+                f"{case:9s} {label:7s} {state:5s} first answer "
+                f"{rec['first_answer_s']:6.2f} s, CPU {rec['first_answer_cpu_s']:6.2f}"
+                f" s (trace {rec['trace_s']:5.2f}, lower {rec['lower_s']:5.2f}, XLA "
+                f"compile {rec['compile_s']:5.2f} s wall); steady "
+                f"{rec['steady_s'] * 1e3:8.2f} ms; cache hits/misses "
+                f"{rec['cache_hits']}/{rec['cache_misses']}, not written "
+                f"(callbacks) {rec['not_written_callbacks']}",
+                flush=True,
+            )
+    return out
+
+
+COLUMNS = ["case", "tree", "process", "first_answer_s", "first_answer_cpu_s"]
+COLUMNS += ["trace_s", "lower_s", "compile_s", "steady_s", "cache_hits"]
+COLUMNS += ["cache_misses", "not_written_callbacks"]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--cache-dir", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--cases", nargs="*", default=list(CASES))
-    parser.add_argument(
-        "--trees",
-        nargs="*",
-        default=None,
-        help="LABEL=PATH: the source tree each label imports eqsmooth from "
-        "(default: this tree, label 'this')",
-    )
-    parser.add_argument(
-        "--env",
-        nargs="*",
-        default=[],
-        help="NAME=VALUE environment settings for the children, e.g. "
-        "EQX_ON_ERROR=nan (no host callbacks)",
-    )
-    parser.add_argument(
-        "--xla-flags",
-        nargs="*",
-        default=None,
-        help="LABEL=FLAGS: XLA_FLAGS for the children, one setting per label "
-        "(e.g. default= fast=--xla_cpu_use_fusion_emitters=false), each run "
-        "with every tree in turn",
-    )
+    parser.add_argument("--trees", nargs="*", default=None, help="LABEL=PATH ...")
+    parser.add_argument("--env", nargs="*", default=[], help="NAME=VALUE ...")
+    parser.add_argument("--xla-flags", nargs="*", default=None, help="LABEL=FLAGS")
     parser.add_argument("--repeats", type=int, default=1, help="cold/warm pairs")
-    parser.add_argument(
-        "--staged",
-        action="store_true",
-        help="time trace / lower / compile / run apart under one outer jax.jit "
-        "(the default times the public call and splits it by JAX's events)",
-    )
-    parser.add_argument(
-        "--parts",
-        action="store_true",
-        help="instead: trace/lower/compile CPU seconds of pieces of the pose2 "
-        "solve (linearisation, normal solve, whole solve), in this process",
-    )
+    parser.add_argument("--staged", action="store_true", help="time JAX's stages")
+    parser.add_argument("--parts", action="store_true", help="pieces of pose2")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
-    if args.parts:
-        sys.path.insert(0, str(HERE))
-        from _common import write_json
-
-        records = parts()
-        if args.json:
-            write_json(args.json, records)
-        return
     if args.child:
         print(json.dumps(child(args.child, args.cache_dir, args.staged)))
         return
     sys.path.insert(0, str(HERE))
     from _common import machine, markdown_table, write_json
 
+    if args.parts:
+        records = parts()
+        if args.json:
+            write_json(args.json, records)
+        return
     trees = dict(t.split("=", 1) for t in (args.trees or [f"this={HERE.parent}"]))
     env_extra = dict(e.split("=", 1) for e in args.env)
     flag_sets = dict(f.split("=", 1) for f in (args.xla_flags or []))
@@ -470,65 +364,15 @@ def main(argv=None):
         if not flag_sets:
             variants.append((tree_label, tree, env_extra))
         for flag_label, flags in flag_sets.items():
-            env = {**env_extra, "XLA_FLAGS": flags}
             label = flag_label if len(trees) == 1 else f"{tree_label}/{flag_label}"
-            variants.append((label, tree, env))
+            variants.append((label, tree, {**env_extra, "XLA_FLAGS": flags}))
     records = []
     for case in args.cases:
         for rep in range(args.repeats):
-            for label, tree, env in variants:
-                with tempfile.TemporaryDirectory(prefix="eqs_jax_cache_") as cache:
-                    for state in ("cold", "warm"):
-                        rec = run_child(case, cache, tree, env, args.staged)
-                        rec.update(
-                            benchmark="first_call",
-                            config={
-                                "case": case,
-                                "tree": label,
-                                "process": state,
-                                "env": env,
-                                "staged": args.staged,
-                            },
-                            tree=label,
-                            process=state,
-                            repeat=rep,
-                            load_average=os.getloadavg(),
-                            median_s=rec["steady_s"],
-                        )
-                        records.append(rec)
-                        print(
-                            f"{case:9s} {label:7s} {state:5s} first answer "
-                            f"{rec['first_answer_s']:6.2f} s, CPU "
-                            f"{rec['first_answer_cpu_s']:6.2f} s (trace "
-                            f"{rec['trace_s']:5.2f}, lower {rec['lower_s']:5.2f}, "
-                            f"XLA compile {rec['compile_s']:5.2f} s wall); steady "
-                            f"{rec['steady_s'] * 1e3:8.2f} ms; cache hits/misses "
-                            f"{rec['cache_hits']}/{rec['cache_misses']}, not "
-                            f"written (callbacks) {rec['not_written_callbacks']}; "
-                            f"import {rec['import_s']:.2f} s, build "
-                            f"{rec['build_s']:.2f} s",
-                            flush=True,
-                        )
+            for variant in variants:
+                records += cold_warm(case, rep, *variant, args.staged)
     print()
-    print(
-        markdown_table(
-            records,
-            [
-                "case",
-                "tree",
-                "process",
-                "first_answer_s",
-                "first_answer_cpu_s",
-                "trace_s",
-                "lower_s",
-                "compile_s",
-                "steady_s",
-                "cache_hits",
-                "cache_misses",
-                "not_written_callbacks",
-            ],
-        )
-    )
+    print(markdown_table(records, COLUMNS))
     if args.json:
         write_json(args.json, records, {"machine_at_start": machine()})
 

@@ -1,48 +1,45 @@
 """Pose-graph optimisation on the standard g2o data sets, against GTSAM.
 
-For every file: load it with `eqsmooth.io.load_g2o` (gauge prior on the first
-pose, σ = 1e-6), solve with `LevenbergMarquardt(SparseLU())` (host sparse
-direct solves; or `--solver cholmod` for `SparseCholesky()`, CHOLMOD through
-the optional scikit-sparse; or `--solver pcg` for `PCG()` with block-Jacobi, plus
-`--preconditioner chain` for `ChainPreconditioner()`; or `--solver sparsax`
-for `SparsaxCholesky()`, CHOLMOD inside jit through the optional sparsax
-wheel, `pip install "eqsmooth[sparse]"`; or `--solver dense`)
-from the file's initial values, and solve the same problem with GTSAM's
-`LevenbergMarquardtOptimizer` in the same run. GTSAM gets exactly the same
-factors (`eqsmooth.io.to_gtsam`: same measurements, same information
-matrices reordered to its (ω, v) tangent, same prior), so both report the
-same cost, `½ Σ ‖R r‖²` (checked at the initial values).
+Every file is loaded with `eqsmooth.io.load_g2o` (gauge prior on the first
+pose, σ = 1e-6) and solved from its initial values by
+`LevenbergMarquardt(linear)`, `--solver`: `sparse` (`SparseLU()`, the
+default), `cholmod` (`SparseCholesky()`, needs scikit-sparse), `sparsax`
+(`SparsaxCholesky()`, `pip install "eqsmooth[sparse]"`), `pcg` (`PCG()`,
+block-Jacobi or `--preconditioner chain`) or `dense`; and by GTSAM's
+`LevenbergMarquardtOptimizer` on the same factors (`eqsmooth.io.to_gtsam`;
+the initial costs are checked equal). One unit of work is one full solve
+(at most `--max-steps` iterations); `median_s` is the median over repeats
+after a warm-up call (fewer when a solve exceeds `--budget-s`; `repeats`
+says how many), `compile_s` the first call minus the median. Stopping: ours
+`ftol = 1e-8`, GTSAM `relativeErrorTol = 1e-8`, `absoluteErrorTol = 0`.
 
-One unit of work is one full solve from the initial values (at most
-`--max-steps` iterations). `median_s` is the median over repeats after a
-warm-up call (fewer repeats than asked when one solve exceeds the per-file
-time budget; `repeats` says how many), `compile_s` is first call minus
-median. GTSAM is timed the same way (optimizer construction + optimize).
-Stopping rules: ours `ftol = 1e-8` (relative cost decrease), GTSAM
-`relativeErrorTol = 1e-8`, `absoluteErrorTol = 0`, `maxIterations =
---max-steps`.
+Data: `../shared/data/g2o/` (SE-Sync collection; cubicle's 5021 indefinite
+information matrices repaired with `invalid_information="block_diagonal"`);
+without it the script times a synthetic 2-D graph.
 
-Data: `../shared/data/g2o/` (SE-Sync collection). cubicle.g2o has 5021
-indefinite information matrices; they are repaired with
-`invalid_information="block_diagonal"` for both solvers. Without the data
-folder the script times a synthetic 2-D graph instead.
-
-    python benchmarks/pgo.py                        # all files (many minutes)
-    python benchmarks/pgo.py --quick                # intel + smallGrid3D (CI)
+    python benchmarks/pgo.py --quick                # intel + smallGrid3D
     python benchmarks/pgo.py --json benchmarks/results/pgo.json \\
         --md benchmarks/results/pgo.md
 """
 
 import argparse
 import statistics
-import subprocess
-import time
 import warnings
+from importlib.metadata import version
 from pathlib import Path
 
 import jax
 import numpy as np
-from _common import loaded_blas, machine, markdown_table, write_json
+from _common import (
+    dirty,
+    loaded_blas,
+    machine,
+    markdown_table,
+    optional,
+    time_host,
+    write_json,
+    write_text,
+)
 
 
 jax.config.update("jax_enable_x64", True)
@@ -52,49 +49,18 @@ from eqsmooth.io import load_g2o, synthetic_pose_graph_2d, to_gtsam  # noqa: E40
 
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "g2o"
-FILES = [
-    "intel",
-    "MIT",
-    "CSAIL",
-    "manhattan",
-    "kitti_00",
-    "sphere2500",
-    "torus3D",
-    "parking-garage",
-    "cubicle",
-]
+FILES = "intel MIT CSAIL manhattan kitti_00 sphere2500 torus3D parking-garage cubicle"
+FILES = FILES.split()
 QUICK_FILES = ["intel", "smallGrid3D"]
 
 
 def timed(fn, repeats: int, budget_s: float):
     """(first_s, median_s, repeats, last result) of `fn()`."""
-    t0 = time.perf_counter()
-    out = fn()
-    first = time.perf_counter() - t0
-    times: list[float] = []
-    start = time.perf_counter()
-    while len(times) < repeats:
-        if times and time.perf_counter() - start + times[-1] > budget_s:
-            break
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
+    first, times, out = time_host(fn, repeats, budget_s)
     return first, statistics.median(times), len(times), out
 
 
-def solve_ours(pg, solver, max_steps):
-    def run():
-        sol = eqs.least_squares(
-            pg.graph, pg.values, solver, max_steps=max_steps, throw=False
-        )
-        return jax.block_until_ready(sol)
-
-    return run
-
-
-def solve_gtsam(pg, max_steps):
-    import gtsam
-
+def solve_gtsam(gtsam, pg, max_steps):
     graph, initial = to_gtsam(pg)
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-8)
@@ -103,25 +69,40 @@ def solve_gtsam(pg, max_steps):
 
     def run():
         opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-        result = opt.optimize()
-        return opt, result
+        return opt, opt.optimize()
 
     return graph, initial, run
 
 
-def _gtsam_version() -> str:
-    from importlib.metadata import version
+def gtsam_record(gtsam, name, pg, args, rec) -> dict:
+    """GTSAM on the same problem, after checking that both costs agree."""
+    graph, initial, run = solve_gtsam(gtsam, pg, args.max_steps)
+    check = graph.error(initial)
+    if not np.isclose(check, rec["initial_cost"], rtol=1e-9):
+        raise RuntimeError(
+            f"{name}: GTSAM's initial cost {check} differs from ours "
+            f"{rec['initial_cost']}: the problems are not the same"
+        )
+    _, g_median, g_n, (opt, result) = timed(run, args.repeats, args.budget_s)
+    return {
+        "reference": graph.error(result),
+        "reference_name": f"GTSAM {version('gtsam')} LevenbergMarquardtOptimizer",
+        "reference_median_s": g_median,
+        "reference_repeats": g_n,
+        "reference_iterations": int(opt.iterations()),
+        "ratio": rec["median_s"] / g_median,
+        "cost_ratio": rec["final_cost"] / graph.error(result),
+    }
 
-    try:
-        return version("gtsam")
-    except Exception:
-        return "?"
 
+def bench_one(name, pg, args, solver, solver_name, gtsam):
+    def run():
+        sol = eqs.least_squares(
+            pg.graph, pg.values, solver, max_steps=args.max_steps, throw=False
+        )
+        return jax.block_until_ready(sol)
 
-def bench_one(name, pg, args, solver, solver_name, have_gtsam):
-    first, median, n, sol = timed(
-        solve_ours(pg, solver, args.max_steps), args.repeats, args.budget_s
-    )
+    first, median, n, sol = timed(run, args.repeats, args.budget_s)
     rec = {
         "benchmark": "pgo",
         "config": {
@@ -146,24 +127,8 @@ def bench_one(name, pg, args, solver, solver_name, have_gtsam):
         "final_cost": float(sol.stats["final_cost"]),
         "result": str(sol.result).split("<", 1)[-1].rstrip(">") or "successful",
     }
-    if have_gtsam:
-        graph, initial, run = solve_gtsam(pg, args.max_steps)
-        check = graph.error(initial)
-        if not np.isclose(check, rec["initial_cost"], rtol=1e-9):
-            raise RuntimeError(
-                f"{name}: GTSAM's initial cost {check} differs from ours "
-                f"{rec['initial_cost']}: the problems are not the same"
-            )
-        g_first, g_median, g_n, (opt, result) = timed(run, args.repeats, args.budget_s)
-        rec.update(
-            reference=graph.error(result),
-            reference_name=f"GTSAM {_gtsam_version()} LevenbergMarquardtOptimizer",
-            reference_median_s=g_median,
-            reference_repeats=g_n,
-            reference_iterations=int(opt.iterations()),
-        )
-        rec["ratio"] = median / g_median
-        rec["cost_ratio"] = rec["final_cost"] / rec["reference"]
+    if gtsam:
+        rec.update(gtsam_record(gtsam, name, pg, args, rec))
     return rec
 
 
@@ -190,19 +155,6 @@ def table_of(records: list[dict]) -> str:
             }
         )
     return markdown_table(rows, list(rows[0]) if rows else ["file"])
-
-
-def _dirty() -> bool:
-    try:
-        out = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-        ).stdout
-    except OSError:
-        return False
-    return bool(out.strip())
 
 
 def write_markdown(path, records, m: dict, solver_name: str, max_steps: int):
@@ -235,9 +187,44 @@ def write_markdown(path, records, m: dict, solver_name: str, max_steps: int):
         + ". The time ratio compares like with like only where both reached "
         "the same cost.",
     ]
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines))
+
+
+def make_solver(args):
+    """The LevenbergMarquardt solver `--solver` names, and its name."""
+    pre = eqs.solve.BlockJacobi()
+    if args.preconditioner == "chain":
+        pre = eqs.solve.ChainPreconditioner()
+    linear = {
+        "sparse": eqs.solve.SparseLU,
+        "cholmod": eqs.solve.SparseCholesky,
+        "sparsax": eqs.solve.SparsaxCholesky,
+        "dense": eqs.DenseCholesky,
+        "pcg": lambda: eqs.PCG(preconditioner=pre),
+    }[args.solver]()
+    inner = f"{type(linear).__name__}()"
+    if args.solver == "pcg":
+        inner = f"PCG(preconditioner={type(pre).__name__}())"
+    return eqs.LevenbergMarquardt(linear), f"LevenbergMarquardt({inner})"
+
+
+def load_problems(args) -> list:
+    if not DATA.exists():
+        print(f"note: {DATA} not found; timing a synthetic 2-D pose graph instead")
+        pg, _ = synthetic_pose_graph_2d(300 if args.quick else 2000, seed=0)
+        return [("synthetic_2d", pg)]
+    problems = []
+    for name in args.files or (QUICK_FILES if args.quick else FILES):
+        path = DATA / f"{name}.g2o"
+        if not path.exists():
+            print(f"note: {path} not found, skipped")
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # cubicle's repairs
+            problems.append(
+                (name, load_g2o(path, invalid_information="block_diagonal"))
+            )
+    return problems
 
 
 def main(argv=None):
@@ -246,19 +233,10 @@ def main(argv=None):
     parser.add_argument("--json", default=None, help="write records here")
     parser.add_argument("--md", default=None, help="write the markdown report here")
     parser.add_argument("--files", nargs="*", default=None, help="subset of files")
+    solvers = ["sparse", "cholmod", "sparsax", "pcg", "dense"]
+    parser.add_argument("--solver", choices=solvers, default="sparse")
     parser.add_argument(
-        "--solver",
-        choices=["sparse", "cholmod", "sparsax", "pcg", "dense"],
-        default="sparse",
-        help="sparse: SparseLU() (SciPy); cholmod: SparseCholesky() (needs "
-        "scikit-sparse); sparsax: SparsaxCholesky() (needs sparsax); pcg: PCG(); "
-        "dense: DenseCholesky()",
-    )
-    parser.add_argument(
-        "--preconditioner",
-        choices=["jacobi", "chain"],
-        default="jacobi",
-        help="PCG preconditioner: BlockJacobi() or ChainPreconditioner()",
+        "--preconditioner", choices=["jacobi", "chain"], default="jacobi"
     )
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=5)
@@ -267,55 +245,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.max_steps is None:
         args.max_steps = 10 if args.quick else 100
-
-    try:
-        import gtsam  # noqa: F401
-
-        have_gtsam = not args.no_gtsam
-    except ImportError:
-        have_gtsam = False
-        print("note: gtsam not installed (pip install gtsam); no reference timings")
-
-    if args.solver == "pcg":
-        pre = (
-            eqs.solve.ChainPreconditioner()
-            if args.preconditioner == "chain"
-            else eqs.solve.BlockJacobi()
-        )
-        linear = eqs.PCG(preconditioner=pre)
-        solver_name = f"LevenbergMarquardt(PCG(preconditioner={type(pre).__name__}()))"
-    elif args.solver == "sparse":
-        linear = eqs.solve.SparseLU()
-        solver_name = "LevenbergMarquardt(SparseLU())"
-    elif args.solver == "cholmod":
-        linear = eqs.solve.SparseCholesky()
-        solver_name = "LevenbergMarquardt(SparseCholesky())"
-    elif args.solver == "sparsax":
-        linear = eqs.solve.SparsaxCholesky()
-        solver_name = "LevenbergMarquardt(SparsaxCholesky())"
-    else:
-        linear = eqs.DenseCholesky()
-        solver_name = "LevenbergMarquardt(DenseCholesky())"
-    solver = eqs.LevenbergMarquardt(linear)
-
-    problems = []
-    if DATA.exists():
-        for name in args.files or (QUICK_FILES if args.quick else FILES):
-            path = DATA / f"{name}.g2o"
-            if not path.exists():
-                print(f"note: {path} not found, skipped")
-                continue
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # cubicle's repairs
-                pg = load_g2o(path, invalid_information="block_diagonal")
-            problems.append((name, pg))
-    else:
-        print(f"note: {DATA} not found; timing a synthetic 2-D pose graph instead")
-        pg, _ = synthetic_pose_graph_2d(300 if args.quick else 2000, seed=0)
-        problems.append(("synthetic_2d", pg))
-
+    gtsam = None if args.no_gtsam else optional("gtsam", " (pip install gtsam)")
+    solver, solver_name = make_solver(args)
+    problems = load_problems(args)
     m = machine()  # git hash and tree state when the run started
-    m["dirty"] = _dirty()
+    m["dirty"] = bool(dirty())
     if args.solver == "cholmod":
         import sksparse.cholmod  # noqa: F401  (maps CHOLMOD's BLAS)
 
@@ -324,14 +258,12 @@ def main(argv=None):
         m["blas"] = [eqs.solve.sparsax_blas()]  # "mkl" or "bundled" (ATLAS)
     records = []
     for name, pg in problems:
-        rec = bench_one(name, pg, args, solver, solver_name, have_gtsam)
+        rec = bench_one(name, pg, args, solver, solver_name, gtsam)
         records.append(rec)
-        ref = (
-            f"; GTSAM {rec['reference']:.6g} in {rec['reference_iterations']} it, "
-            f"{rec['reference_median_s']:.3f} s"
-            if "reference" in rec
-            else ""
-        )
+        ref = ""
+        if "reference" in rec:
+            ref = f"; GTSAM {rec['reference']:.6g} in {rec['reference_iterations']} "
+            ref += f"it, {rec['reference_median_s']:.3f} s"
         print(
             f"{name:15s} {rec['initial_cost']:.4g} -> {rec['final_cost']:.6g} in "
             f"{rec['num_steps']} steps ({rec['num_accepted']} accepted), "
@@ -343,10 +275,8 @@ def main(argv=None):
             write_markdown(args.md, records, m, solver_name, args.max_steps)
         if args.json:
             write_json(args.json, records, extra={"machine": m})
-
-    table = table_of(records)
     print()
-    print(table)
+    print(table_of(records))
 
 
 if __name__ == "__main__":

@@ -1,49 +1,73 @@
 """Time per solve of a 5-pose SE(2) graph after compilation, beside GTSAM.
 
-The graph is GTSAM's Pose2SLAM example shape (`first_call.py`'s `pose2`: a
-prior, 4 odometry factors and a loop closure), solved from the same initial
-values by
+The graph is `_common.pose2_problem` (a prior, 4 odometry factors and a loop
+closure), solved again and again from the same initial values by `api`
+(`eqs.least_squares(graph, values, LevenbergMarquardt())` from Python, as a
+user calls it), `jit` (the same solve inside one `jax.jit` of the arrays,
+`throw=False`) and `gtsam` (`LevenbergMarquardtOptimizer` on the same
+factors, relative error tolerance 1e-8), when gtsam is importable;
+`median_ms` / `min_ms` over `--repeats` calls after warm-up.
 
-- `api`: `eqs.least_squares(graph, values, LevenbergMarquardt())` called
-  from Python as a user would (eqx.filter_jit dispatch, argument flattening,
-  the host-side result check of `throw=True`);
-- `jit`: the same solve inside one `jax.jit`-compiled function of the
-  arrays (`throw=False`), called with the same arrays: the cost of the
-  compiled program plus JAX's dispatch;
-- `gtsam`: `gtsam.LevenbergMarquardtOptimizer(graph, initial,
-  params).optimize()` on the same factors (default parameters, relative
-  error tolerance 1e-8 as eqsmooth's `ftol`), when gtsam is importable.
+`--batch N`: N copies with perturbed odometry and initial values, solved by
+one `eqs.least_squares_batch` call (its first call reported apart) against a
+Python loop of GTSAM's optimizer; the largest difference of the solutions is
+printed. Each timing is the median of `--repeats` batches.
 
-`median_s` is the median over `--repeats` calls after warm-up; both
-solvers converge to the same cost (printed). Timings on a shared machine
-are noisy: compare the rows of one run.
-
-    python benchmarks/small_graph.py
     python benchmarks/small_graph.py --json benchmarks/results/small_graph.json
+    python benchmarks/small_graph.py --batch 1000 --repeats 5 \\
+        --json benchmarks/results/small_graph_batch.json
 """
 
 import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
+from _common import machine, markdown_table, optional, pose2_problem, write_json
+
+import eqsmooth as eqs
 
 
 jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _common import machine, markdown_table, write_json  # noqa: E402
-from first_call import _pose2_case  # noqa: E402
-
-import eqsmooth as eqs  # noqa: E402
 
 
-def _median(fn, repeats):
-    fn()
+def gtsam_case(gtsam, graph, values):
+    """A GTSAM solve of the same factors: `(solve, cost_of_result)`."""
+    g = gtsam.NonlinearFactorGraph()
+    prior, between = graph.factors
+
+    def sigmas(f):
+        return gtsam.noiseModel.Diagonal.Sigmas(
+            1.0 / np.asarray(f.noise.sqrt_precision)
+        )
+
+    def pose(p, i):
+        return gtsam.Pose2(float(p.x()[i]), float(p.y()[i]), float(p.theta()[i]))
+
+    g.add(gtsam.PriorFactorPose2(0, pose(prior.value, 0), sigmas(prior)))
+    a, b = (np.asarray(v.ids) for v in between.variables)
+    for i, (ia, ib) in enumerate(zip(a, b)):
+        m = pose(between.measurement, i)
+        g.add(gtsam.BetweenFactorPose2(int(ia), int(ib), m, sigmas(between)))
+    init = gtsam.Values()
+    for i in range(5):
+        init.insert(i, pose(values["x"], i))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-8)
+
+    def solve():
+        return gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
+
+    return solve, g.error
+
+
+def _times(fn, repeats: int, warm_up: bool = True) -> tuple[float, float]:
+    """(median_s, min_s) of `fn()` over `repeats` calls."""
+    if warm_up:
+        fn()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -52,48 +76,8 @@ def _median(fn, repeats):
     return statistics.median(times), min(times)
 
 
-def gtsam_case(graph, values):
-    import gtsam
-
-    g = gtsam.NonlinearFactorGraph()
-    prior, between = graph.factors
-    sig = lambda f: 1.0 / np.asarray(f.noise.sqrt_precision)  # noqa: E731
-    p = lambda pose, i: gtsam.Pose2(  # noqa: E731
-        float(pose.x()[i]), float(pose.y()[i]), float(pose.theta()[i])
-    )
-    g.add(
-        gtsam.PriorFactorPose2(
-            0, p(prior.value, 0), gtsam.noiseModel.Diagonal.Sigmas(sig(prior))
-        )
-    )
-    a, b = between.variables
-    for i, (ia, ib) in enumerate(zip(np.asarray(a.ids), np.asarray(b.ids))):
-        g.add(
-            gtsam.BetweenFactorPose2(
-                int(ia),
-                int(ib),
-                p(between.measurement, i),
-                gtsam.noiseModel.Diagonal.Sigmas(sig(between)),
-            )
-        )
-    init = gtsam.Values()
-    for i in range(5):
-        init.insert(i, p(values["x"], i))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-8)
-
-    def solve():
-        return gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
-
-    return solve, lambda result: g.error(result)
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=200)
-    parser.add_argument("--json", default=None)
-    args = parser.parse_args(argv)
-    fn, (graph, values) = _pose2_case()
+def single(gtsam, repeats: int) -> list[dict]:
+    graph, values = pose2_problem()
     solver = eqs.LevenbergMarquardt()
 
     def api():
@@ -110,45 +94,118 @@ def main(argv=None):
     def jitted():
         return jax.block_until_ready(compiled(dynamic))
 
+    cost = float(jitted()[1])
+    calls = {"api": (api, lambda: cost), "jit": (jitted, lambda: cost)}
+    if gtsam is not None:
+        solve, error = gtsam_case(gtsam, graph, values)
+        calls["gtsam"] = (solve, lambda: float(error(solve())))
     rows = []
-    ours_cost = float(jitted()[1])
-    for name, f in (("api", api), ("jit", jitted)):
-        med, best = _median(f, args.repeats)
-        rows.append({"method": name, "median_ms": med * 1e3, "min_ms": best * 1e3})
-        rows[-1]["final_cost"] = ours_cost
-    try:
-        g_solve, g_cost = gtsam_case(graph, values)
-    except ImportError:
-        print("note: gtsam not importable: not timed")
-    else:
-        med, best = _median(g_solve, args.repeats)
-        rows.append(
-            {
-                "method": "gtsam",
-                "median_ms": med * 1e3,
-                "min_ms": best * 1e3,
-                "final_cost": float(g_cost(g_solve())),
-            }
-        )
-    ref = next((r["median_ms"] for r in rows if r["method"] == "gtsam"), None)
+    for name, (fn, final_cost) in calls.items():
+        med, best = _times(fn, repeats)
+        row = {"method": name, "median_ms": med * 1e3, "min_ms": best * 1e3}
+        rows.append(row | {"final_cost": final_cost()})
+    ref = calls.get("gtsam") and rows[-1]["median_ms"]
     records = []
     for r in rows:
         r["ratio_to_gtsam"] = r["median_ms"] / ref if ref else float("nan")
+        config = {"graph": "pose2 (5 SE(2) poses)", "method": r["method"]}
         records.append(
+            {"benchmark": "small_graph", "config": config}
+            | {"median_s": r["median_ms"] / 1e3, "compile_s": 0.0, **r}
+        )
+    columns = ["method", "median_ms", "min_ms", "ratio_to_gtsam", "final_cost"]
+    print(markdown_table(rows, columns))
+    print("load average", machine()["load_average"])
+    return records
+
+
+def _perturbed(graph, values, rng):
+    """The 5-pose loop with its odometry and initial values perturbed."""
+    prior, between = graph.factors
+
+    def jitter(p, s_xy, s_theta):
+        noise = [rng.normal(0, s, 5) for s in (s_xy, s_xy, s_theta)]
+        parts = (p.x(), p.y(), p.theta())
+        return eqs.SE2.from_xy_theta(
+            *(c + jnp.asarray(n) for c, n in zip(parts, noise))
+        )
+
+    noisy = jitter(between.measurement, 0.05, 0.02)
+    init = jitter(values["x"], 0.1, 0.05)
+    between = eqs.BetweenFactor(*between.variables, noisy, between.noise)
+    return eqs.FactorGraph([prior, between]), {"x": init}
+
+
+def batch(gtsam, num_graphs: int, repeats: int) -> list[dict]:
+    graph, values = pose2_problem()
+    rng = np.random.default_rng(0)
+    cases = [_perturbed(graph, values, rng) for _ in range(num_graphs)]
+    graphs = eqs.learn.stack_trees([g for g, _ in cases])
+    inits = eqs.learn.stack_trees([v for _, v in cases])
+    solver = eqs.LevenbergMarquardt()
+
+    def run():
+        sol = eqs.least_squares_batch(graphs, inits, solver)
+        return jax.block_until_ready(sol.value)
+
+    t0 = time.perf_counter()
+    ours = run()
+    first_s = time.perf_counter() - t0
+    batch_s = _times(run, repeats, warm_up=False)[0]
+    rows = [
+        {
+            "method": "eqsmooth least_squares_batch",
+            "num_graphs": num_graphs,
+            "median_s": batch_s,
+            "per_graph_us": batch_s / num_graphs * 1e6,
+            "first_call_s": first_s,
+        }
+    ]
+    if gtsam is not None:
+        solves = [gtsam_case(gtsam, g, v)[0] for g, v in cases]
+        results = []
+
+        def loop():
+            results[:] = [s() for s in solves]
+
+        gtsam_s = _times(loop, repeats, warm_up=False)[0]
+        diff = max(
+            abs(float(r.atPose2(i).x()) - float(ours["x"].x()[k, i]))
+            for k, r in enumerate(results)
+            for i in range(5)
+        )
+        rows.append(
             {
-                "benchmark": "small_graph",
-                "config": {"graph": "pose2 (5 SE(2) poses)", "method": r["method"]},
-                "median_s": r["median_ms"] / 1e3,
-                "compile_s": 0.0,
-                **r,
+                "method": "gtsam loop",
+                "num_graphs": num_graphs,
+                "median_s": gtsam_s,
+                "per_graph_us": gtsam_s / num_graphs * 1e6,
+                "max_abs_x_difference": diff,
             }
         )
+        rows[0]["speedup_over_gtsam"] = gtsam_s / batch_s
+    columns = ["method", "num_graphs", "median_s", "per_graph_us", "first_call_s"]
     print(
-        markdown_table(
-            rows, ["method", "median_ms", "min_ms", "ratio_to_gtsam", "final_cost"]
-        )
+        markdown_table(rows, columns + ["speedup_over_gtsam", "max_abs_x_difference"])
     )
-    print("load average", machine()["load_average"])
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=None, help="200; 5 batches")
+    parser.add_argument("--batch", type=int, default=0, metavar="N", help="N graphs")
+    parser.add_argument("--quick", action="store_true", help="20 repeats; N <= 20")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+    gtsam = optional("gtsam")
+    repeats = args.repeats or (5 if args.batch else 200)
+    if args.quick:
+        repeats, args.batch = min(repeats, 20), min(args.batch, 20)
+    if args.batch:
+        records = batch(gtsam, args.batch, repeats)
+    else:
+        records = single(gtsam, repeats)
     if args.json:
         write_json(args.json, records)
 

@@ -10,49 +10,30 @@ truth. One unit of work = `jax.value_and_grad` of the batch-mean loss with
 respect to the square-root precision, jitted.
 
 Measured for K = 3, 5 and T = 20, 200, 2000, for every adjoint (unrolled,
-truncated k = 1, implicit with the exact Hessian, which differentiates
-`GaussNewton` capped at K steps: it refuses a fixed-step solve that stops
-short of a stationary point) and linear solver
-(BlockTridiagonal; DenseCholesky only for T <= 200; PCG), next to a plain
-dense JAX reference in this script: the same loss with the whole Jacobian
-materialised by `jax.jacfwd`, the normal equations solved by a dense Cholesky
-(`jax.scipy.linalg.cho_factor/cho_solve`), K steps unrolled in Python, and
-differentiated by `jax.value_and_grad`. The reference is infeasible at
-T = 2000 (a 12000 × 8000 Jacobian per graph, 32 graphs: tens of GB) and is
-recorded as not measured there.
+truncated k = 1, implicit: `GaussNewton` capped at K steps, since the
+implicit adjoint refuses a fixed-step solve that stops short of a stationary
+point) and linear solver (BlockTridiagonal; DenseCholesky only for T <= 200;
+PCG), next to a dense JAX reference in this script (the whole Jacobian by
+`jax.jacfwd`, dense Cholesky normal equations, K steps unrolled; infeasible
+at T = 2000, recorded as not measured there).
 
 Theseus (Pineda et al. 2022), when importable, solves the same problem in the
-same process: one `th.Vector(4)` per time step, `th.AutoDiffCostFunction`s
-for the dynamics and measurement residuals (module-level error functions, so
-the objective vectorizes them), `th.DiagonalCostWeight`s (the measurement
-weight is the learned square-root precision, shared by all factors),
-`th.GaussNewton` with `max_iterations=K`, `step_size=1` and zero
-tolerances (so it runs exactly K steps like `FixedStepGaussNewton`), in a
-`th.TheseusLayer`; one unit of work = `layer.forward` from the ground truth,
-the same loss, and `loss.backward()`. Linear solvers: CHOLMOD
-(`th.CholmodSparseSolver`) and dense Cholesky (`th.CholeskyDenseSolver`, T =
-20 only); backward modes unroll and implicit. Its `grad_rel_err` against the JAX
-reference checks that it computes the same quantity. Installing it (CPU, in a
-separate virtual environment, Debian; `apt-get install libsuitesparse-dev`
-first):
+same process (a `th.Vector(4)` per step, `th.AutoDiffCostFunction`s, the
+learned parameter as a `th.DiagonalCostWeight`, `th.GaussNewton` with
+exactly K steps, in a `th.TheseusLayer`; CHOLMOD, or dense Cholesky at T =
+20; backward modes unroll and implicit). Installing it (CPU, a separate
+virtual environment; `apt-get install libsuitesparse-dev` first):
 
     pip install torch==2.13.0 cython setuptools wheel
     pip install --no-build-isolation scikit-sparse==0.4.16 theseus-ai
     pip install -e ".[test]"
 
-The unrolled and truncated(k = K) gradients equal the reference's
-(`grad_rel_err` checks it); truncated k = 1 and implicit are different
-gradients by design (the implicit one is the derivative of the converged
-minimiser, evaluated at the K-step iterate), so their `grad_rel_err` says how
-far they are from the surrogate gradient, not an error.
-
+`grad_rel_err` is the relative difference to the reference gradient: ~0 for
+unrolled; truncated k = 1 and implicit are other gradients by design.
 `median_s`: median over repeats after warm-up; `compile_s`: first call minus
-median; `ratio`: median_s / reference_median_s of the same (K, T), measured
-in the same run (the machine is shared, absolute timings are noisy).
-
-On a shared machine run it with `OPENBLAS_NUM_THREADS=1`: an oversubscribed
-OpenBLAS (which XLA's CPU Cholesky calls) made the dense reference 10-100x
-slower and erratic here.
+median; `ratio`: median_s / the reference's median_s of the same (K, T) in
+the same run. On a shared machine set `OPENBLAS_NUM_THREADS=1` (an
+oversubscribed OpenBLAS made the dense reference 10-100x slower).
 
     python benchmarks/train_step.py             # all configurations
     python benchmarks/train_step.py --quick     # T = 20, K = 3 (< 1 min)
@@ -61,14 +42,20 @@ slower and erratic here.
 """
 
 import argparse
-import time
-from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import machine, markdown_table, time_fn, write_json
+from _common import (
+    machine,
+    markdown_table,
+    optional,
+    time_fn,
+    time_host,
+    write_json,
+    write_text,
+)
 
 import eqsmooth as eqs
 
@@ -181,7 +168,7 @@ def dense_reference_step(K: int):
     return jax.jit(jax.value_and_grad(loss))
 
 
-def _theseus_dyn_err(optim_vars, aux_vars):
+def _dyn_err(optim_vars, aux_vars):
     import torch
 
     a, b = optim_vars[0].tensor, optim_vars[1].tensor
@@ -190,15 +177,13 @@ def _theseus_dyn_err(optim_vars, aux_vars):
     return b - step
 
 
-def _theseus_meas_err(optim_vars, aux_vars):
+def _meas_err(optim_vars, aux_vars):
     return optim_vars[0].tensor[:, :2] - aux_vars[0].tensor
 
 
 def theseus_step(meas, truths, K: int, solver: str, backward: str):
-    """A Theseus layer for the same batch; returns `(fn, theta)`.
-
-    `fn()` runs one forward + backward and returns `(loss, grad)` as numpy.
-    """
+    """`fn()`: one forward + backward of a Theseus layer for the same batch,
+    returning `(loss, grad)` as numpy."""
     import theseus as th
     import torch
 
@@ -215,48 +200,26 @@ def theseus_step(meas, truths, K: int, solver: str, backward: str):
     meas_w = th.DiagonalCostWeight(th.Variable(theta0.clone(), name="theta"))
     objective = th.Objective(dtype=dtype)
     for t in range(T - 1):
-        objective.add(
-            th.AutoDiffCostFunction(
-                [xs[t], xs[t + 1]], _theseus_dyn_err, 4, dyn_w, name=f"dyn{t}"
-            )
-        )
+        pair = [xs[t], xs[t + 1]]
+        dyn = th.AutoDiffCostFunction(pair, _dyn_err, 4, dyn_w, name=f"dyn{t}")
+        objective.add(dyn)
     for t in range(T):
-        objective.add(
-            th.AutoDiffCostFunction(
-                [xs[t]],
-                _theseus_meas_err,
-                2,
-                meas_w,
-                aux_vars=[ys[t]],
-                name=f"meas{t}",
-            )
-        )
-    linear_solver_cls = {
-        "CHOLMOD": th.CholmodSparseSolver,
-        "dense Cholesky": th.CholeskyDenseSolver,
-    }[solver]
+        kw = {"aux_vars": [ys[t]], "name": f"meas{t}"}
+        objective.add(th.AutoDiffCostFunction([xs[t]], _meas_err, 2, meas_w, **kw))
+    cls = {"CHOLMOD": th.CholmodSparseSolver, "dense Cholesky": th.CholeskyDenseSolver}
+    tol = {"abs_err_tolerance": 0.0, "rel_err_tolerance": 0.0}
     optimizer = th.GaussNewton(
-        objective,
-        linear_solver_cls=linear_solver_cls,
-        max_iterations=K,
-        step_size=1.0,
-        abs_err_tolerance=0.0,
-        rel_err_tolerance=0.0,
+        objective, linear_solver_cls=cls[solver], max_iterations=K, step_size=1.0, **tol
     )
     layer = th.TheseusLayer(optimizer)
     inputs = {f"x{t}": truth_t[:, t] for t in range(T)}
     inputs.update({f"y{t}": meas_t[:, t] for t in range(T)})
+    options = {"backward_mode": backward, "verbose": False}
+    options["track_best_solution"] = False
 
     def fn():
         theta = theta0.clone().requires_grad_(True)
-        sol, _ = layer.forward(
-            {**inputs, "theta": theta},
-            optimizer_kwargs={
-                "backward_mode": backward,
-                "verbose": False,
-                "track_best_solution": False,
-            },
-        )
+        sol, _ = layer.forward({**inputs, "theta": theta}, optimizer_kwargs=options)
         x = torch.stack([sol[f"x{t}"] for t in range(T)], dim=1)
         loss = torch.mean((x - truth_t) ** 2)
         loss.backward()
@@ -265,33 +228,12 @@ def theseus_step(meas, truths, K: int, solver: str, backward: str):
     return fn
 
 
-def _time_host(fn, repeats: int):
-    """`(first_s, median_s)` of a host function (no JAX arrays to block on)."""
-    t0 = time.perf_counter()
-    fn()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return first, float(np.median(times))
-
-
-def _have_theseus() -> bool:
-    try:
-        import theseus  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def _rel_err(g, ref):
     g, ref = np.asarray(g), np.asarray(ref)
     return float(np.linalg.norm(g - ref) / max(np.linalg.norm(ref), 1e-300))
 
 
-def main(argv=None):
+def parse(argv):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
@@ -300,52 +242,79 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, nargs="*", default=None)
     parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--no-reference", action="store_true", help="skip dense JAX")
+    parser.add_argument("--theseus-max-T", type=int, default=2000)
     parser.add_argument(
-        "--no-reference",
-        action="store_true",
-        help="skip the dense JAX reference (13-22 s per call at T = 200)",
+        "--solvers", nargs="*", default=["BlockTridiagonal", "DenseCholesky", "PCG"]
     )
     parser.add_argument(
-        "--theseus-max-T",
-        type=int,
-        default=2000,
-        help="largest T at which Theseus is measured (when it is installed)",
-    )
-    parser.add_argument(
-        "--solvers",
-        nargs="*",
-        default=["BlockTridiagonal", "DenseCholesky", "PCG"],
-        help="eqsmooth linear solvers to measure",
-    )
-    parser.add_argument(
-        "--adjoints",
-        nargs="*",
-        default=["unrolled", "truncated(k=1)", "implicit"],
-        help="eqsmooth adjoints to measure",
+        "--adjoints", nargs="*", default=["unrolled", "truncated(k=1)", "implicit"]
     )
     parser.add_argument(
         "--theseus-backward",
         nargs="*",
         default=["unroll", "implicit"],
         choices=["unroll", "implicit"],
-        help="Theseus backward modes to measure (unroll at T = 2000 needed more "
-        "than 24 GiB here and was killed)",
+        help="(unroll at T = 2000 needed more than 24 GiB here)",
     )
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def reference_record(args, T, K, theta, meas, truths, dtype):
+    """The dense JAX reference of (T, K), or a record saying why it is missing."""
+    config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
+    rec = {
+        "benchmark": "train_step",
+        "config": config | {"method": "dense JAX reference"},
+    }
+    rec |= {"T": T, "K": K, "method": "dense JAX reference"}
+    if T > 200 or args.no_reference:
+        gib = BATCH * 6 * T * 4 * T * dtype.itemsize / 2**30
+        note = (
+            "not measured (--no-reference)"
+            if args.no_reference
+            else (
+                f"not measured: dense J is (6T x 4T) per graph, {gib:.0f} GiB "
+                "for the batch"
+            )
+        )
+        return rec | {"median_s": None, "note": note}, None
+    fn = dense_reference_step(K)
+    first, median, _ = time_fn(fn, theta, meas, truths, repeats=args.repeats)
+    val, grad = fn(theta, meas, truths)
+    print(
+        f"T={T:<5d} K={K} {'dense JAX reference':34s} {median * 1e3:10.2f} ms  "
+        f"compile {first - median:6.2f} s",
+        flush=True,
+    )
+    rec |= {"median_s": median, "compile_s": first - median, "loss": float(val)}
+    return rec | {"reference_median_s": median, "ratio": 1.0}, {
+        "median_s": median,
+        "grad": grad,
+    }
+
+
+def write_markdown(path, m, table):
+    text = "# Training step: forward + backward of the surrogate loss\n\n"
+    text += f"- command: `{m['command']}`; git {m['git']}; jax {m['jax']}\n"
+    text += f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}, backend "
+    text += f"{m['backend']}; load average at start {m['load_average'][0]:.1f}\n"
+    write_text(path, text + "\n" + table)
+
+
+COLUMNS = ["T", "K", "method", "median_s", "compile_s", "ratio", "grad_rel_err"]
+COLUMNS += ["speedup_vs_theseus", "note"]
+
+
+def main(argv=None):
+    args = parse(argv)
     m = machine()  # git hash, load and thread settings when the run started
-    have_theseus = _have_theseus()
-    theseus_configs = (
-        [
-            ("CHOLMOD", "unroll"),
-            ("CHOLMOD", "implicit"),
-            ("dense Cholesky", "unroll"),
-        ]
-        if have_theseus
-        else []
-    )
-    if args.quick:
-        theseus_configs = theseus_configs[:1]
-    theseus_configs = [c for c in theseus_configs if c[1] in args.theseus_backward]
+    theseus_configs = []
+    if optional("theseus") is not None:
+        theseus_configs = [("CHOLMOD", "unroll"), ("CHOLMOD", "implicit")]
+        theseus_configs += [("dense Cholesky", "unroll")]
+        theseus_configs = theseus_configs[:1] if args.quick else theseus_configs
+        theseus_configs = [c for c in theseus_configs if c[1] in args.theseus_backward]
     theseus_times = {}
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -369,26 +338,12 @@ def main(argv=None):
     adjoints = {k: v for k, v in adjoints.items() if k in args.adjoints}
     records = []
 
-    def flush():
-        # Written after every record, so a run stopped part-way keeps what it
-        # measured.
-        if args.json:
-            write_json(args.json, records, {"machine_at_start": m})
-
     def measured(T, K, ref, method, extra, first, median, val, grad, host=False):
         """Record, save and print one measured configuration."""
-        rec = {
-            "benchmark": "train_step",
-            "config": {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
-            | extra
-            | {"method": method},
-            "T": T,
-            "K": K,
-            "method": method,
-            "median_s": median,
-            "compile_s": first - median,
-            "loss": float(val),
-        }
+        config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
+        rec = {"benchmark": "train_step", "config": config | extra | {"method": method}}
+        rec |= {"T": T, "K": K, "method": method, "median_s": median}
+        rec |= {"compile_s": first - median, "loss": float(val)}
         text = ""
         if ref is not None:
             rec["reference_median_s"] = ref["median_s"]
@@ -404,7 +359,9 @@ def main(argv=None):
             rec["theseus_cholmod_s"] = theseus_times[th_key]
             rec["speedup_vs_theseus"] = theseus_times[th_key] / median
         records.append(rec)
-        flush()
+        # Written after every record: a run stopped part-way keeps its rows.
+        if args.json:
+            write_json(args.json, records, {"machine_at_start": m})
         first_text = (
             f"first call {first:6.2f}" if host else f"compile {first - median:6.2f}"
         )
@@ -419,126 +376,45 @@ def main(argv=None):
         graphs = eqx.filter_vmap(lambda m: build_graph(m, dtype))(meas)
         theta = jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)
         for K in steps:
-            config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
-            ref = None
-            if T <= 200 and not args.no_reference:
-                fn = dense_reference_step(K)
-                first, median, _ = time_fn(
-                    fn, theta, meas, truths, repeats=args.repeats
-                )
-                ref_val, ref_grad = fn(theta, meas, truths)
-                ref = {"median_s": median, "grad": ref_grad}
+            rec, ref = reference_record(args, T, K, theta, meas, truths, dtype)
+            records.append(rec)
+            if not theseus_configs:
+                config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
                 records.append(
                     {
                         "benchmark": "train_step",
-                        "config": {**config, "method": "dense JAX reference"},
-                        "T": T,
-                        "K": K,
-                        "method": "dense JAX reference",
-                        "median_s": median,
-                        "compile_s": first - median,
-                        "loss": float(ref_val),
-                        "reference_median_s": median,
-                        "ratio": 1.0,
+                        "config": config | {"method": "Theseus"},
                     }
-                )
-                print(
-                    f"T={T:<5d} K={K} {'dense JAX reference':34s} "
-                    f"{median * 1e3:10.2f} ms  compile {first - median:6.2f} s",
-                    flush=True,
-                )
-            else:
-                records.append(
-                    {
-                        "benchmark": "train_step",
-                        "config": {**config, "method": "dense JAX reference"},
-                        "T": T,
-                        "K": K,
-                        "method": "dense JAX reference",
-                        "median_s": None,
-                        "note": "not measured (--no-reference)"
-                        if args.no_reference
-                        else "not measured: dense J is (6T x 4T) per graph, "
-                        f"{BATCH * 6 * T * 4 * T * dtype.itemsize / 2**30:.0f} GiB "
-                        "for the batch",
-                    }
-                )
-            if not have_theseus:
-                records.append(
-                    {
-                        "benchmark": "train_step",
-                        "config": {**config, "method": "Theseus"},
-                        "T": T,
-                        "K": K,
-                        "method": "Theseus",
-                        "median_s": None,
-                        "note": "not measured: Theseus is not installed",
-                    }
+                    | {"T": T, "K": K, "method": "Theseus", "median_s": None}
+                    | {"note": "not measured: Theseus is not installed"}
                 )
             for tsolver, tback in theseus_configs:
-                if tsolver == "dense Cholesky" and T > 20:
+                if (tsolver == "dense Cholesky" and T > 20) or T > args.theseus_max_T:
                     continue
-                if T > args.theseus_max_T:
-                    continue
-                method = f"Theseus {tsolver} {tback}"
                 fn = theseus_step(meas, truths, K, tsolver, tback)
-                first, median = _time_host(fn, args.repeats)
+                first, times, _ = time_host(fn, args.repeats)
                 val, grad = fn()
+                method = f"Theseus {tsolver} {tback}"
+                median = float(np.median(times))
                 measured(T, K, ref, method, {}, first, median, val, grad, host=True)
             for sname, ls in solvers.items():
                 if sname == "DenseCholesky" and T > 200:
                     continue
                 for aname, adjoint in adjoints.items():
                     fn = eqsmooth_step(ls, K, adjoint)
-                    first, median, _ = time_fn(
-                        fn, theta, graphs, truths, repeats=args.repeats
-                    )
-                    val, grad = fn(theta, graphs, truths)
-                    method = f"eqsmooth {sname} {aname}"
+                    args_ = (theta, graphs, truths)
+                    first, median, _ = time_fn(fn, *args_, repeats=args.repeats)
+                    val, grad = fn(*args_)
                     extra = {"solver": sname, "adjoint": aname}
+                    method = f"eqsmooth {sname} {aname}"
                     measured(T, K, ref, method, extra, first, median, val, grad)
-    columns = [
-        "T",
-        "K",
-        "method",
-        "median_s",
-        "compile_s",
-        "ratio",
-        "grad_rel_err",
-        "speedup_vs_theseus",
-        "note",
-    ]
-    table = markdown_table(records, columns)
+    table = markdown_table(records, COLUMNS)
     print()
     print(table)
     if args.json:
         write_json(args.json, records, {"machine_at_start": m})
     if args.markdown:
-        text = "\n".join(
-            [
-                "# Training step: forward + backward of the surrogate loss",
-                "",
-                f"Batch of {BATCH} disk-tracking graphs; `jax.value_and_grad` of the "
-                "batch-mean surrogate loss (K Gauss-Newton steps from the ground "
-                "truth) with respect to the measurement noise square-root "
-                f"precision; dtype {args.dtype}. `ratio` = median_s / median_s of "
-                "the dense JAX reference of the same (T, K), measured in the same "
-                "run. `grad_rel_err` = relative difference to the reference "
-                "gradient (unrolled must be ~0; truncated(k=1) and implicit are "
-                "different gradients by design). See the script's docstring.",
-                "",
-                f"- command: `{m['command']}`",
-                f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}, "
-                f"backend {m['backend']} (shared with other jobs: noisy); load "
-                f"average at start {m['load_average'][0]:.1f}; env {m['env']}",
-                f"- jax {m['jax']}, python {m['python']}, git {m['git']}",
-                "",
-                table,
-                "",
-            ]
-        )
-        Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.markdown).write_text(text)
+        write_markdown(args.markdown, m, table)
 
 
 if __name__ == "__main__":
