@@ -2,56 +2,36 @@
 
 `import eqsmooth` changes no environment variable. Call
 `set_xla_cpu_flags()` before the first JAX computation to turn off XLA's
-concurrency-optimised CPU scheduler (the history below says why one might),
-and `set_xla_cpu_flags(fast_compile=True)` to compile with XLA's earlier
-fusion emitters (the end of this docstring says what that gains).
+concurrency-optimised CPU scheduler, and `set_xla_cpu_flags(fast_compile=True)`
+to compile with XLA's earlier fusion emitters.
 
-jaxlib 0.10's CPU runtime can wait forever for the result of a program that
-has many independent operations, such as the levels of block cyclic
-reduction on a long chain: `jax.block_until_ready` never returns and every
-thread sleeps (a native stack shows the Eigen and LLVM worker threads idle
-on condition variables and the main thread waiting for the output buffer).
-Reproducer: `benchmarks/xla_cpu_hang.py`, the jitted `cyclic_reduction_solve`
-of a `T = 100000`, `D = 5` chain called 20 times per process. Alternating
-the two settings over 6 pairs of processes, all 6 with JAX's defaults hung
-(after 0 to 19 calls) and none of the 6 with XLA's concurrency-optimised
-scheduler turned off; 11 further processes with it off did not hang either.
-`XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`, a workaround reported for
-similar hangs, did not help here, and neither did turning XNNPACK off. The
-hang is not specific to that program: `benchmarks/train_step.py` hung the
-same way at `T = 2000` in two separate runs.
-
-A native stack of a hung `train_step.py` (with the flag) names the cause:
-jaxlib's batched LAPACK kernels (`lapack_dtrsm_ffi` -> `ParallelBatchMap`)
-split their batch over XLA's intra-op thread pool and block on a counter;
-when as many run concurrently as the pool has threads, all of them wait and
-no thread is left for the pieces. The flag lowers the concurrency and with
-it the odds (0 of 17 reproducer processes hung), but it does not remove
-them: with the flag on, that training step at `T = 2000` hung in 5 of 5
-tries of the truncated and implicit adjoints.
-
-Since then the chain solver avoids the cause itself: its solves and
-selected inversion use no LAPACK kernel, and the LAPACK calls of its
-factorisation depend on each other, so never two run at once
-(`eqsmooth/solve/_small_blocks.py`). With that change the truncated and
-implicit training steps at `T = 2000` finish. The flag stays for other
-programs with independent batched LAPACK calls.
-
-The scheduler only reorders independent operations, so turning it off
-changes no result. XLA reads `XLA_FLAGS` when JAX first starts its backend,
-so the function takes effect only if called before the first JAX
-computation. A flag the user has set already is left alone.
+The scheduler. jaxlib 0.10's CPU runtime can wait forever for the result of
+a program with many independent batched LAPACK calls (`jax.block_until_ready`
+never returns and every thread sleeps): jaxlib's batched LAPACK kernels
+(`lapack_dtrsm_ffi` -> `ParallelBatchMap`) split their batch over XLA's
+intra-op thread pool and block on a counter, and when as many run
+concurrently as the pool has threads, all of them wait and no thread is left
+for the pieces. Turning the concurrency-optimised scheduler off lowers the
+concurrency and with it the odds of the hang, but does not remove them
+(`XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`, a workaround reported for
+similar hangs, did not help, and neither did turning XNNPACK off). The
+chain solver avoids the cause itself: its solves and selected inversion use
+no LAPACK kernel, and the LAPACK calls of its factorisation depend on each
+other, so never two run at once (`eqsmooth/solve/_linear/_small_blocks.py`).
+The flag stays for other programs with independent batched LAPACK calls. The
+scheduler only reorders independent operations, so turning it off changes no
+result. The measurements are described on the getting-started page.
 
 Compile time. XLA:CPU compiles fused element-wise kernels with MLIR-based
 emitters by default; `--xla_cpu_use_fusion_emitters=false` selects its
-earlier LLVM IR emitters. On the project machine (jaxlib 0.10.2, 2 cores;
-`benchmarks/first_call.py --xla-flags`, two cold processes each) the first
-answer of the 5-pose SE(2) solve went from 3.1 s to 2.3 s (XLA's part 2.0
--> 1.2 s), the SE(2)+velocity chain at T = 10⁴ from 15-17 s to 10-13 s, and
-the T = 200 training step from 11 s to 9-10 s, with run times within the
-machine's noise; the test suite runs in 509 s instead of 858 s. XLA aborts
-the process on a flag it does not know, so the flag is added only after a
-subprocess has started JAX's CPU backend with it.
+earlier LLVM IR emitters, which compile faster with the same run times (the
+performance page has the figures).
+
+XLA reads `XLA_FLAGS` when JAX first starts its backend, so the function
+takes effect only if called before the first JAX computation; a flag the user
+has set already is left alone. XLA aborts the process on a flag it does not
+know, so a flag is added only after a subprocess has started JAX's CPU
+backend with it.
 """
 
 import os
@@ -102,9 +82,8 @@ def set_xla_cpu_flags(
         getting-started guide); eqsmooth's own chain solver no longer needs
         it. Results do not change.
     - `fast_compile`: add `--xla_cpu_use_fusion_emitters=false`, XLA's
-        earlier fusion emitters, which compile about a third faster (the
-        5-pose SE(2) solve's first answer 3.1 -> 2.3 s on the project
-        machine; docs/performance.md). Added only if a subprocess starts
+        earlier fusion emitters, which compile faster with the same run
+        times (the performance page has the figures). Added only if a subprocess starts
         JAX's CPU backend with it, since XLA aborts on an unknown flag; a
         `UserWarning` says when it was left out.
 

@@ -420,8 +420,7 @@ def _compiled(fn: Callable) -> Callable:
 
     That (static) setting only steers the fits, which run outside compiled
     code, so models that differ in it share one compiled program; otherwise
-    each new prior width compiled the MAP, evidence and score programs again
-    (about 15 s on 2 cores for the test suite's model).
+    each new prior width compiled the MAP, evidence and score programs again.
     """
     jitted = eqx.filter_jit(fn)
 

@@ -19,7 +19,7 @@ from ._stats import (
 
 _LN20 = float(np.log(20.0))
 # The alarms a run can raise; each one's false-alarm rate on data with no
-# (further) missing effect is measured by benchmarks/discover.py.
+# (further) missing effect is reported on the discover page of the docs.
 _ALARMS = ("detected", "unnamed_structure", "ambiguous", "leftover_structure")
 
 

@@ -289,7 +289,7 @@ class SE2(AbstractLieGroup):
     # inverse and compose are written on whole parameter vectors (no per-
     # component slices and stacks): the same arithmetic in a quarter of the
     # operations, which matters once they are differentiated twice inside an
-    # unrolled solver (benchmarks/kitti_compile.py).
+    # unrolled solver.
     def inverse(self) -> "SE2":
         a = self.unit_complex_xy
         c, s, t = a[..., 0:1], a[..., 1:2], a[..., 2:]

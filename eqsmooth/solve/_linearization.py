@@ -89,9 +89,8 @@ def linearize_graph(graph: FactorGraph, values: dict[str, PyTree]) -> Linearizat
 
 def _whiten_jacobians(noise, jacs: tuple[Array, ...]) -> tuple[Array, ...]:
     """Whiten a factor's Jacobian blocks as one `(n, m, Σd)` array: one batched
-    product instead of one per variable (on CPU, 9,048 rows: one batch of
-    6×12 products took 1.0-1.2 ms, two batches of 6×6 took 9.6 ms;
-    `benchmarks/linearize_assemble.py --whiten`)."""
+    product instead of one per variable, which XLA on CPU runs several times
+    faster (the performance page has the figures)."""
     if len(jacs) == 1:
         return (noise.whiten(jacs[0]),)
     whole = noise.whiten(jnp.concatenate(jacs, axis=2))

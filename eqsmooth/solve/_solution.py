@@ -75,12 +75,12 @@ def raise_unless_successful(
     solve's own program is then the same with and without `throw`, and has
     no host callback: JAX neither writes a program with host callbacks to
     its persistent compilation cache nor reads one from it, so a second
-    process would compile the whole solve again (benchmarks/first_call.py).
+    process would compile the whole solve again.
     """
     # The code as a host array (a result code is a Module whose one leaf is its
     # index), compared in numpy: an `==` of the codes would be an eager JAX
-    # operation (one more compilation, ~0.1 ms per solve), and
-    # `EnumerationItem.is_traced` costs ~25 µs.
+    # operation (one more compilation, and dispatch on every solve), and
+    # `EnumerationItem.is_traced` is slower still.
     (code,) = jax.tree_util.tree_leaves(sol.result)
     try:
         code = np.asarray(code)

@@ -462,7 +462,7 @@ DEFAULT_TAIL_SIZE = 32
 this many blocks are left and a sequential block Cholesky (one `lax.scan`)
 factors the rest. Every reduction level compiles to a dozen XLA kernels of its
 own while the scan body compiles once, so a larger tail cuts the compile time
-of long chains (measurements in `benchmarks/results/chain_tail_s5`)."""
+of long chains."""
 
 
 def _tail_factor(A, B) -> tuple[_Tail, Array]:

@@ -5,7 +5,7 @@ The chain solver and the block-Jacobi preconditioner work on thousands of
 poor fit for that on CPU:
 
 - they pay a per-matrix call overhead, which dominates for blocks this
-  small (`benchmarks/small_blocks.py` measures both forms);
+  small;
 - they split their batch over XLA's intra-op thread pool and block until the
   pieces are done. Two such kernels running at once can take every thread of
   the pool and wait on each other forever: the hang described in

@@ -66,8 +66,8 @@ def _import_sparsax() -> ModuleType:
     symbols (`dgemm_`, `dsyrk_`, `dtrsm_`, `dpotrf_`) when the extension
     loads. A library loaded before it with `RTLD_GLOBAL` comes first in that
     lookup, so loading MKL's runtime library that way makes the supernodal
-    factorisation run MKL's kernels (1.6-2.7x faster on the 3-D pose-graph
-    benchmarks; `benchmarks/sparsax_blas.py`). Python extensions never share BLAS
+    factorisation run MKL's kernels (faster than the bundled ATLAS; the
+    performance page has the figures). Python extensions never share BLAS
     symbols otherwise (NumPy's and SciPy's OpenBLAS are prefixed), so nothing
     else changes. MKL runs sequentially unless `MKL_THREADING_LAYER` says
     otherwise: XLA already uses the cores.
@@ -187,8 +187,8 @@ class SparsaxCholesky(AbstractNormalSolver):
     The supernodal factorisation spends its time in BLAS. sparsax's wheel
     bundles a generic ATLAS; with the `mkl` wheel installed (the `sparse`
     extra installs it on Linux x86-64) eqsmooth has CHOLMOD call MKL instead,
-    1.6-2.7x faster on the 3-D pose graphs
-    ([`eqsmooth.solve.sparsax_blas`][] says which one is in use).
+    which is faster (the performance page has the figures;
+    [`eqsmooth.solve.sparsax_blas`][] says which one is in use).
 
     When sparsax is installed (and JAX runs in 64-bit mode), it is the default
     linear solver of graphs that are neither chains nor small (see

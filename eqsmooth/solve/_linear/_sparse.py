@@ -327,7 +327,7 @@ class SparseCholesky(AbstractNormalSolver):
     analysis are computed once per graph structure and reused by every
     later solve, and the numeric factorisation is supernodal (dense BLAS
     blocks), so its speed is that of the BLAS SuiteSparse is linked against
-    (measurements: `benchmarks/results/pgo_cholmod_openblas.md`). A matrix
+    (the linear solvers page has measurements). A matrix
     that is not positive definite (or singular to working precision) gives
     `RESULTS.singular` and a zero step.
 

@@ -200,9 +200,9 @@ _HISTORY = (
 
 # Two entry points to one program. When every leaf of the graph, the values,
 # the solver and the adjoint is a JAX array (the usual case), `jax.jit`
-# dispatches in C++ (flattening, cache lookup), which takes about half a
-# millisecond less per call than `eqx.filter_jit`'s partition of the
-# arguments into arrays and the rest (`benchmarks/small_graph.py`). Anything
+# dispatches in C++ (flattening, cache lookup), which costs less per call
+# than `eqx.filter_jit`'s partition of the arguments into arrays and the rest
+# (the performance page measures both). Anything
 # else (numpy arrays, Python scalars as leaves, per-call options) goes through
 # `eqx.filter_jit`, which treats non-array leaves as static.
 _least_squares = eqx.filter_jit(_solve)

@@ -89,7 +89,7 @@ class LevenbergMarquardt(AbstractConvergingSolver):
     - `initial_damping`: λ₀, relative to the diagonal of `JᵀJ`. The default
         `1e-8` starts close to Gauss-Newton: λ shrinks by at most a factor 3
         per accepted step, so a large λ₀ costs many steps on long pose-graph
-        chains (measured in `benchmarks/results/`), while a rejected step
+        chains, while a rejected step
         raises λ quickly (factors 2, 4, 8, … in a row).
     - `min_diagonal`, `max_diagonal`: clipping of `D`.
     - `max_damping`: if λ exceeds this, the solve stops with
