@@ -43,7 +43,14 @@ import numpy as np
 from jaxtyping import Array, Float
 
 import eqsmooth as eqs
-from eqsmooth.learn import joint_nll, make_optimizer, surrogate_loss, train
+from eqsmooth.learn import (
+    joint_nll,
+    Logging,
+    make_optimizer,
+    surrogate_loss,
+    train,
+    Validation,
+)
 
 
 Q_TRUE = np.array([0.05, 0.3])  # process noise std (position, velocity)
@@ -169,22 +176,25 @@ def train_models(train_data, valid_data, iters: int, args):
         num_steps=iters,
         batch_size=8,
         seed=args.seed,
-        valid_data=valid_data,
-        eval_every=25,
-        progress=not args.no_progress,
+        validation=Validation(valid_data, every=25),
         optimizer=make_optimizer(3e-2, warmup_steps=20, decay_steps=iters),
     )
+    progress = not args.no_progress
     t0 = time.perf_counter()
     homo = train(
         hand,
         surrogate,
         train_data,
-        log_path=args.out / "train_surrogate.jsonl",
+        logging=Logging(args.out / "train_surrogate.jsonl", progress=progress),
         **common,
     )
     t1 = time.perf_counter()
     hetero = train(
-        hetero0, nll, train_data, log_path=args.out / "train_nll.jsonl", **common
+        hetero0,
+        nll,
+        train_data,
+        logging=Logging(args.out / "train_nll.jsonl", progress=progress),
+        **common,
     )
     t2 = time.perf_counter()
     return hand, homo, hetero, (t1 - t0, t2 - t1)

@@ -166,9 +166,8 @@ def learn_threshold(train, valid, test, solver, steps: int) -> dict:
         optimizer=eqs.learn.make_optimizer(0.2, warmup_steps=0, decay_steps=steps),
         num_steps=steps,
         batch_size=2,
-        valid_data=valid,
-        eval_every=max(steps // 4, 1),
-        progress=False,
+        validation=eqs.learn.Validation(valid, every=max(steps // 4, 1)),
+        logging=eqs.learn.Logging(progress=False),
     )
     best = result.best_model
     test_after = float(test_loss(best, test))

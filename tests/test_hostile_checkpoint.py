@@ -34,18 +34,22 @@ def _same(a, b):
 
 @pytest.mark.parametrize("damage", ["truncated", "corrupted"])
 def test_damaged_checkpoint_falls_back(damage, tmp_path):
-    from eqsmooth.learn import train
+    from eqsmooth.learn import Checkpoints, Logging, train
 
     model0 = _Line(jnp.asarray(0.0), jnp.asarray(0.0))
-    kw = dict(optimizer=optax.sgd(0.05), num_steps=12, batch_size=8, progress=False)
+    kw = dict(
+        optimizer=optax.sgd(0.05),
+        num_steps=12,
+        batch_size=8,
+        logging=Logging(progress=False),
+    )
     full = train(model0, _loss, _data(), **kw)
     ckpt = tmp_path / "ckpt.eqx"
     train(
         model0,
         _loss,
         _data(),
-        checkpoint_path=ckpt,
-        checkpoint_every=5,
+        checkpoints=Checkpoints(ckpt, every=5),
         **{**kw, "num_steps": 10},
     )
     good = ckpt.read_bytes()
@@ -57,6 +61,6 @@ def test_damaged_checkpoint_falls_back(damage, tmp_path):
         ckpt.write_bytes(bytes(flipped))
     with pytest.warns(UserWarning, match=f"{damage}.*previous checkpoint.*step 5"):
         res = train(
-            model0, _loss, _data(), checkpoint_path=ckpt, checkpoint_every=5, **kw
+            model0, _loss, _data(), checkpoints=Checkpoints(ckpt, every=5), **kw
         )
     assert res.step == 12 and _same(res.model, full.model)

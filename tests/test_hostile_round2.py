@@ -389,7 +389,7 @@ _DATA = {"x": np.arange(8.0), "y": np.arange(8.0)}
 def _train(**kw):
     import optax
 
-    from eqsmooth.learn import train
+    from eqsmooth.learn import Logging, train
 
     args = dict(
         model=_Line(jnp.asarray(0.0)),
@@ -398,7 +398,7 @@ def _train(**kw):
         optimizer=optax.sgd(0.01),
         num_steps=2,
         batch_size=2,
-        progress=False,
+        logging=Logging(progress=False),
     )
     args.update(kw)
     return train(**args)
@@ -427,9 +427,13 @@ def _train(**kw):
             ["train_data['x']", "object"],
         ),
         (
-            dict(valid_data={"x": np.array(["a"] * 4), "y": np.arange(4.0)}),
+            dict(
+                validation=eqs.learn.Validation(
+                    {"x": np.array(["a"] * 4), "y": np.arange(4.0)}
+                )
+            ),
             TypeError,
-            ["valid_data['x']"],
+            ["validation.data['x']"],
         ),
     ],
 )
@@ -438,10 +442,14 @@ def test_bad_training_input(kw, exc, fragments):
         _train(**kw)
 
 
-@pytest.mark.parametrize("label", ["checkpoint_path", "log_path"])
+@pytest.mark.parametrize("label", ["Checkpoints", "Logging"])
 def test_training_path_is_a_directory(label, tmp_path):
-    with raises(ValueError, f"train: {label}", "is a directory"):
-        _train(**{label: tmp_path, "checkpoint_every": 1})
+    from eqsmooth import learn
+
+    with raises(ValueError, f"{label}: path", "is a directory"):
+        getattr(learn, label)(tmp_path)
+    with raises(ValueError, f"{label}: every must be an int >= 1", "0"):
+        getattr(learn, label)(tmp_path / "f", every=0)
 
 
 # ------------------------------------------------------------ loaders

@@ -59,6 +59,7 @@ _SCRIPT = textwrap.dedent(
     import eqsmooth as eqs
     from eqsmooth.learn import (
         make_mesh, make_train_step, replicate, shard_batch, surrogate_loss, train,
+        Logging, Validation,
     )
 
     assert len(jax.devices()) == 2, jax.devices()
@@ -127,8 +128,9 @@ _SCRIPT = textwrap.dedent(
     line0 = {"w": jnp.asarray(0.0), "coeff": model["coeff"]}
     xv = rng.normal(size=5)  # 5 = a full batch of 4 (sharded) + 1 (replicated)
     kw = dict(
-        optimizer=optax.adam(1e-2), num_steps=5, batch_size=4, progress=False,
-        valid_data={"x": xv, "y": 2.0 * xv}, eval_every=2,
+        optimizer=optax.adam(1e-2), num_steps=5, batch_size=4,
+        logging=Logging(progress=False),
+        validation=Validation({"x": xv, "y": 2.0 * xv}, every=2),
     )
     r1 = train(line0, line_loss, line_data, **kw)
     r2 = train(line0, line_loss, line_data, mesh=mesh, **kw)
@@ -201,6 +203,7 @@ _MULTI = textwrap.dedent(
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     import jax.numpy as jnp, numpy as np, optax
     from eqsmooth.learn import initialize_distributed, make_mesh, train
+    from eqsmooth.learn import Checkpoints, Logging, Validation
 
     nproc, pid, port, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
     if nproc > 1:
@@ -215,9 +218,9 @@ _MULTI = textwrap.dedent(
     res = train(
         {"w": jnp.asarray(0.0), "b": jnp.asarray(0.0)}, loss,
         {"x": x, "y": 2 * x + 1}, optimizer=optax.adam(0.1), num_steps=6,
-        batch_size=4, valid_data={"x": xv, "y": 1.5 * xv}, eval_every=2,
-        checkpoint_path=out + "/ckpt.eqx", checkpoint_every=2,
-        log_path=out + f"/log{pid}.jsonl", progress=False,
+        batch_size=4, validation=Validation({"x": xv, "y": 1.5 * xv}, every=2),
+        checkpoints=Checkpoints(out + "/ckpt.eqx", every=2),
+        logging=Logging(out + f"/log{pid}.jsonl", progress=False),
         mesh=make_mesh() if nproc > 1 else None,
     )
     final = {k: float(np.asarray(v.addressable_data(0))) for k, v in res.model.items()}

@@ -18,14 +18,17 @@ from helpers import child_env
 from eqsmooth.learn import (
     atomic_write,
     CheckpointError,
+    Checkpoints,
     epoch_order,
     evaluate,
     load_checkpoint,
+    Logging,
     make_optimizer,
     previous_checkpoint,
     read_checkpoint_header,
     train,
     TrainState,
+    Validation,
 )
 
 
@@ -99,9 +102,7 @@ def test_train_reduces_loss_and_logs(tmp_path):
         optimizer=make_optimizer(0.1, warmup_steps=5),
         num_steps=150,
         batch_size=8,
-        log_path=log,
-        log_every=10,
-        progress=False,
+        logging=Logging(log, every=10, progress=False),
     )
     first = float(_line_loss(_LINE0, data))
     last = float(_line_loss(res.model, data))
@@ -121,13 +122,13 @@ def test_nonfinite_batches_raise_or_are_skipped():
         optimizer=make_optimizer(0.1, warmup_steps=2),
         num_steps=20,
         batch_size=4,
-        progress=False,
+        logging=Logging(progress=False),
     )
     order = epoch_order(0, 0, 16)
     bad_step = int(np.nonzero(order == 5)[0][0]) // 4 + 1
     with pytest.raises(FloatingPointError, match=f"step {bad_step} .*examples .*5"):
         train(_LINE0, _line_loss, data, **kw)
-    res = train(_LINE0, _line_loss, data, on_nonfinite="skip", log_every=1, **kw)
+    res = train(_LINE0, _line_loss, data, on_nonfinite="skip", **kw)
     assert np.isfinite(float(res.model.w)) and np.isfinite(float(res.model.b))
     # One of the 4 batches of every epoch holds the bad example: 5 epochs.
     assert res.history[-1]["skipped"] == 5
@@ -152,11 +153,11 @@ def test_nonfinite_validation_example_is_named():
             _LINE0,
             _line_loss,
             data,
-            valid_data=valid,
+            validation=Validation(valid),
             optimizer=make_optimizer(0.1),
             num_steps=4,
             batch_size=4,
-            progress=False,
+            logging=Logging(progress=False),
         )
 
 
@@ -172,9 +173,8 @@ def test_augment_sees_a_key_per_step_and_never_touches_validation():
         optimizer=make_optimizer(0.1, warmup_steps=2),
         num_steps=60,
         batch_size=4,
-        progress=False,
-        valid_data=data,
-        eval_every=60,
+        logging=Logging(progress=False),
+        validation=Validation(data, every=60),
     )
     res = train(_LINE0, _line_loss, data, augment=augment, **kw)
     # The model learned the augmented targets (intercept 0.5 + 1) ...
@@ -199,11 +199,9 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
         optimizer=optax.sgd(0.05),
         num_steps=60,
         batch_size=8,
-        valid_data=_line_data(1.0, seed=1),
-        eval_every=5,
-        progress=False,
-        checkpoint_path=tmp_path / "ckpt.eqx",
-        checkpoint_every=7,
+        validation=Validation(_line_data(1.0, seed=1), every=5),
+        logging=Logging(progress=False),
+        checkpoints=Checkpoints(tmp_path / "ckpt.eqx", every=7),
     )
     valid = {r["step"]: r["valid_loss"] for r in res.history if "valid_loss" in r}
     assert sorted(valid) == list(range(0, 61, 5))
@@ -253,9 +251,9 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
         optimizer=optax.sgd(0.05),
         num_steps=60,
         batch_size=8,
-        valid_data=_line_data(1.0, seed=1),
-        progress=False,
-        checkpoint_path=ckpt,
+        validation=Validation(_line_data(1.0, seed=1)),
+        logging=Logging(progress=False),
+        checkpoints=Checkpoints(ckpt),
     )
     assert _same(again.model, res.model)
     assert again.best_step == best_step
@@ -268,13 +266,18 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
             num_steps=60,
             batch_size=8,
             seed=1,
-            progress=False,
-            checkpoint_path=ckpt,
+            logging=Logging(progress=False),
+            checkpoints=Checkpoints(ckpt),
         )
 
 
 def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
-    kw = dict(optimizer=optax.sgd(0.05), num_steps=12, batch_size=8, progress=False)
+    kw = dict(
+        optimizer=optax.sgd(0.05),
+        num_steps=12,
+        batch_size=8,
+        logging=Logging(progress=False),
+    )
     ckpt = tmp_path / "ckpt.eqx"
     full = train(_LINE0, _line_loss, _line_data(2.0), **kw)
     # Stop at step 10 (checkpoints at 5 and 10), then damage the newest file.
@@ -282,8 +285,7 @@ def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
         _LINE0,
         _line_loss,
         _line_data(2.0),
-        checkpoint_path=ckpt,
-        checkpoint_every=5,
+        checkpoints=Checkpoints(ckpt, every=5),
         **{**kw, "num_steps": 10},
     )
     like = TrainState(
@@ -311,8 +313,7 @@ def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
             _LINE0,
             _line_loss,
             _line_data(2.0),
-            checkpoint_path=ckpt,
-            checkpoint_every=5,
+            checkpoints=Checkpoints(ckpt, every=5),
             **kw,
         )
     assert res.step == 12 and _same(res.model, full.model)
@@ -320,7 +321,7 @@ def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
     ckpt.write_bytes(good[:-3])
     previous_checkpoint(ckpt).write_bytes(b"garbage\n")
     with pytest.raises(CheckpointError, match="no usable checkpoint.*truncated"):
-        train(_LINE0, _line_loss, _line_data(2.0), checkpoint_path=ckpt, **kw)
+        train(_LINE0, _line_loss, _line_data(2.0), checkpoints=Checkpoints(ckpt), **kw)
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):
@@ -346,7 +347,7 @@ def test_bad_inputs():
             optimizer=optax.sgd(0.1),
             num_steps=1,
             batch_size=8,
-            progress=False,
+            logging=Logging(progress=False),
         )
     with pytest.raises(ValueError, match="leading"):
         train(
@@ -356,7 +357,7 @@ def test_bad_inputs():
             optimizer=optax.sgd(0.1),
             num_steps=1,
             batch_size=2,
-            progress=False,
+            logging=Logging(progress=False),
         )
     with pytest.raises(ValueError, match="not an eqsmooth checkpoint"):
         read_checkpoint_header(__file__)
@@ -370,7 +371,7 @@ _SCRIPT = textwrap.dedent(
     import jax
     jax.config.update("jax_enable_x64", True)
     import equinox as eqx, jax.numpy as jnp, numpy as np
-    from eqsmooth.learn import make_optimizer, train
+    from eqsmooth.learn import Checkpoints, Logging, make_optimizer, train, Validation
 
     ckpt, log, out, sleep = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
     if len(sys.argv) > 5:
@@ -415,9 +416,10 @@ _SCRIPT = textwrap.dedent(
         model, loss, {"x": x, "y": y},
         optimizer=make_optimizer(1e-2, warmup_steps=5, decay_steps=60),
         num_steps=45, batch_size=8, seed=3, has_aux=True,
-        valid_data={"x": xv, "y": yv}, eval_every=4,
-        checkpoint_path=ckpt, checkpoint_every=3, log_path=log, progress=False,
-        callback=lambda step, rec: (executed.append(step), time.sleep(sleep)),
+        validation=Validation({"x": xv, "y": yv}, every=4),
+        checkpoints=Checkpoints(ckpt, every=3),
+        logging=Logging(log, progress=False, callback=lambda step, rec: (
+            executed.append(step), time.sleep(sleep))),
         augment=lambda b, k: {**b, "x": b["x"] + 0.01 * jax.random.normal(k, (8, 2))},
     )
     eqx.tree_serialise_leaves(out, (res.model, res.best_model, res.best_step))

@@ -39,3 +39,8 @@ from ._train import (
     train as train,
     TrainResult as TrainResult,
 )
+from ._train_options import (
+    Checkpoints as Checkpoints,
+    Logging as Logging,
+    Validation as Validation,
+)

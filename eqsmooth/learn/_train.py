@@ -1,8 +1,8 @@
 """A small, resumable training loop on optax."""
 
+import contextlib
 import json
 import math
-import os
 import time
 import warnings
 from collections.abc import Callable
@@ -33,6 +33,7 @@ from ._sharding import (
     replicated_sharding,
     shard_batch,
 )
+from ._train_options import Checkpoints, Logging, Validation
 
 
 def _split_loss(out, has_aux: bool):
@@ -300,33 +301,14 @@ def _resume(ckpt: Path, like: TrainState, seed: int, metadata: dict) -> TrainSta
     )
 
 
-def _check_options(
-    model,
-    optimizer,
-    filter_spec,
-    *,
-    on_nonfinite,
-    num_steps,
-    batch_size,
-    eval_every,
-    checkpoint_every,
-    log_every,
-    seed,
-    paths,
-) -> None:
+def _check_options(model, optimizer, filter_spec, on_nonfinite, num_steps, seed):
     """`train`'s argument checks, each naming the argument at fault."""
     if on_nonfinite not in ("raise", "skip"):
         raise ValueError(
             f"train: on_nonfinite must be 'raise' or 'skip', got {on_nonfinite!r}"
         )
-    if num_steps < 0 or batch_size < 1 or eval_every < 1 or checkpoint_every < 1:
-        raise ValueError(
-            "train: need num_steps >= 0, batch_size >= 1, eval_every >= 1 and "
-            f"checkpoint_every >= 1; got {num_steps}, {batch_size}, {eval_every}, "
-            f"{checkpoint_every}"
-        )
-    if log_every < 1:
-        raise ValueError(f"train: log_every must be >= 1, got {log_every}")
+    if num_steps < 0:
+        raise ValueError(f"train: need num_steps >= 0, got {num_steps}")
     if not isinstance(optimizer, optax.GradientTransformation):
         raise TypeError(
             "train: optimizer must be an optax.GradientTransformation (e.g. "
@@ -341,9 +323,189 @@ def _check_options(
             "filter_spec; by default floating-point JAX arrays: a Python float "
             "field is a constant, wrap it in jnp.asarray)"
         )
-    for label, path in paths.items():
-        if path is not None and Path(path).is_dir():
-            raise ValueError(f"train: {label} {path} is a directory; give a file path")
+
+
+def _validation(validation, loss_fn, has_aux, mesh):
+    """The validation data on the host and its evaluator (None, None without)."""
+    if validation is None:
+        return None, None
+    valid = _to_host(validation.data)
+    _num_examples(valid, "validation.data")
+    own = validation.loss_fn is None
+    fn = loss_fn if own else validation.loss_fn
+    return valid, _make_evaluator(fn, has_aux and own, mesh)
+
+
+def _check_batch(n: int, batch_size: int, mesh: Mesh | None) -> None:
+    if batch_size < 1:
+        raise ValueError(f"train: need batch_size >= 1, got {batch_size}")
+    if n < batch_size:
+        raise ValueError(f"train: batch_size {batch_size} exceeds the {n} examples")
+    if mesh is not None and batch_size % mesh.devices.size:
+        raise ValueError(
+            f"train: batch_size {batch_size} is not a multiple of the "
+            f"{mesh.devices.size} devices of the mesh"
+        )
+
+
+def _start(
+    state: TrainState,
+    checkpoints: Checkpoints | None,
+    log: Path | None,
+    metadata: dict,
+    writer: bool,
+) -> tuple[TrainState, list[dict]]:
+    """The state to start from (resumed from a checkpoint when there is one)
+    and the log records it covers; a fresh run starts a fresh log."""
+    ckpt = None if checkpoints is None else Path(checkpoints.path)
+    if (
+        ckpt is not None
+        and checkpoints.resume
+        and (ckpt.exists() or previous_checkpoint(ckpt).exists())
+    ):
+        state = _resume(ckpt, state, state.seed, metadata)
+        # Temporary files of a run killed while writing its checkpoint.
+        for stale in ckpt.parent.glob(f".{ckpt.name}.*.tmp") if writer else ():
+            stale.unlink(missing_ok=True)
+        return state, ([] if log is None else _rewrite_log(log, state.step))
+    if log is not None and log.exists():
+        log.unlink()
+    return state, []
+
+
+class _Run:
+    """One `train` call's mutable state (current and best model, the log) and
+    its loop over the steps."""
+
+    def __init__(self, state, history, data, valid, evaluator, logfile, **config):
+        self.model, self.opt_state = state.model, state.opt_state
+        self.best_model, self.best_metric = state.best_model, state.best_metric
+        self.best_step, self.start = state.best_step, state.step
+        self.history, self.data, self.valid = history, data, valid
+        self.evaluator, self.logfile = evaluator, logfile
+        self.cfg = config
+        if config["mesh"] is not None:
+            self.model, self.opt_state, self.best_model = replicate(
+                (self.model, self.opt_state, self.best_model), config["mesh"]
+            )
+        self.t0 = time.perf_counter()
+
+    def write(self, record: dict) -> None:
+        self.history.append(record)
+        if self.logfile is not None:
+            self.logfile.write(json.dumps(record) + "\n")
+            self.logfile.flush()
+
+    def validate(self, step: int) -> float:
+        v = float(self.evaluator(self.model, self.valid, self.cfg["batch_size"]))
+        if step == 0 or v < self.best_metric:
+            self.best_metric, self.best_model, self.best_step = v, self.model, step
+        return v
+
+    def checkpoint(self, step: int) -> None:
+        validated = self.evaluator is not None
+        state = TrainState(
+            model=self.model,
+            opt_state=self.opt_state,
+            step=step,
+            seed=self.cfg["seed"],
+            best_model=self.best_model if validated else self.model,
+            best_metric=self.best_metric,
+            best_step=self.best_step if validated else step,
+        )
+        save_checkpoint(Path(self.cfg["checkpoints"].path), state, self.cfg["metadata"])
+
+    def batch(self, s: int, order: np.ndarray, pos: int):
+        c = self.cfg
+        examples = order[pos * c["batch_size"] : (pos + 1) * c["batch_size"]]
+        batch = _take(self.data, examples)
+        if c["augment"] is not None:
+            key = jax.random.fold_in(jax.random.key(c["seed"]), s)
+            batch = c["augment"](batch, key)
+        if c["mesh"] is None:
+            return examples, jax.tree_util.tree_map(jnp.asarray, batch)
+        return examples, shard_batch(batch, c["mesh"])
+
+    def loop(self, bar) -> None:
+        c = self.cfg
+        num_steps, n, logging = c["num_steps"], c["num_examples"], c["logging"]
+        if self.evaluator is not None and self.start == 0:
+            v = self.validate(0)
+            self.write(
+                {"step": 0, "valid_loss": v, "time": time.perf_counter() - self.t0}
+            )
+        epoch, order = -1, None
+        skipped = 0  # non-finite steps dropped by this call (on_nonfinite="skip")
+        for s in range(self.start, num_steps):
+            e, pos = divmod(s, n // c["batch_size"])
+            if e != epoch:
+                epoch, order = e, epoch_order(c["seed"], e, n)
+            assert order is not None
+            examples, batch = self.batch(s, order, pos)
+            model, opt_state, metrics = c["step_fn"](self.model, self.opt_state, batch)
+            if math.isfinite(float(metrics["loss"])) and math.isfinite(
+                float(metrics["grad_norm"])
+            ):
+                self.model, self.opt_state = model, opt_state
+            elif c["on_nonfinite"] == "raise":
+                raise _nonfinite_error(s, e, metrics, examples)
+            else:
+                skipped += 1
+            done = s + 1
+            last = done == num_steps
+            validate = self.evaluator is not None and (
+                done % c["validation"].every == 0 or last
+            )
+            record = None
+            if done % logging.every == 0 or validate or last:
+                record = {"step": done, "epoch": e, **_floats(metrics)}
+                record["skipped"] = skipped
+                if validate:
+                    record["valid_loss"] = self.validate(done)
+                record["time"] = time.perf_counter() - self.t0
+                self.write(record)
+                bar.set_postfix(loss=f"{record['loss']:.4g}")
+            bar.update(1)
+            ckpt = c["checkpoints"]
+            if ckpt is not None and c["writer"] and (done % ckpt.every == 0 or last):
+                self.checkpoint(done)
+            if logging.callback is not None:
+                logging.callback(done, _floats(metrics) if record is None else record)
+        ran = num_steps - min(self.start, num_steps)
+        if ran and skipped == ran:
+            raise _all_skipped_error(ran)
+
+    def result(self) -> "TrainResult":
+        final_step = max(self.start, self.cfg["num_steps"])
+        if self.valid is None:
+            self.best_model, self.best_step = self.model, final_step
+        return TrainResult(
+            model=self.model,
+            best_model=self.best_model,
+            best_step=self.best_step,
+            best_valid_loss=self.best_metric,
+            opt_state=self.opt_state,
+            step=final_step,
+            history=self.history,
+        )
+
+
+def _nonfinite_error(s: int, e: int, metrics: dict, examples) -> FloatingPointError:
+    return FloatingPointError(
+        f"train: step {s + 1} (epoch {e}) gave loss {float(metrics['loss'])} and "
+        f"gradient norm {float(metrics['grad_norm'])}; the batch held examples "
+        f"{examples.tolist()} of train_data. The model is left at step {s} (pass "
+        "on_nonfinite='skip' to drop such batches)"
+    )
+
+
+def _all_skipped_error(ran: int) -> FloatingPointError:
+    return FloatingPointError(
+        f"train: every one of the {ran} steps of this call had a non-finite "
+        "loss or gradient norm and was skipped (on_nonfinite='skip'), so "
+        "nothing was trained; check the training data and the loss "
+        "(on_nonfinite='raise' names the examples of the first such batch)"
+    )
 
 
 def train(
@@ -356,32 +518,22 @@ def train(
     batch_size: int,
     seed: int = 0,
     has_aux: bool = False,
-    valid_data: PyTree | None = None,
-    valid_loss_fn: Callable[..., Any] | None = None,
-    eval_every: int = 100,
-    checkpoint_path: str | os.PathLike | None = None,
-    checkpoint_every: int = 100,
-    resume: bool = True,
-    log_path: str | os.PathLike | None = None,
-    log_every: int = 1,
-    progress: bool = True,
-    mesh: Mesh | None = None,
-    filter_spec: Any = eqx.is_inexact_array,
-    callback: Callable[[int, dict], None] | None = None,
+    validation: Validation | None = None,
+    checkpoints: Checkpoints | None = None,
+    logging: Logging = Logging(),
     on_nonfinite: str = "raise",
     augment: Callable[[Any, PRNGKeyArray], Any] | None = None,
+    filter_spec: Any = eqx.is_inexact_array,
+    mesh: Mesh | None = None,
 ) -> TrainResult:
     """Train `model` by minimising `loss_fn` over mini-batches of `train_data`.
 
     Each epoch visits the examples in the order
     [`eqsmooth.learn.epoch_order`][]`(seed, epoch)`, in batches of
     `batch_size` (the incomplete last batch is dropped), so step `s` always
-    sees the same batch. With `checkpoint_path`, a
-    [`eqsmooth.learn.TrainState`][] is written atomically every
-    `checkpoint_every` steps and at the end; if the file exists and
-    `resume=True`, training continues from it, and a run killed at any point
-    and resumed ends with bitwise the same parameters as an uninterrupted run
-    (same machine, same software).
+    sees the same batch. A run killed at any point and resumed from its
+    [`eqsmooth.learn.Checkpoints`][] ends with bitwise the same parameters as
+    an uninterrupted run (same machine, same software).
 
     **Arguments:**
 
@@ -389,39 +541,19 @@ def train(
         `filter_spec` are trained.
     - `loss_fn`: `loss_fn(model, batch) -> scalar` (or `(scalar, aux_dict)`
         with `has_aux=True`), averaged over the batch; the batch is
-        `train_data` indexed along its leading axis. Typically
-        `jnp.mean(jax.vmap(lambda ex: surrogate_loss(build(model, ex),
-        ex["truth"]))(batch))`.
+        `train_data` indexed along its leading axis.
     - `train_data`: a pytree of arrays with a leading example axis.
     - `optimizer`: an `optax.GradientTransformation`, e.g. from
         [`eqsmooth.learn.make_optimizer`][].
     - `num_steps`: total number of optimiser steps (counting resumed ones).
-    - `batch_size`: examples per step.
-    - `seed`: fixes the data order.
+    - `batch_size`: examples per step (and per validation batch).
+    - `seed`: fixes the data order (and `augment`'s keys).
     - `has_aux`: whether `loss_fn` returns auxiliary metrics to log.
-    - `valid_data`: optional validation data; evaluated at step 0, every
-        `eval_every` steps and at the end. The model with the lowest
-        validation loss is kept as `best_model`.
-    - `valid_loss_fn`: the validation loss (default `loss_fn`).
-    - `eval_every`: evaluation interval in steps.
-    - `checkpoint_path`: where to keep the checkpoint (`None`: no
-        checkpoints).
-    - `checkpoint_every`: checkpoint interval in steps.
-    - `resume`: continue from an existing checkpoint at `checkpoint_path`.
-    - `log_path`: append one JSON record per logged step here (`step`,
-        `epoch`, `loss`, `grad_norm`, aux metrics, `valid_loss` when
-        evaluated, `time`).
-    - `log_every`: log every this many steps (evaluation steps always log).
-    - `progress`: show a tqdm progress bar.
-    - `mesh`: data-parallel training over this mesh's devices (see
-        [`eqsmooth.learn.make_train_step`][]); `batch_size` must be a
-        multiple of the device count. In a multi-host run (see
-        [`eqsmooth.learn.initialize_distributed`][]) every process calls
-        `train` with the same arguments and data; the checkpoint must be on a
-        file system all processes see, and only process 0 writes it and the
-        log.
-    - `filter_spec`: which leaves of `model` are trained.
-    - `callback`: called as `callback(step, record)` after every step.
+    - `validation`: a [`eqsmooth.learn.Validation`][] (model selection), or
+        `None`: `best_model` is then the last model.
+    - `checkpoints`: a [`eqsmooth.learn.Checkpoints`][], or `None`: none.
+    - `logging`: a [`eqsmooth.learn.Logging`][] (log file, interval,
+        progress bar, callback).
     - `on_nonfinite`: what to do when a step's loss or gradient norm is NaN or
         infinite (a bad example, or a failed solve inside the loss): `"raise"`
         stops with a `FloatingPointError` naming the step, epoch and example
@@ -430,212 +562,47 @@ def train(
         log record's `skipped` field and goes on. Either way the non-finite
         update never reaches the model.
     - `augment`: data augmentation, `augment(batch, key) -> batch`, applied
-        (compiled once with `eqx.filter_jit`) to every training batch before
-        the step, never to `valid_data`. `key` is
-        `jax.random.fold_in(jax.random.key(seed), step)`: it depends only on
-        the seed and the step, so a resumed run sees the same augmented
-        batches as an uninterrupted one.
+        (compiled once with `eqx.filter_jit`) to every training batch, never
+        to validation data; `key` is
+        `jax.random.fold_in(jax.random.key(seed), step)`, so a resumed run sees
+        the same augmented batches as an uninterrupted one.
+    - `filter_spec`: which leaves of `model` are trained.
+    - `mesh`: data-parallel training over this mesh's devices (see
+        [`eqsmooth.learn.make_train_step`][]); `batch_size` must be a
+        multiple of the device count. Multi-host: see
+        [`eqsmooth.learn.initialize_distributed`][] (only process 0 writes).
 
     **Returns:** a [`eqsmooth.learn.TrainResult`][].
     """
-    _check_options(
-        model,
-        optimizer,
-        filter_spec,
-        on_nonfinite=on_nonfinite,
-        num_steps=num_steps,
-        batch_size=batch_size,
-        eval_every=eval_every,
-        checkpoint_every=checkpoint_every,
-        log_every=log_every,
-        seed=seed,
-        paths={"checkpoint_path": checkpoint_path, "log_path": log_path},
-    )
+    _check_options(model, optimizer, filter_spec, on_nonfinite, num_steps, seed)
     data = _to_host(train_data)
     n = _num_examples(data, "train_data")
-    if n < batch_size:
-        raise ValueError(f"train: batch_size {batch_size} exceeds the {n} examples")
-    if mesh is not None and batch_size % mesh.devices.size:
-        raise ValueError(
-            f"train: batch_size {batch_size} is not a multiple of the "
-            f"{mesh.devices.size} devices of the mesh"
-        )
-    steps_per_epoch = n // batch_size
-    valid = None if valid_data is None else _to_host(valid_data)
-    if valid is not None:
-        _num_examples(valid, "valid_data")
-
+    _check_batch(n, batch_size, mesh)
+    valid, evaluator = _validation(validation, loss_fn, has_aux, mesh)
     with jax.numpy_dtype_promotion("standard"):
         opt_state = optimizer.init(eqx.filter(model, filter_spec))
-    state = TrainState(
-        model=model,
-        opt_state=opt_state,
-        step=0,
-        seed=int(seed),
-        best_model=model,
-        best_metric=math.inf,
-        best_step=-1,
-    )
+    seed = int(seed)
     metadata = {"num_examples": n, "batch_size": batch_size}
-    ckpt = None if checkpoint_path is None else Path(checkpoint_path)
-    log = None if log_path is None else Path(log_path)
     # In a multi-host run every process reads the checkpoint (a shared file
     # system), and only process 0 writes checkpoints and logs.
     writer = jax.process_index() == 0
-    if not writer:
-        log = None
-    history: list[dict] = []
-    if (
-        ckpt is not None
-        and resume
-        and (ckpt.exists() or previous_checkpoint(ckpt).exists())
-    ):
-        state = _resume(ckpt, state, seed, metadata)
-        # Temporary files of a run killed while writing its checkpoint.
-        for stale in ckpt.parent.glob(f".{ckpt.name}.*.tmp") if writer else ():
-            stale.unlink(missing_ok=True)
-        if log is not None:
-            history = _rewrite_log(log, state.step)
-    elif log is not None and log.exists():
-        log.unlink()
-
-    model, opt_state = state.model, state.opt_state
-    best_model, best_metric, best_step = (
-        state.best_model,
-        state.best_metric,
-        state.best_step,
-    )
-    if mesh is not None:
-        model, opt_state, best_model = replicate((model, opt_state, best_model), mesh)
-
+    log = None if logging.path is None or not writer else Path(logging.path)
+    state = TrainState(model, opt_state, 0, seed, model, math.inf, -1)
+    state, history = _start(state, checkpoints, log, metadata, writer)
     step_fn = make_train_step(
         loss_fn, optimizer, has_aux=has_aux, filter_spec=filter_spec, mesh=mesh
     )
-    augment_fn = None if augment is None else eqx.filter_jit(augment)
-    augment_key = jax.random.key(int(seed))
-    evaluator = None
-    if valid is not None:
-        evaluator = _make_evaluator(
-            loss_fn if valid_loss_fn is None else valid_loss_fn,
-            has_aux if valid_loss_fn is None else False,
-            mesh,
-        )
-
-    def checkpoint(step):
-        if ckpt is None or not writer:
-            return
-        save_checkpoint(
-            ckpt,
-            TrainState(
-                model=model,
-                opt_state=opt_state,
-                step=step,
-                seed=int(seed),
-                best_model=best_model if valid is not None else model,
-                best_metric=best_metric,
-                best_step=best_step if valid is not None else step,
-            ),
-            metadata,
-        )
-
-    logfile = None if log is None else open(log, "a")
-    t0 = time.perf_counter()
-
-    def write(record):
-        history.append(record)
-        if logfile is not None:
-            logfile.write(json.dumps(record) + "\n")
-            logfile.flush()
-
-    bar = tqdm(
-        total=num_steps,
-        initial=min(state.step, num_steps),
-        disable=not (progress and writer),
-    )
-    try:
-        if evaluator is not None and state.step == 0:
-            v = float(evaluator(model, valid, batch_size))
-            best_metric, best_model, best_step = v, model, 0
-            write({"step": 0, "valid_loss": v, "time": time.perf_counter() - t0})
-        epoch, order = -1, None
-        skipped = 0  # non-finite steps dropped by this call (on_nonfinite="skip")
-        for s in range(state.step, num_steps):
-            e, pos = divmod(s, steps_per_epoch)
-            if e != epoch:
-                epoch, order = e, epoch_order(seed, e, n)
-            assert order is not None
-            batch = _take(data, order[pos * batch_size : (pos + 1) * batch_size])
-            if augment_fn is not None:
-                batch = augment_fn(batch, jax.random.fold_in(augment_key, s))
-            batch = (
-                jax.tree_util.tree_map(jnp.asarray, batch)
-                if mesh is None
-                else (shard_batch(batch, mesh))
-            )
-            new_model, new_opt_state, metrics = step_fn(model, opt_state, batch)
-            if not (
-                math.isfinite(float(metrics["loss"]))
-                and math.isfinite(float(metrics["grad_norm"]))
-            ):
-                examples = order[pos * batch_size : (pos + 1) * batch_size]
-                if on_nonfinite == "raise":
-                    raise FloatingPointError(
-                        f"train: step {s + 1} (epoch {e}) gave loss "
-                        f"{float(metrics['loss'])} and gradient norm "
-                        f"{float(metrics['grad_norm'])}; the batch held examples "
-                        f"{examples.tolist()} of train_data. The model is left at "
-                        f"step {s} (pass on_nonfinite='skip' to drop such batches)"
-                    )
-                skipped += 1
-            else:
-                model, opt_state = new_model, new_opt_state
-            done = s + 1
-            evaluate_now = evaluator is not None and (
-                done % eval_every == 0 or done == num_steps
-            )
-            record = None
-            if done % log_every == 0 or evaluate_now or done == num_steps:
-                record = {
-                    "step": done,
-                    "epoch": e,
-                    **_floats(metrics),
-                    "skipped": skipped,
-                }
-                if evaluate_now:
-                    assert evaluator is not None
-                    v = float(evaluator(model, valid, batch_size))
-                    record["valid_loss"] = v
-                    if v < best_metric:
-                        best_metric, best_model, best_step = v, model, done
-                record["time"] = time.perf_counter() - t0
-                write(record)
-                bar.set_postfix(loss=f"{record['loss']:.4g}")
-            bar.update(1)
-            if done % checkpoint_every == 0 or done == num_steps:
-                checkpoint(done)
-            if callback is not None:
-                callback(done, record if record is not None else _floats(metrics))
-        ran = num_steps - min(state.step, num_steps)
-        if ran and skipped == ran:
-            raise FloatingPointError(
-                f"train: every one of the {ran} steps of this call had a non-finite "
-                "loss or gradient norm and was skipped (on_nonfinite='skip'), so "
-                "nothing was trained; check the training data and the loss "
-                "(on_nonfinite='raise' names the examples of the first such batch)"
-            )
-    finally:
-        bar.close()
-        if logfile is not None:
-            logfile.close()
-    final_step = max(state.step, num_steps)
-    if valid is None:
-        best_model, best_step = model, final_step
-    return TrainResult(
-        model=model,
-        best_model=best_model,
-        best_step=best_step,
-        best_valid_loss=best_metric,
-        opt_state=opt_state,
-        step=final_step,
-        history=history,
-    )
+    config = dict(seed=seed, metadata=metadata, writer=writer, num_examples=n)
+    config.update(batch_size=batch_size, num_steps=num_steps, mesh=mesh)
+    config.update(validation=validation, checkpoints=checkpoints, logging=logging)
+    config.update(on_nonfinite=on_nonfinite, step_fn=step_fn)
+    config.update(augment=None if augment is None else eqx.filter_jit(augment))
+    with open(log, "a") if log is not None else contextlib.nullcontext() as logfile:
+        run = _Run(state, history, data, valid, evaluator, logfile, **config)
+        with tqdm(
+            total=num_steps,
+            initial=min(state.step, num_steps),
+            disable=not (logging.progress and writer),
+        ) as bar:
+            run.loop(bar)
+    return run.result()

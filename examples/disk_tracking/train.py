@@ -240,7 +240,22 @@ def make_splits(
     )
 
 
-def _train(model, loss_fn, data, *, cfg, steps, batch, lr, seed, work, name, **kw):
+def _train(
+    model,
+    loss_fn,
+    data,
+    *,
+    cfg,
+    steps,
+    batch,
+    lr,
+    seed,
+    work,
+    name,
+    valid_data,
+    valid_loss_fn,
+    eval_every,
+):
     """[`eqsmooth.learn.train`][] with this experiment's optimiser and files."""
     return eqs.learn.train(
         model,
@@ -250,12 +265,12 @@ def _train(model, loss_fn, data, *, cfg, steps, batch, lr, seed, work, name, **k
         num_steps=steps,
         batch_size=batch,
         seed=seed,
-        checkpoint_path=work / f"{name}.ckpt",
-        checkpoint_every=max(steps // 20, 50),
-        log_path=work / f"{name}.jsonl",
-        log_every=max(steps // 100, 1),
+        validation=eqs.learn.Validation(valid_data, valid_loss_fn, eval_every),
+        checkpoints=eqs.learn.Checkpoints(
+            work / f"{name}.ckpt", every=max(steps // 20, 50)
+        ),
+        logging=eqs.learn.Logging(work / f"{name}.jsonl", every=max(steps // 100, 1)),
         on_nonfinite="skip",
-        **kw,
     )
 
 

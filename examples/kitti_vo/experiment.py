@@ -436,12 +436,11 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             batch_size=cfg.sensor_batch,
             seed=cfg.model_seed,
             has_aux=True,
-            valid_data=valid_pairs,
-            valid_loss_fn=sensor_valid_loss,
-            eval_every=max(cfg.sensor_steps // 10, 1),
-            checkpoint_path=work / "sensor.ckpt",
-            checkpoint_every=200,
-            log_path=work / "sensor.jsonl",
+            validation=eqs.learn.Validation(
+                valid_pairs, sensor_valid_loss, every=max(cfg.sensor_steps // 10, 1)
+            ),
+            checkpoints=eqs.learn.Checkpoints(work / "sensor.ckpt", every=200),
+            logging=eqs.learn.Logging(work / "sensor.jsonl"),
         )
         sensor = res.best_model
         timings["sensor_train_s"] = time.perf_counter() - t1
@@ -531,13 +530,13 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             num_steps=steps,
             batch_size=min(cfg.batch, train_w["z"].shape[0]),
             seed=cfg.model_seed,
-            valid_data=valid_w if cfg.validate else None,
-            valid_loss_fn=valid_loss if cfg.validate else None,
-            eval_every=cfg.eval_every,
-            checkpoint_path=work / f"{method}.ckpt",
-            checkpoint_every=100,
-            log_path=work / f"{method}.jsonl",
-            progress=True,
+            validation=(
+                eqs.learn.Validation(valid_w, valid_loss, every=cfg.eval_every)
+                if cfg.validate
+                else None
+            ),
+            checkpoints=eqs.learn.Checkpoints(work / f"{method}.ckpt", every=100),
+            logging=eqs.learn.Logging(work / f"{method}.jsonl"),
             on_nonfinite="skip",
         )
         train_s = time.perf_counter() - t1
