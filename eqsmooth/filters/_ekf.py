@@ -235,6 +235,34 @@ def ekf(
             f"ekf: transition must be an AbstractFactor, got "
             f"{type(transition).__name__}"
         )
+    measurements = _checked_measurements(transition, measurements)
+    if not isinstance(prediction_steps, int) or prediction_steps < 1:
+        raise ValueError(
+            f"ekf: prediction_steps must be an int >= 1, got {prediction_steps!r}"
+        )
+    d = tangent_dim(initial_mean)
+    initial_covariance = jnp.asarray(initial_covariance)
+    if initial_covariance.shape != (d, d):
+        raise ValueError(
+            f"ekf: initial_covariance has shape {initial_covariance.shape}; the state "
+            f"has tangent dimension {d}, so it must be ({d}, {d})"
+        )
+    initial_mean, initial_covariance = _check_initial_belief(
+        initial_mean, initial_covariance
+    )
+    return _ekf(
+        transition,
+        measurements,
+        initial_mean,
+        initial_covariance,
+        prediction_steps,
+        reset_covariance,
+        throw,
+    )
+
+
+def _checked_measurements(transition, measurements) -> tuple[AbstractFactor, ...]:
+    """The measurement stacks as a tuple, each checked against the chain."""
     if isinstance(measurements, AbstractFactor):
         measurements = (measurements,)
     measurements = tuple(measurements)
@@ -244,10 +272,6 @@ def ekf(
                 f"ekf: measurements must be AbstractFactor stacks, got "
                 f"{type(f).__name__}"
             )
-    if not isinstance(prediction_steps, int) or prediction_steps < 1:
-        raise ValueError(
-            f"ekf: prediction_steps must be an int >= 1, got {prediction_steps!r}"
-        )
     group, _ = _chain_order(transition)
     T = transition.num_rows + 1
     for f in measurements:
@@ -274,25 +298,7 @@ def ekf(
     for f in (transition,) + measurements:
         check_rows(f)
         check_gaussian(f.noise, f"ekf: factor {type(f).__name__}")
-    d = tangent_dim(initial_mean)
-    initial_covariance = jnp.asarray(initial_covariance)
-    if initial_covariance.shape != (d, d):
-        raise ValueError(
-            f"ekf: initial_covariance has shape {initial_covariance.shape}; the state "
-            f"has tangent dimension {d}, so it must be ({d}, {d})"
-        )
-    initial_mean, initial_covariance = _check_initial_belief(
-        initial_mean, initial_covariance
-    )
-    return _ekf(
-        transition,
-        measurements,
-        initial_mean,
-        initial_covariance,
-        prediction_steps,
-        reset_covariance,
-        throw,
-    )
+    return measurements
 
 
 def _check_initial_belief(mean: PyTree, cov: Array) -> tuple[PyTree, Array]:
@@ -346,33 +352,93 @@ def _check_initial_belief(mean: PyTree, cov: Array) -> tuple[PyTree, Array]:
 
 
 @eqx.filter_jit
-def _ekf(
-    transition, measurements, mean0, cov0, prediction_steps, reset_covariance, throw
-):
-    dtype = cov0.dtype
-    d = cov0.shape[0]
-    T = transition.num_rows + 1
-    _, perm = _chain_order(transition)
+def _update(mean, cov, factor, R, logdet_R, present, reset_covariance: bool):
+    """One measurement update (skipped where `present` is false): the new
+    mean and covariance, and (whitened innovation, its covariance, log-lik)."""
+    d, dtype = cov.shape[0], cov.dtype
 
-    # Transition rows in time order, padded with one dummy row so that every
-    # scan step is "update at t, then predict t+1" (the last prediction is
-    # discarded).
+    def r_w(delta):
+        return R @ factor.residual(retract(mean, delta))
+
+    r, H = _value_and_jac(r_w, d, dtype)
+    m = r.shape[0]
+    y = -r
+    PHt = cov @ H.T
+    S = _sym(H @ PHt + jnp.eye(m, dtype=dtype))
+    L = jnp.linalg.cholesky(S)
+    K = jax.scipy.linalg.cho_solve((L, True), PHt.T).T
+    v = K @ y
+    new_mean = retract(mean, v)
+    IKH = jnp.eye(d, dtype=dtype) - K @ H
+    new_cov = IKH @ cov @ IKH.T + K @ K.T
+    if reset_covariance:
+
+        def moved(delta):
+            return local(new_mean, retract(mean, v + delta))
+
+        _, J = _value_and_jac(moved, d, dtype)
+        new_cov = J @ new_cov @ J.T
+    new_cov = _sym(new_cov)
+    alpha = jax.scipy.linalg.solve_triangular(L, y, lower=True)
+    ll = (
+        -0.5 * jnp.dot(alpha, alpha)
+        - jnp.sum(jnp.log(jnp.diagonal(L)))
+        - 0.5 * m * math.log(2 * math.pi)
+        + logdet_R
+    )
+    mean = jax.tree_util.tree_map(lambda a, b: jnp.where(present, a, b), new_mean, mean)
+    cov = jnp.where(present, new_cov, cov)
+    y = jnp.where(present, y, jnp.zeros_like(y))
+    S = jnp.where(present, S, jnp.eye(m, dtype=dtype))
+    ll = jnp.where(present, ll, jnp.zeros_like(ll))
+    return mean, cov, (y, S, ll)
+
+
+def _predict(mean, cov, factor, W, prediction_steps: int):
+    """The predicted mean and covariance of the next state, and `F`."""
+    d, dtype = cov.shape[0], cov.dtype
+
+    def r_w(a, b):
+        return W @ factor.residual(a, b)
+
+    b = mean
+    for _ in range(prediction_steps):
+        r, B = _value_and_jac(lambda db: r_w(mean, retract(b, db)), d, dtype)
+        b = retract(b, -jnp.linalg.solve(B, r))
+
+    def joint(delta):
+        return r_w(retract(mean, delta[:d]), retract(b, delta[d:]))
+
+    _, J = _value_and_jac(joint, 2 * d, dtype)
+    A, B = J[:, :d], J[:, d:]
+    Binv = jnp.linalg.solve(B, jnp.eye(d, dtype=dtype))
+    F = -Binv @ A
+    P = _sym(F @ cov @ F.T + Binv @ Binv.T)
+    return b, P, F
+
+
+def _transition_rows(transition, mean0, d: int, dtype):
+    """The transition's rows in time order, padded with one dummy row so that
+    every scan step is "update at t, then predict t+1" (the last prediction
+    is discarded): (scanned arrays, static part)."""
+    _, perm = _chain_order(transition)
     trans_rows = per_row_fields(transition)
     m_trans = _row_dim(transition, trans_rows, mean0, mean0)
-    tname = type(transition).__name__
     if m_trans != d:
         raise ValueError(
-            f"ekf: the transition factor {tname} has residual dimension {m_trans} "
-            f"but the state has tangent dimension {d}; the residual must determine "
-            "x_t+1 given x_t (a square Jacobian)"
+            f"ekf: the transition factor {type(transition).__name__} has residual "
+            f"dimension {m_trans} but the state has tangent dimension {d}; the "
+            "residual must determine x_t+1 given x_t (a square Jacobian)"
         )
     W_all, _ = row_whitening(transition, d, dtype)
     order = np.concatenate([perm, perm[-1:]])
-    trans_dyn, trans_static = eqx.partition(
-        gather_rows(trans_rows, order), eqx.is_array
-    )
-    trans_xs = (trans_dyn, W_all[order])
+    dyn, static = eqx.partition(gather_rows(trans_rows, order), eqx.is_array)
+    return (dyn, W_all[order]), static
 
+
+def _measurement_layers(measurements, mean0, T: int, dtype):
+    """Each measurement stack's rows as layers over time (a stack may have
+    several rows per step): static parts, scanned arrays and the layout."""
     meas_static, meas_xs, meas_layout = [], [], []
     for f in measurements:
         rows = per_row_fields(f)
@@ -384,86 +450,12 @@ def _ekf(
         meas_static.append(static)
         meas_xs.append((dyn, R_all[table], logdet_all[table], jnp.asarray(mask)))
         meas_layout.append((ids, layer, m))
+    return meas_static, meas_xs, meas_layout
 
-    def update(mean, cov, factor, R, logdet_R, present):
-        def r_w(delta):
-            return R @ factor.residual(retract(mean, delta))
 
-        r, H = _value_and_jac(r_w, d, dtype)
-        m = r.shape[0]
-        y = -r
-        PHt = cov @ H.T
-        S = _sym(H @ PHt + jnp.eye(m, dtype=dtype))
-        L = jnp.linalg.cholesky(S)
-        K = jax.scipy.linalg.cho_solve((L, True), PHt.T).T
-        v = K @ y
-        new_mean = retract(mean, v)
-        IKH = jnp.eye(d, dtype=dtype) - K @ H
-        new_cov = IKH @ cov @ IKH.T + K @ K.T
-        if reset_covariance:
-
-            def moved(delta):
-                return local(new_mean, retract(mean, v + delta))
-
-            _, J = _value_and_jac(moved, d, dtype)
-            new_cov = J @ new_cov @ J.T
-        new_cov = _sym(new_cov)
-        alpha = jax.scipy.linalg.solve_triangular(L, y, lower=True)
-        ll = (
-            -0.5 * jnp.dot(alpha, alpha)
-            - jnp.sum(jnp.log(jnp.diagonal(L)))
-            - 0.5 * m * math.log(2 * math.pi)
-            + logdet_R
-        )
-        mean = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(present, a, b), new_mean, mean
-        )
-        cov = jnp.where(present, new_cov, cov)
-        y = jnp.where(present, y, jnp.zeros_like(y))
-        S = jnp.where(present, S, jnp.eye(m, dtype=dtype))
-        ll = jnp.where(present, ll, jnp.zeros_like(ll))
-        return mean, cov, (y, S, ll)
-
-    def predict(mean, cov, factor, W):
-        def r_w(a, b):
-            return W @ factor.residual(a, b)
-
-        b = mean
-        for _ in range(prediction_steps):
-            r, B = _value_and_jac(lambda db: r_w(mean, retract(b, db)), d, dtype)
-            b = retract(b, -jnp.linalg.solve(B, r))
-
-        def joint(delta):
-            return r_w(retract(mean, delta[:d]), retract(b, delta[d:]))
-
-        _, J = _value_and_jac(joint, 2 * d, dtype)
-        A, B = J[:, :d], J[:, d:]
-        Binv = jnp.linalg.solve(B, jnp.eye(d, dtype=dtype))
-        F = -Binv @ A
-        P = _sym(F @ cov @ F.T + Binv @ Binv.T)
-        return b, P, F
-
-    # Updates are recorded stack by stack, then layer by layer.
-    layer_counts = [int(x[3].shape[1]) for x in meas_xs]
-
-    def body(carry, xs):
-        mean, cov = carry
-        (t_dyn, W), m_xs = xs
-        pred_mean, pred_cov = mean, cov
-        records = []
-        for j, (static, (dyn, R, logdet_R, mask)) in enumerate(zip(meas_static, m_xs)):
-            for k in range(layer_counts[j]):
-                rows_k = jax.tree_util.tree_map(lambda a: a[k], dyn)
-                factor = with_rows(measurements[j], eqx.combine(rows_k, static))
-                mean, cov, rec = update(mean, cov, factor, R[k], logdet_R[k], mask[k])
-                records.append(rec)
-        tfactor = with_rows(transition, eqx.combine(t_dyn, trans_static))
-        next_mean, next_cov, F = predict(mean, cov, tfactor, W)
-        return (next_mean, next_cov), (pred_mean, pred_cov, mean, cov, F, records)
-
-    _, outs = lax.scan(body, (mean0, cov0), (trans_xs, tuple(meas_xs)))
-    pred_mean, pred_cov, mean, cov, F, records = outs
-
+def _innovations(records, meas_layout, layer_counts, T: int, dtype):
+    """Per-stack innovations and covariances in row order, and the per-step
+    log-likelihood, from the updates recorded stack by stack, layer by layer."""
     innovations, innovation_covs = [], []
     step_ll = jnp.zeros((T,), dtype=dtype)
     start = 0
@@ -475,6 +467,43 @@ def _ekf(
         start += layer_counts[j]
         innovations.append(ys[ids, layer])
         innovation_covs.append(Ss[ids, layer])
+    return tuple(innovations), tuple(innovation_covs), step_ll
+
+
+def _ekf(
+    transition, measurements, mean0, cov0, prediction_steps, reset_covariance, throw
+):
+    dtype = cov0.dtype
+    d = cov0.shape[0]
+    T = transition.num_rows + 1
+    trans_xs, trans_static = _transition_rows(transition, mean0, d, dtype)
+    meas_static, meas_xs, meas_layout = _measurement_layers(
+        measurements, mean0, T, dtype
+    )
+    layer_counts = [int(x[3].shape[1]) for x in meas_xs]
+
+    def body(carry, xs):
+        mean, cov = carry
+        (t_dyn, W), m_xs = xs
+        pred_mean, pred_cov = mean, cov
+        records = []
+        for j, (static, (dyn, R, logdet_R, mask)) in enumerate(zip(meas_static, m_xs)):
+            for k in range(layer_counts[j]):
+                rows_k = jax.tree_util.tree_map(lambda a: a[k], dyn)
+                factor = with_rows(measurements[j], eqx.combine(rows_k, static))
+                mean, cov, rec = _update(
+                    mean, cov, factor, R[k], logdet_R[k], mask[k], reset_covariance
+                )
+                records.append(rec)
+        tfactor = with_rows(transition, eqx.combine(t_dyn, trans_static))
+        next_mean, next_cov, F = _predict(mean, cov, tfactor, W, prediction_steps)
+        return (next_mean, next_cov), (pred_mean, pred_cov, mean, cov, F, records)
+
+    _, outs = lax.scan(body, (mean0, cov0), (trans_xs, tuple(meas_xs)))
+    pred_mean, pred_cov, mean, cov, F, records = outs
+    innovations, innovation_covs, step_ll = _innovations(
+        records, meas_layout, layer_counts, T, dtype
+    )
     log_likelihood = jnp.sum(step_ll)
     if throw:
         finite = jnp.all(jnp.isfinite(cov)) & jnp.isfinite(log_likelihood)
@@ -491,8 +520,8 @@ def _ekf(
         predicted_mean=pred_mean,
         predicted_covariance=pred_cov,
         transition_jacobian=F[:-1],
-        innovations=tuple(innovations),
-        innovation_covariances=tuple(innovation_covs),
+        innovations=innovations,
+        innovation_covariances=innovation_covs,
         step_log_likelihood=step_ll,
         log_likelihood=log_likelihood,
     )
