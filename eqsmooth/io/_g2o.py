@@ -275,6 +275,107 @@ def _checked_information(path, tag, lines, info, invalid: str) -> np.ndarray:
     return info
 
 
+def _check_load_options(se3_information, invalid_information, dtype) -> None:
+    if invalid_information not in ("raise", "clip", "block_diagonal"):
+        raise ValueError(
+            "invalid_information must be 'raise', 'clip' or 'block_diagonal', got "
+            f"{invalid_information!r}"
+        )
+    if se3_information not in ("g2o", "gtsam"):
+        raise ValueError(
+            f"se3_information must be 'g2o' or 'gtsam', got {se3_information!r}"
+        )
+    if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
+        raise TypeError(
+            f"load_g2o: dtype must be float32 or float64, got {np.dtype(dtype)}"
+        )
+
+
+def _kind(path, found) -> tuple[str, str, str]:
+    """`"se2"` or `"se3"` and its vertex and edge tags; the line counts checked."""
+    kinds = {_TAGS[t][0]: t for t in found if _TAGS[t][0] is not None}
+    if len(kinds) > 1:
+        a, b = kinds["se2"], kinds["se3"]
+        _fail(
+            path,
+            found[b].linenos[0],
+            f"mixes 2-D and 3-D poses ({a} on line {found[a].linenos[0]}, {b} here)",
+        )
+    if not kinds:
+        _fail(path, None, f"no pose vertices or edges ({', '.join(_FIELDS)})")
+    kind = next(iter(kinds))
+    vtag, etag = _VERTEX[kind], _EDGE[kind]
+    for tag in (vtag, etag):
+        if tag in found:
+            _check_counts(path, tag, found[tag])
+    if etag not in found:
+        _fail(path, None, f"has {vtag} lines but no {etag} lines")
+    return kind, vtag, etag
+
+
+def _edges(path, kind, etag, elines, se3_information):
+    """The edges' vertex ids `(n, 2)`, measurements and information matrices."""
+    eids = _numbers(path, etag, elines, 1, 3, np.int64)
+    enums = _numbers(path, etag, elines, 3, None, np.float64)
+    loops = eids[:, 0] == eids[:, 1]
+    if loops.any():
+        k = int(np.argmax(loops))
+        _fail(path, elines.linenos[k], f"{etag} connects vertex {eids[k, 0]} to itself")
+    if kind == "se2":
+        return eids, _se2_params(enums[:, :3]), _upper_to_full(enums[:, 3:], 3)
+    q = _unit_quaternions(path, etag, elines, enums[:, 3:7])
+    meas = np.concatenate([q, enums[:, :3]], axis=1)
+    info = _upper_to_full(enums[:, 7:], 6)
+    if se3_information == "g2o":
+        info = info * _HALF_ANGLE[:, None] * _HALF_ANGLE[None, :]
+    return eids, meas, info
+
+
+def _vertices(path, kind, vtag, found, etag, eids):
+    """The sorted vertex ids, their poses, and the edges as pose indices."""
+    vlines, elines = found[vtag], found[etag]
+    vids = _numbers(path, vtag, vlines, 1, 2, np.int64)[:, 0]
+    vnums = _numbers(path, vtag, vlines, 2, None, np.float64)
+    order = np.argsort(vids, kind="stable")
+    vertex_ids = vids[order]
+    dup = vertex_ids[1:] == vertex_ids[:-1]
+    if dup.any():
+        k = int(order[int(np.argmax(dup)) + 1])
+        _fail(path, vlines.linenos[k], f"{vtag}: vertex {vids[k]} defined twice")
+    if kind == "se2":
+        params = _se2_params(vnums)
+    else:
+        q = _unit_quaternions(path, vtag, vlines, vnums[:, 3:7])
+        params = np.concatenate([q, vnums[:, :3]], axis=1)
+    idx = np.searchsorted(vertex_ids, eids).clip(0, len(vertex_ids) - 1)
+    missing = vertex_ids[idx] != eids
+    if missing.any():
+        k = int(np.argmax(missing.any(axis=1)))
+        vid = eids[k][missing[k]][0]
+        _fail(
+            path,
+            elines.linenos[k],
+            f"{etag} refers to vertex {vid}, which has no {vtag} line",
+        )
+    return vertex_ids, params[order], idx
+
+
+def _fixed(path, flines, vertex_ids) -> np.ndarray:
+    """The pose indices that `FIX` lines name."""
+    fixed = []
+    for lineno, tokens in zip(flines.linenos, flines.tokens):
+        if len(tokens) < 2:
+            _fail(path, lineno, "FIX needs at least one vertex id")
+        one = _Lines()
+        one.linenos, one.tokens = [lineno], [tokens]
+        for vid in _numbers(path, "FIX", one, 1, None, np.int64)[0]:
+            k = int(np.searchsorted(vertex_ids, vid))
+            if k >= len(vertex_ids) or vertex_ids[k] != vid:
+                _fail(path, lineno, f"FIX refers to unknown vertex {vid}")
+            fixed.append(k)
+    return np.unique(np.asarray(fixed, np.int64))
+
+
 def load_g2o(
     path: str | os.PathLike,
     *,
@@ -345,111 +446,23 @@ def load_g2o(
     an information matrix that is not positive definite (with
     `invalid_information="raise"`).
     """
-    if invalid_information not in ("raise", "clip", "block_diagonal"):
-        raise ValueError(
-            "invalid_information must be 'raise', 'clip' or 'block_diagonal', got "
-            f"{invalid_information!r}"
-        )
-    if se3_information not in ("g2o", "gtsam"):
-        raise ValueError(
-            f"se3_information must be 'g2o' or 'gtsam', got {se3_information!r}"
-        )
-    if dtype is not None and np.dtype(dtype) not in (np.float32, np.float64):
-        raise TypeError(
-            f"load_g2o: dtype must be float32 or float64, got {np.dtype(dtype)}"
-        )
+    _check_load_options(se3_information, invalid_information, dtype)
     path = Path(path)
     found = _tokenize(path, skip_unsupported)
-    kinds = {_TAGS[t][0]: t for t in found if _TAGS[t][0] is not None}
-    if len(kinds) > 1:
-        a, b = kinds["se2"], kinds["se3"]
-        _fail(
-            path,
-            found[b].linenos[0],
-            f"mixes 2-D and 3-D poses ({a} on line {found[a].linenos[0]}, {b} here)",
-        )
-    if not kinds:
-        _fail(path, None, f"no pose vertices or edges ({', '.join(_FIELDS)})")
-    kind = next(iter(kinds))
-    vtag, etag = _VERTEX[kind], _EDGE[kind]
-    for tag in (vtag, etag):
-        if tag in found:
-            _check_counts(path, tag, found[tag])
-    if etag not in found:
-        _fail(path, None, f"has {vtag} lines but no {etag} lines")
-    elines = found[etag]
-
-    # Edges: ids, measurement, information.
-    eids = _numbers(path, etag, elines, 1, 3, np.int64)
-    enums = _numbers(path, etag, elines, 3, None, np.float64)
-    loops = eids[:, 0] == eids[:, 1]
-    if loops.any():
-        k = int(np.argmax(loops))
-        _fail(path, elines.linenos[k], f"{etag} connects vertex {eids[k, 0]} to itself")
-    if kind == "se2":
-        meas = _se2_params(enums[:, :3])
-        info = _upper_to_full(enums[:, 3:], 3)
-    else:
-        q = _unit_quaternions(path, etag, elines, enums[:, 3:7])
-        meas = np.concatenate([q, enums[:, :3]], axis=1)
-        info = _upper_to_full(enums[:, 7:], 6)
-        if se3_information == "g2o":
-            info = info * _HALF_ANGLE[:, None] * _HALF_ANGLE[None, :]
-    info = _checked_information(path, etag, elines, info, invalid_information)
-
-    # Vertices.
+    kind, vtag, etag = _kind(path, found)
+    eids, meas, info = _edges(path, kind, etag, found[etag], se3_information)
+    info = _checked_information(path, etag, found[etag], info, invalid_information)
     if vtag in found:
-        vlines = found[vtag]
-        vids = _numbers(path, vtag, vlines, 1, 2, np.int64)[:, 0]
-        vnums = _numbers(path, vtag, vlines, 2, None, np.float64)
-        order = np.argsort(vids, kind="stable")
-        sorted_ids = vids[order]
-        dup = sorted_ids[1:] == sorted_ids[:-1]
-        if dup.any():
-            k = int(order[int(np.argmax(dup)) + 1])
-            _fail(path, vlines.linenos[k], f"{vtag}: vertex {vids[k]} defined twice")
-        if kind == "se2":
-            params = _se2_params(vnums)
-        else:
-            q = _unit_quaternions(path, vtag, vlines, vnums[:, 3:7])
-            params = np.concatenate([q, vnums[:, :3]], axis=1)
-        vertex_ids = sorted_ids
-        poses = params[order]
-        idx = np.searchsorted(vertex_ids, eids).clip(0, len(vertex_ids) - 1)
-        missing = vertex_ids[idx] != eids
-        if missing.any():
-            k = int(np.argmax(missing.any(axis=1)))
-            vid = eids[k][missing[k]][0]
-            _fail(
-                path,
-                elines.linenos[k],
-                f"{etag} refers to vertex {vid}, which has no {vtag} line",
-            )
-        edges = idx
+        vertex_ids, poses, edges = _vertices(path, kind, vtag, found, etag, eids)
     else:
         vertex_ids, edges = np.unique(eids, return_inverse=True)
         edges = edges.reshape(eids.shape)
         poses = _initial_from_edges(
             path, kind, len(vertex_ids), edges, meas, vertex_ids
         )
-
-    # FIX lines.
     anchored = np.zeros((0,), np.int64)
     if "FIX" in found:
-        flines = found["FIX"]
-        fixed = []
-        for lineno, tokens in zip(flines.linenos, flines.tokens):
-            if len(tokens) < 2:
-                _fail(path, lineno, "FIX needs at least one vertex id")
-            one = _Lines()
-            one.linenos, one.tokens = [lineno], [tokens]
-            for vid in _numbers(path, "FIX", one, 1, None, np.int64)[0]:
-                k = int(np.searchsorted(vertex_ids, vid))
-                if k >= len(vertex_ids) or vertex_ids[k] != vid:
-                    _fail(path, lineno, f"FIX refers to unknown vertex {vid}")
-                fixed.append(k)
-        anchored = np.unique(np.asarray(fixed, np.int64))
-
+        anchored = _fixed(path, found["FIX"], vertex_ids)
     return make_pose_graph(
         kind,
         poses,
