@@ -193,7 +193,7 @@ def run_workflow(data: dc.Sequences, model: dc.ChainModel = MODEL) -> dict:
     t2 = time.perf_counter()
     added = dc.add(found, named, data)
     t3 = time.perf_counter()
-    st = found["_state"]
+    st = found.state
     # The same score test with the outer-product covariance (what "auto"
     # picks with >= 10 sequences per parameter): reported, not used.
     if found["status"] == "ok":
