@@ -23,6 +23,94 @@ _LN20 = float(np.log(20.0))
 _ALARMS = ("detected", "unnamed_structure", "ambiguous", "leftover_structure")
 
 
+def _forward_step(model, data, st, current, active, remaining, out):
+    """Fit every remaining candidate beside the named ones; record the step in
+    `out["steps"]` (with its runner-ups' gains) and return `(index, fit,
+    runner-ups within ln 20)` of the best one if it passes the Bonferroni
+    gate, else None."""
+    names = [c.name for c in model.candidates]
+    trials = []
+    for k in remaining:
+        free = np.concatenate([np.asarray(active + [k], int), st["nuisance"]])
+        trials.append(
+            (k, fit(model, data, free, current.z, current.xhat, st["scales"]))
+        )
+    unconverged = [names[k] for k, e in trials if not e.converged]
+    if unconverged:
+        out["flags"].append(
+            f"step {len(out['steps']) + 1}: fit did not converge for "
+            + ", ".join(unconverged)
+        )
+    trials.sort(key=lambda t: -t[1].log_marginal)
+    best_k, best = trials[0]
+    lr = 2.0 * (best.log_marginal - current.log_marginal)
+    p = chi2_sf(lr, 1)
+    gate = st["alpha"] / len(remaining)
+    step = {
+        "candidates": [
+            {
+                "name": names[k],
+                "log_marginal_gain": e.log_marginal - current.log_marginal,
+            }
+            for k, e in trials
+        ],
+        "best": names[best_k],
+        "likelihood_ratio": lr,
+        "p_value": p,
+        "gate": gate,
+    }
+    out["steps"].append(step)
+    if p >= gate:
+        return None
+    close = []
+    if len(trials) > 1:
+        step["margin"] = best.log_marginal - trials[1][1].log_marginal
+        close = [k for k, e in trials[1:] if best.log_marginal - e.log_marginal < _LN20]
+    return best_k, best, close
+
+
+def _classify_rivals(out, names, best_k, close, ev0, equivalence_corr) -> None:
+    """Runner-ups within ln 20 of the named candidate: an equivalence set when
+    the information correlates them beyond `equivalence_corr`, else an
+    ambiguity."""
+    equiv, amb = [names[best_k]], [names[best_k]]
+    info = -ev0.hessian
+    for k in close:
+        corr = info[best_k, k] / np.sqrt(info[best_k, best_k] * info[k, k])
+        if abs(corr) >= equivalence_corr:
+            equiv.append(names[k])
+        else:
+            amb.append(names[k])
+    if len(equiv) > 1:
+        out["equivalence_sets"].append(equiv)
+    if len(amb) > 1:
+        out["ambiguous"].append(amb)
+
+
+def _verdict(out: dict, leftover: bool) -> str:
+    """The sentence that sums up a `name` report."""
+    parts = []
+    for nm in out["named"]:
+        eq = [s for s in out["equivalence_sets"] if s[0] == nm]
+        am = [s for s in out["ambiguous"] if s[0] == nm]
+        if eq:
+            parts.append("not identifiable from this data: {" + " ≡ ".join(eq[0]) + "}")
+        elif am:
+            parts.append("ambiguous: {" + ", ".join(am[0]) + "}")
+        else:
+            parts.append(nm)
+    if out["tentative"]:
+        parts = ["tentative: " + "; ".join(parts)]
+    if leftover:
+        parts.append("unnamed residual structure")
+    elif not out["named"]:
+        parts.append(
+            "a missing effect is detected, but no candidate passes the naming "
+            "test and the residual diagnostics are clean"
+        )
+    return "; ".join(parts)
+
+
 def name(
     found: dict,
     data: Sequences,
@@ -79,12 +167,7 @@ def name(
     if st.get("failed"):
         out["verdict"] = "no decision: " + "; ".join(found["flags"])
         return StepReport(out, {"evaluation": None, "active": []})
-    model, ev0, scales, nuis = (
-        st["model"],
-        st["evaluation"],
-        st["scales"],
-        st["nuisance"],
-    )
+    model, ev0 = st["model"], st["evaluation"]
     alpha = st["alpha"]
     names = [c.name for c in model.candidates]
     out["alarms"]["detected"] = bool(found["detected"])
@@ -107,58 +190,12 @@ def name(
         ]
         if not remaining:
             break
-        trials = []
-        for k in remaining:
-            free = np.concatenate([np.asarray(active + [k], int), nuis])
-            trials.append((k, fit(model, data, free, current.z, current.xhat, scales)))
-        unconverged = [names[k] for k, e in trials if not e.converged]
-        if unconverged:
-            out["flags"].append(
-                f"step {len(out['steps']) + 1}: fit did not converge for "
-                + ", ".join(unconverged)
-            )
-        trials.sort(key=lambda t: -t[1].log_marginal)
-        best_k, best = trials[0]
-        lr = 2.0 * (best.log_marginal - current.log_marginal)
-        p = chi2_sf(lr, 1)
-        gate = alpha / len(remaining)
-        step = {
-            "candidates": [
-                {
-                    "name": names[k],
-                    "log_marginal_gain": e.log_marginal - current.log_marginal,
-                }
-                for k, e in trials
-            ],
-            "best": names[best_k],
-            "likelihood_ratio": lr,
-            "p_value": p,
-            "gate": gate,
-        }
-        out["steps"].append(step)
-        if p >= gate:
+        chosen = _forward_step(model, data, st, current, active, remaining, out)
+        if chosen is None:
             break
-        close = []
-        if len(trials) > 1:
-            margin = best.log_marginal - trials[1][1].log_marginal
-            step["margin"] = margin
-            for k, e in trials[1:]:
-                if best.log_marginal - e.log_marginal < _LN20:
-                    close.append(k)
-        equiv, amb = [names[best_k]], [names[best_k]]
-        info = -ev0.hessian
-        for k in close:
-            corr = info[best_k, k] / np.sqrt(info[best_k, best_k] * info[k, k])
-            if abs(corr) >= equivalence_corr:
-                equiv.append(names[k])
-            else:
-                amb.append(names[k])
-        if len(equiv) > 1:
-            out["equivalence_sets"].append(equiv)
-        if len(amb) > 1:
-            out["ambiguous"].append(amb)
+        best_k, current, close = chosen
+        _classify_rivals(out, names, best_k, close, ev0, equivalence_corr)
         active.append(best_k)
-        current = best
         out["named"].append(names[best_k])
     final = fitted_model(model, current.z)
     innov = _safe_innovation_tests(final, data, current.xhat, out["flags"])
@@ -179,27 +216,8 @@ def name(
     # tentative: the effect may lie outside the library, and the closest
     # candidate would otherwise get a confident name.
     out["tentative"] = bool(out["named"]) and leftover
-    parts = []
-    for nm in out["named"]:
-        eq = [s for s in out["equivalence_sets"] if s[0] == nm]
-        am = [s for s in out["ambiguous"] if s[0] == nm]
-        if eq:
-            parts.append("not identifiable from this data: {" + " ≡ ".join(eq[0]) + "}")
-        elif am:
-            parts.append("ambiguous: {" + ", ".join(am[0]) + "}")
-        else:
-            parts.append(nm)
-    if out["tentative"]:
-        parts = ["tentative: " + "; ".join(parts)]
-    if leftover:
-        out["unnamed_residual_structure"] = True
-        parts.append("unnamed residual structure")
-    elif not out["named"]:
-        parts.append(
-            "a missing effect is detected, but no candidate passes the naming "
-            "test and the residual diagnostics are clean"
-        )
-    out["verdict"] = "; ".join(parts)
+    out["unnamed_residual_structure"] = bool(leftover)
+    out["verdict"] = _verdict(out, leftover)
     return StepReport(out, {"evaluation": current, "active": active})
 
 
