@@ -306,36 +306,36 @@ COLUMNS = ["T", "K", "method", "median_s", "compile_s", "ratio", "grad_rel_err"]
 COLUMNS += ["speedup_vs_theseus", "note"]
 
 
+def methods(args):
+    """The Theseus configurations, eqsmooth solvers and adjoints to measure."""
+    theseus = []
+    if optional("theseus") is not None:
+        theseus = [("CHOLMOD", "unroll"), ("CHOLMOD", "implicit")]
+        theseus += [("dense Cholesky", "unroll")]
+        theseus = theseus[:1] if args.quick else theseus
+        theseus = [c for c in theseus if c[1] in args.theseus_backward]
+    names = ("unrolled", "truncated(k=1)", "implicit")
+    kinds = (eqs.UnrolledAdjoint(), eqs.TruncatedAdjoint(1), eqs.ImplicitAdjoint())
+    adjoints = dict(zip(names, kinds))
+    names = ("BlockTridiagonal", "DenseCholesky", "PCG")
+    solvers = dict(zip(names, (eqs.BlockTridiagonal(), eqs.DenseCholesky(), eqs.PCG())))
+    if args.quick:
+        adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
+        solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
+    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
+    return theseus, solvers, {k: v for k, v in adjoints.items() if k in args.adjoints}
+
+
 def main(argv=None):
     args = parse(argv)
     m = machine()  # git hash, load and thread settings when the run started
-    theseus_configs = []
-    if optional("theseus") is not None:
-        theseus_configs = [("CHOLMOD", "unroll"), ("CHOLMOD", "implicit")]
-        theseus_configs += [("dense Cholesky", "unroll")]
-        theseus_configs = theseus_configs[:1] if args.quick else theseus_configs
-        theseus_configs = [c for c in theseus_configs if c[1] in args.theseus_backward]
+    theseus_configs, solvers, adjoints = methods(args)
     theseus_times = {}
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     dtype = jnp.dtype(args.dtype)
     sizes = args.sizes or ([20] if args.quick else [20, 200, 2000])
     steps = args.steps or ([3] if args.quick else [3, 5])
-    adjoints = {
-        "unrolled": eqs.UnrolledAdjoint(),
-        "truncated(k=1)": eqs.TruncatedAdjoint(1),
-        "implicit": eqs.ImplicitAdjoint(),
-    }
-    solvers = {
-        "BlockTridiagonal": eqs.BlockTridiagonal(),
-        "DenseCholesky": eqs.DenseCholesky(),
-        "PCG": eqs.PCG(),
-    }
-    if args.quick:
-        adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
-        solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
-    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
-    adjoints = {k: v for k, v in adjoints.items() if k in args.adjoints}
     records = []
 
     def measured(T, K, ref, method, extra, first, median, val, grad, host=False):
