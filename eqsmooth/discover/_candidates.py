@@ -272,6 +272,87 @@ def _check_vector_field(vector_field, state_dim: int, num_inputs: int) -> None:
         )
 
 
+def _check_mechanical(
+    positions, velocities, state_dim, coulomb_eps, vector_field, rate
+) -> None:
+    if len(positions) != len(velocities) or not positions:
+        raise ValueError(
+            "mechanical_library: positions and velocities must be non-empty and of "
+            f"equal length, got {positions} and {velocities}"
+        )
+    for i in positions + velocities:
+        if not 0 <= i < state_dim:
+            raise ValueError(
+                f"mechanical_library: state index {i} out of range for state_dim "
+                f"{state_dim}"
+            )
+    if coulomb_eps <= 0:
+        raise ValueError("mechanical_library: coulomb_eps must be positive")
+    if vector_field is not None and rate:
+        raise ValueError(
+            "mechanical_library: give vector_field (midpoint kicks) or rate=True "
+            "(terms integrated by the model's Integrator), not both"
+        )
+
+
+def _acceleration_candidates(common, axis_names, num_inputs, coulomb_eps, wanted):
+    """The library's acceleration terms, per axis where they act on one."""
+    rate, naxes = common["rate"], len(common["positions"])
+    target = "rate" if rate else "dynamics"
+    if axis_names is None:
+        axis_names = [f"x{i}" for i in range(naxes)]
+    if len(axis_names) != naxes:
+        raise ValueError("mechanical_library: one axis name per axis")
+
+    def suffix(i):
+        return "" if naxes == 1 else f" [{axis_names[i]}]"
+
+    out = []
+    for name, kind, sign, desc in _MECHANICAL:
+        if wanted is not None and name not in wanted:
+            continue
+        if rate:
+            desc = desc.replace("v' ", "v̇ ").replace(" dt", "")
+        if kind == "constant":
+            for i in range(naxes):
+                feat = _Acceleration(kind, axis=i, **common)
+                out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
+        elif kind == "actuator":
+            for i in range(min(num_inputs, naxes)):
+                feat = _Acceleration(kind, axis=i, input_index=i, **common)
+                out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
+        else:
+            eps = coulomb_eps if kind == "coulomb" else 1.0
+            feat = _Acceleration(kind, eps=eps, **common)
+            out.append(Candidate(name, feat, target, sign, "", desc))
+    return out
+
+
+def _sensor_candidates(measured_positions, positions, velocities, wanted) -> list:
+    """Bias, scale and delay of each measured position's sensor."""
+    out = []
+    measured_positions = tuple(measured_positions)
+    m = len(measured_positions)
+    for j, pos in enumerate(measured_positions):
+        if pos not in positions:
+            raise ValueError(
+                f"mechanical_library: measured position {pos} is not one of the "
+                f"positions {positions}"
+            )
+        vel = velocities[positions.index(pos)]
+        sfx = "" if m == 1 else f" [y{j}]"
+        for name, kind, desc in (
+            ("sensor bias", "bias", "y += c"),
+            ("sensor scale", "scale", "y += c p"),
+            ("sensor delay", "delay", "y += -c v  (delay c)"),
+        ):
+            if wanted is not None and name not in wanted:
+                continue
+            feat = _Sensor(kind, j, m, pos, vel)
+            out.append(Candidate(name + sfx, feat, "measurement", 0, "", desc))
+    return out
+
+
 def mechanical_library(
     positions: Sequence[int],
     velocities: Sequence[int],
@@ -351,83 +432,21 @@ def mechanical_library(
     **Returns:** a tuple of [`eqsmooth.discover.Candidate`][].
     """
     positions, velocities = tuple(positions), tuple(velocities)
-    if len(positions) != len(velocities) or not positions:
-        raise ValueError(
-            "mechanical_library: positions and velocities must be non-empty and of "
-            f"equal length, got {positions} and {velocities}"
-        )
-    for i in positions + velocities:
-        if not 0 <= i < state_dim:
-            raise ValueError(
-                f"mechanical_library: state index {i} out of range for state_dim "
-                f"{state_dim}"
-            )
-    if coulomb_eps <= 0:
-        raise ValueError("mechanical_library: coulomb_eps must be positive")
-    if vector_field is not None and rate:
-        raise ValueError(
-            "mechanical_library: give vector_field (midpoint kicks) or rate=True "
-            "(terms integrated by the model's Integrator), not both"
-        )
+    _check_mechanical(positions, velocities, state_dim, coulomb_eps, vector_field, rate)
     if vector_field is not None:
         _check_vector_field(vector_field, state_dim, num_inputs)
-    target = "rate" if rate else "dynamics"
-    naxes = len(positions)
-    if axis_names is None:
-        axis_names = [f"x{i}" for i in range(naxes)]
-    if len(axis_names) != naxes:
-        raise ValueError("mechanical_library: one axis name per axis")
-
-    def suffix(i):
-        return "" if naxes == 1 else f" [{axis_names[i]}]"
-
     wanted = None if include is None else set(include)
-    out = []
-    for name, kind, sign, desc in _MECHANICAL:
-        if wanted is not None and name not in wanted:
-            continue
-        common = dict(
-            positions=positions,
-            velocities=velocities,
-            state_dim=state_dim,
-            dt=dt,
-            vector_field=vector_field,
-            rate=rate,
-        )
-        if rate:
-            desc = desc.replace("v' ", "v̇ ").replace(" dt", "")
-        if kind == "constant":
-            for i in range(naxes):
-                feat = _Acceleration(kind, axis=i, **common)
-                out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
-        elif kind == "actuator":
-            for i in range(min(num_inputs, naxes)):
-                feat = _Acceleration(kind, axis=i, input_index=i, **common)
-                out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
-        else:
-            eps = coulomb_eps if kind == "coulomb" else 1.0
-            feat = _Acceleration(kind, eps=eps, **common)
-            out.append(Candidate(name, feat, target, sign, "", desc))
+    common = dict(
+        positions=positions,
+        velocities=velocities,
+        state_dim=state_dim,
+        dt=dt,
+        vector_field=vector_field,
+        rate=rate,
+    )
+    out = _acceleration_candidates(common, axis_names, num_inputs, coulomb_eps, wanted)
     if measured_positions is not None:
-        measured_positions = tuple(measured_positions)
-        m = len(measured_positions)
-        for j, pos in enumerate(measured_positions):
-            if pos not in positions:
-                raise ValueError(
-                    f"mechanical_library: measured position {pos} is not one of the "
-                    f"positions {positions}"
-                )
-            vel = velocities[positions.index(pos)]
-            sfx = "" if m == 1 else f" [y{j}]"
-            for name, kind, desc in (
-                ("sensor bias", "bias", "y += c"),
-                ("sensor scale", "scale", "y += c p"),
-                ("sensor delay", "delay", "y += -c v  (delay c)"),
-            ):
-                if wanted is not None and name not in wanted:
-                    continue
-                feat = _Sensor(kind, j, m, pos, vel)
-                out.append(Candidate(name + sfx, feat, "measurement", 0, "", desc))
+        out += _sensor_candidates(measured_positions, positions, velocities, wanted)
     names = [c.name for c in out]
     if len(set(names)) != len(names):
         raise ValueError(f"mechanical_library: duplicate candidate names {names}")

@@ -111,6 +111,32 @@ def _verdict(out: dict, leftover: bool) -> str:
     return "; ".join(parts)
 
 
+def _leftover(out: dict, model, data, current, alpha: float) -> bool:
+    """Whether the named model still fails its innovation diagnostics; records
+    them and the alarms and flags that follow in `out`."""
+    final = fitted_model(model, current.z)
+    innov = _safe_innovation_tests(final, data, current.xhat, out["flags"])
+    leftover = _diagnostics_significant(innov, alpha)
+    out["leftover_diagnostics"] = {
+        "nis_p_value": innov["nis_p_value"],
+        "bias_p_values": [b["p_value"] for b in innov["bias"]],
+        "whiteness_p_values": [w["p_value"] for w in innov["whiteness"]],
+    }
+    out["alarms"]["ambiguous"] = bool(out["ambiguous"])
+    # "Unnamed residual structure" claims structure in the residuals, so it
+    # needs the residual diagnostics, not only the decision test (whose
+    # false rejections are already the "detected" alarm): counting a false
+    # detection twice held the alarm at about 2α on null data.
+    out["alarms"]["unnamed_structure"] = not out["named"] and leftover
+    out["alarms"]["leftover_structure"] = bool(out["named"]) and leftover
+    # Names given while the fitted model still fails its own diagnostics are
+    # tentative: the effect may lie outside the library, and the closest
+    # candidate would otherwise get a confident name.
+    out["tentative"] = bool(out["named"]) and leftover
+    out["unnamed_residual_structure"] = bool(leftover)
+    return leftover
+
+
 def name(
     found: dict,
     data: Sequences,
@@ -197,26 +223,7 @@ def name(
         _classify_rivals(out, names, best_k, close, ev0, equivalence_corr)
         active.append(best_k)
         out["named"].append(names[best_k])
-    final = fitted_model(model, current.z)
-    innov = _safe_innovation_tests(final, data, current.xhat, out["flags"])
-    leftover = _diagnostics_significant(innov, alpha)
-    out["leftover_diagnostics"] = {
-        "nis_p_value": innov["nis_p_value"],
-        "bias_p_values": [b["p_value"] for b in innov["bias"]],
-        "whiteness_p_values": [w["p_value"] for w in innov["whiteness"]],
-    }
-    out["alarms"]["ambiguous"] = bool(out["ambiguous"])
-    # "Unnamed residual structure" claims structure in the residuals, so it
-    # needs the residual diagnostics, not only the decision test (whose
-    # false rejections are already the "detected" alarm): counting a false
-    # detection twice held the alarm at about 2α on null data.
-    out["alarms"]["unnamed_structure"] = not out["named"] and leftover
-    out["alarms"]["leftover_structure"] = bool(out["named"]) and leftover
-    # Names given while the fitted model still fails its own diagnostics are
-    # tentative: the effect may lie outside the library, and the closest
-    # candidate would otherwise get a confident name.
-    out["tentative"] = bool(out["named"]) and leftover
-    out["unnamed_residual_structure"] = bool(leftover)
+    leftover = _leftover(out, model, data, current, alpha)
     out["verdict"] = _verdict(out, leftover)
     return StepReport(out, {"evaluation": current, "active": active})
 

@@ -8,7 +8,8 @@ this reproduction):
   about 2 ms per image for a forward and backward pass on 2 CPU cores, where
   the paper's CNN (`VirtualSensor`: 3 x [conv 3x3, 32 ch, ReLU], conv 3x3 32
   ch; max over channels; row and column means; 3 x [dense 32, ReLU]; dense 2)
-  takes about 120 ms (benchmarks/disk_sensor.py);
+  takes about 120 ms (measured with `benchmarks/disk_sensor.py`, removed in
+  983df42: `git show 7c30f80:benchmarks/disk_sensor.py`);
 - noise heads giving the square-root precision of the position measurement:
   constant (one learned scalar) or heteroscedastic (an MLP, 4 x 64 ReLU, on
   the normalised visible-pixel count);
