@@ -5,7 +5,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
-from ._utils import as_float_array, broadcast_batch
+from ._utils import as_float_array, as_matrices, broadcast_batch, check_on_group
 
 
 # Stands for "the concrete group of `self`" (beartype rejects `typing.Self` on
@@ -69,7 +69,6 @@ class AbstractLieGroup(eqx.Module):
         """
 
     @classmethod
-    @abc.abstractmethod
     def from_matrix(
         cls: type[_G], matrix: Float[ArrayLike, "*batch n n"], check: bool = True
     ) -> _G:
@@ -94,6 +93,20 @@ class AbstractLieGroup(eqx.Module):
 
         The group element.
         """
+        matrix = as_matrices(matrix, cls.matrix_dim, cls.__name__)
+        if check:
+            homogeneous = cls.matrix_dim > cls.space_dim
+            matrix = check_on_group(cls.__name__, matrix, cls.space_dim, homogeneous)
+        return cls._from_group_matrix(matrix)
+
+    @classmethod
+    @abc.abstractmethod
+    def _from_group_matrix(cls: type[_G], matrix: Float[Array, "*batch n n"]) -> _G:
+        """The element of a matrix of the right shape, projected onto the group
+        (unchecked; see `from_matrix`)."""
+
+    def __check_init__(self):
+        check_parameters(type(self).__name__, self.parameters(), self.parameters_dim)
 
     @classmethod
     @abc.abstractmethod

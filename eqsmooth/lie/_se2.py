@@ -4,14 +4,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
-from ._base import AbstractLieGroup, check_parameters
+from ._base import AbstractLieGroup
 from ._so2 import SO2
 from ._utils import (
     as_float_array,
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_on_group,
     check_unit_norm,
     coef_a,
     coef_b,
@@ -55,9 +54,6 @@ class SE2(AbstractLieGroup):
         self.unit_complex_xy = as_vectors(unit_complex_xy, 4, "SE2", "unit_complex_xy")
         if check:
             check_unit_norm("SE2", "unit_complex_xy", self.unit_complex_xy, 2)
-
-    def __check_init__(self):
-        check_parameters("SE2", self.unit_complex_xy, 4)
 
     # ---------------------------------------------------------------- constructors
 
@@ -140,33 +136,7 @@ class SE2(AbstractLieGroup):
         )
 
     @classmethod
-    def from_matrix(
-        cls, matrix: Float[ArrayLike, "*batch 3 3"], check: bool = True
-    ) -> "SE2":
-        """Build an element from its homogeneous matrix.
-
-        **Arguments:**
-
-        - `matrix`: array of shape `(*batch, 3, 3)`; any other shape raises
-            `ValueError`.
-        - `check`: if `True` (the default), the matrix must be in the group up
-            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
-            with determinant +1 and bottom row `(0, ..., 0, 1)`, every entry
-            finite. Concrete input that fails raises `ValueError` naming the
-            batch index and the fault; under `jax.jit` the check is an
-            `eqx.error_if`. With `check=False`
-            nothing is checked: the rotation block is projected onto the
-            rotations (the closest rotation for a slightly perturbed one; an
-            arbitrary one for a reflection or a singular matrix), and the
-            bottom row is ignored.
-
-        **Returns:**
-
-        The group element.
-        """
-        matrix = as_matrices(matrix, 3, "SE2")
-        if check:
-            matrix = check_on_group("SE2", matrix, 2, True)
+    def _from_group_matrix(cls, matrix: Float[Array, "*batch n n"]) -> "SE2":
         return cls.from_rotation_and_translation(
             SO2.from_matrix(matrix[..., :2, :2], check=False), matrix[..., :2, 2]
         )

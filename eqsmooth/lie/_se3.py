@@ -4,13 +4,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
-from ._base import AbstractLieGroup, check_parameters
+from ._base import AbstractLieGroup
 from ._so3 import skew, SO3
 from ._utils import (
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_on_group,
     check_unit_norm,
     coef_a,
     coef_b,
@@ -82,9 +81,6 @@ class SE3(AbstractLieGroup):
         if check:
             check_unit_norm("SE3", "wxyz_xyz", self.wxyz_xyz, 4)
 
-    def __check_init__(self):
-        check_parameters("SE3", self.wxyz_xyz, 7)
-
     # ---------------------------------------------------------------- constructors
 
     @classmethod
@@ -136,33 +132,7 @@ class SE3(AbstractLieGroup):
         )
 
     @classmethod
-    def from_matrix(
-        cls, matrix: Float[ArrayLike, "*batch 4 4"], check: bool = True
-    ) -> "SE3":
-        """Build an element from its homogeneous matrix.
-
-        **Arguments:**
-
-        - `matrix`: array of shape `(*batch, 4, 4)`; any other shape raises
-            `ValueError`.
-        - `check`: if `True` (the default), the matrix must be in the group up
-            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
-            with determinant +1 and bottom row `(0, ..., 0, 1)`, every entry
-            finite. Concrete input that fails raises `ValueError` naming the
-            batch index and the fault; under `jax.jit` the check is an
-            `eqx.error_if`. With `check=False`
-            nothing is checked: the rotation block is projected onto the
-            rotations (the closest rotation for a slightly perturbed one; an
-            arbitrary one for a reflection or a singular matrix), and the
-            bottom row is ignored.
-
-        **Returns:**
-
-        The group element.
-        """
-        matrix = as_matrices(matrix, 4, "SE3")
-        if check:
-            matrix = check_on_group("SE3", matrix, 3, True)
+    def _from_group_matrix(cls, matrix: Float[Array, "*batch n n"]) -> "SE3":
         return cls.from_rotation_and_translation(
             SO3.from_matrix(matrix[..., :3, :3], check=False), matrix[..., :3, 3]
         )

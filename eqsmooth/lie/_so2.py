@@ -4,13 +4,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
-from ._base import AbstractLieGroup, check_parameters
+from ._base import AbstractLieGroup
 from ._utils import (
     as_float_array,
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_on_group,
     check_unit_norm,
     default_float_dtype,
     rotate_pairs,
@@ -48,9 +47,6 @@ class SO2(AbstractLieGroup):
         if check:
             check_unit_norm("SO2", "unit_complex", self.unit_complex, 2)
 
-    def __check_init__(self):
-        check_parameters("SO2", self.unit_complex, 2)
-
     # ---------------------------------------------------------------- constructors
 
     @classmethod
@@ -84,31 +80,7 @@ class SO2(AbstractLieGroup):
         return cls.from_radians(tangent[..., 0])
 
     @classmethod
-    def from_matrix(
-        cls, matrix: Float[ArrayLike, "*batch 2 2"], check: bool = True
-    ) -> "SO2":
-        """Build an element from its rotation matrix.
-
-        **Arguments:**
-
-        - `matrix`: array of shape `(*batch, 2, 2)`; any other shape raises
-            `ValueError`.
-        - `check`: if `True` (the default), the matrix must be in the group up
-            to a tolerance of `max(1e-3, 10 eps)`: its rotation block orthonormal
-            with determinant +1, every entry finite. Concrete input that
-            fails raises `ValueError` naming the batch index and the fault;
-            under `jax.jit` the check is an `eqx.error_if`. With `check=False`
-            nothing is checked: the rotation block is projected onto the
-            rotations (the closest rotation for a slightly perturbed one; an
-            arbitrary one for a reflection or a singular matrix).
-
-        **Returns:**
-
-        The group element.
-        """
-        matrix = as_matrices(matrix, 2, "SO2")
-        if check:
-            matrix = check_on_group("SO2", matrix, 2, False)
+    def _from_group_matrix(cls, matrix: Float[Array, "*batch n n"]) -> "SO2":
         # Average the two copies of cos and sin: this gives the closest rotation
         # (in Frobenius norm) to a slightly perturbed matrix.
         cos = matrix[..., 0, 0] + matrix[..., 1, 1]
