@@ -25,7 +25,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from disk_tracking import fresh, protocol, report, train
+from eqsmooth.experiments.disk_tracking import fresh, protocol, report, train
 
 
 _INT = ("sequences_per_fold", "sensor_steps", "sensor_batch", "fg_steps", "fg_batch")

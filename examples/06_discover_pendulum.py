@@ -23,7 +23,7 @@ plus viscous friction) is fitted the same way, and its rate printed next to
 the published 0.067 s^-1. A model-free check of the friction law comes from
 the energy lost per swing. Writes `report.json` and `pendulum.png`; the
 story is in docs/tutorial/pendulum.md. The stages live in
-`examples/pendulum_friction/` (data and calibration, model and candidates,
+`eqsmooth/experiments/pendulum_friction/` (data and calibration, model and candidates,
 energy balance, experiment, report); this script runs them.
 
 Runtime on 2 CPU cores: about 1 minute with `--quick` (the first 4 s of each
@@ -51,8 +51,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 
-from pendulum_friction import experiment as E, report as R  # noqa: E402
-from pendulum_friction.data import DEFAULT_DATA  # noqa: E402
+from eqsmooth.experiments.pendulum_friction import experiment as E, report as R  # noqa: E402
+from eqsmooth.experiments.pendulum_friction.data import DEFAULT_DATA  # noqa: E402
 
 
 def parse_args(argv=None):

@@ -13,7 +13,8 @@ Data: the KITTI images are not available here, so by default the views are
 **rendered views on real KITTI trajectories**: the real ground-truth poses
 of sequences 00-10 (`--poses-dir`, default `../shared/data/kitti_poses`,
 from the KITTI odometry benchmark's ground-truth download) drive a camera
-over a procedural world with per-frame nuisances (examples/kitti_vo/data.py).
+over a procedural world with per-frame nuisances
+(eqsmooth/experiments/kitti_vo/data.py).
 Results on it are not the paper's experiment. With `--real-data-dir` the
 preprocessed KITTI-10 release of the paper's code is read instead.
 
@@ -40,7 +41,8 @@ import gc
 from pathlib import Path
 
 import jax
-from kitti_vo import data as D, experiment as E, report
+
+from eqsmooth.experiments.kitti_vo import data as D, experiment as E, report
 
 
 def parse_args(argv=None):

@@ -5,7 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from disk_tracking import data as D  # noqa: E402
+
+from eqsmooth.experiments.disk_tracking import data as D
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +124,8 @@ def test_model_shapes_and_noise_heads():
     import equinox as eqx
     import jax
     import jax.numpy as jnp
-    from disk_tracking import models as M
+
+    from eqsmooth.experiments.disk_tracking import models as M
 
     @eqx.filter_jit  # one program for the models' set-up and one for their outputs
     def build(key):
@@ -172,9 +174,9 @@ def test_model_shapes_and_noise_heads():
 def test_smoother_beats_its_measurements():
     import jax
     import jax.numpy as jnp
-    from disk_tracking import models as M
 
     import eqsmooth as eqs
+    from eqsmooth.experiments.disk_tracking import models as M
 
     f = D.generate_fold(seed=0, fold=0, num_sequences=8, num_frames=20)
     truth = jnp.asarray(f.states, jnp.float64)
@@ -197,7 +199,8 @@ def test_smoother_beats_its_measurements():
 def test_out_of_view_factor():
     import jax
     import jax.numpy as jnp
-    from disk_tracking import models as M, train as T
+
+    from eqsmooth.experiments.disk_tracking import models as M, train as T
 
     # Which factor a method name asks for, and a clear error for others.
     assert T.view_factor("smoother_hetero_surrogate_learndyn") is None
@@ -255,9 +258,9 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
     # `smooth_one` first solves without the hinge, then with it (3.4 px).
     import jax
     import jax.numpy as jnp
-    from disk_tracking import data as D, models as M, train as T
 
     import eqsmooth as eqs
+    from eqsmooth.experiments.disk_tracking import data as D, models as M, train as T
 
     class Gate(eqs.learn.AbstractNoiseHead):
         def __call__(self, features):
@@ -304,7 +307,7 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
 
 
 def test_splits_keep_the_test_fold_out():
-    from disk_tracking import train
+    from eqsmooth.experiments.disk_tracking import train
 
     cfg = train.Config(sequences_per_fold=10, num_frames=3, num_folds=4)
     tr, va, te = train.make_splits(cfg, test_fold=2, cache_dir=None)
@@ -347,7 +350,8 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
 
     import equinox as eqx
     import jax
-    from disk_tracking import protocol, report, train
+
+    from eqsmooth.experiments.disk_tracking import protocol, report, train
 
     cfg = train.Config(
         test_folds=(0,),
@@ -440,7 +444,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
 
     # Fresh-data confirmation from the committed sensor: the finished heads
     # are reloaded from `work` (no retraining here), evaluated on fold 10.
-    from disk_tracking import fresh
+    from eqsmooth.experiments.disk_tracking import fresh
 
     with jax.numpy_dtype_promotion("standard"):
         path = fresh.run(cfg, 0, out, work, cache, log=lambda *a: None)
@@ -458,7 +462,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
 def test_docs_table_is_the_committed_results(tmp_path):
     import shutil
 
-    from disk_tracking import report
+    from eqsmooth.experiments.disk_tracking import report
 
     root = Path(__file__).resolve().parents[1]
     results = root / "results" / "disk"

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from kitti_vo import data as D  # noqa: E402
+
+from eqsmooth.experiments.kitti_vo import data as D
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
@@ -183,7 +184,7 @@ def test_real_kitti_poses():
 
 
 def _tiny_windows(B=2, T=5):
-    from kitti_vo import experiment as E, models as M
+    from eqsmooth.experiments.kitti_vo import experiment as E, models as M
 
     rng = np.random.default_rng(0)
     xyt = _toy_path(T + 1)
@@ -202,7 +203,7 @@ def _tiny_windows(B=2, T=5):
 def test_summary_and_docs_table_come_from_fold_json(tmp_path):
     import json
 
-    from kitti_vo import report
+    from eqsmooth.experiments.kitti_vo import report
 
     def fold(k, trans, rot):
         rows = {
@@ -240,7 +241,7 @@ def test_summary_and_docs_table_come_from_fold_json(tmp_path):
 def test_declared_criterion_of_a_variant(tmp_path):
     import json
 
-    from kitti_vo import report
+    from eqsmooth.experiments.kitti_vo import report
 
     keys = ("trans_m_per_m", "rot_deg_per_m", "trans_m_per_m_whole")
     keys += ("rot_deg_per_m_whole",)
@@ -276,7 +277,8 @@ def _check_losses():
     import equinox as eqx
     import jax
     import jax.numpy as jnp
-    from kitti_vo import models as M
+
+    from eqsmooth.experiments.kitti_vo import models as M
 
     w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
     sig = np.array([1.0, 0.1])
@@ -298,7 +300,8 @@ def _check_losses():
 def test_sensor_shapes():
     import jax
     import jax.numpy as jnp
-    from kitti_vo import models as M
+
+    from eqsmooth.experiments.kitti_vo import models as M
 
     sensor = M.VelocitySensor(jax.random.key(0))
     pair = jnp.zeros((2,) + D.IMAGE_SHAPE, jnp.uint8)

@@ -1,5 +1,5 @@
 """Real pendulum recording: what examples/06_discover_pendulum.py relies on
-(its stages are in examples/pendulum_friction/).
+(its stages are in eqsmooth/experiments/pendulum_friction/).
 
 The data (../shared/data/pendulum, MultiArm-Pendulum benchmark, Kaheman et
 al. 2022) is not part of the repository; the tests that read it skip when it
@@ -8,7 +8,8 @@ is absent.
 
 import numpy as np
 import pytest
-from pendulum_friction import data as D, energy as EN, model as M  # noqa: E402
+
+from eqsmooth.experiments.pendulum_friction import data as D, energy as EN, model as M
 
 
 @pytest.fixture(scope="module")

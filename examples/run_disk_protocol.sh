@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Run the disk tracking protocol fold by fold and commit each finished fold.
 #
-#   bash examples/disk_tracking/run_protocol.sh [FOLD ...]    # default: 0..9
+#   bash examples/run_disk_protocol.sh [FOLD ...]    # default: 0..9
 #
 # Each fold is one call of examples/04_disk_tracking.py (resumable: a killed
 # fold continues where its checkpoints left it when this script is started
@@ -9,7 +9,7 @@
 # (results/disk/fold_K.json, fold_K.log, sensor_foldK.eqx), the summary, the
 # figures and the docs table are committed on the current branch.
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/.."
 folds=("$@")
 if [ ${#folds[@]} -eq 0 ]; then folds=(0 1 2 3 4 5 6 7 8 9); fi
 python=${PYTHON:-python}

@@ -11,7 +11,7 @@ import numpy as np
 import eqsmooth.discover as dc
 
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]  # the source checkout
 DEFAULT_DATA = REPO.parent / "shared/data/pendulum/single_pendulum_freeswing_1khz.mat"
 SOURCE = "https://github.com/dynamicslab/MultiArm-Pendulum"
 

@@ -46,7 +46,8 @@ PRETRAIN_HOLDOUT = 205  # sensor pretraining: all frames but the last 205
 SMOOTHER_FRAMES = 200  # smoother / EKF training: the last 200 frames
 EVAL_WINDOW = 100  # evaluation subsequences (states)
 
-DEFAULT_POSES_DIR = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+# In a source checkout: ../shared/data beside the repository.
+DEFAULT_POSES_DIR = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
 DEFAULT_POSES_DIR = (DEFAULT_POSES_DIR / "kitti_poses").resolve()
 
 

@@ -60,22 +60,20 @@ LABELS = {
 
 
 def git_hash() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-            check=True,
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "."],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent.parent,
-            check=True,
+    """The commit this code runs from, with `+dirty` when the package or the
+    example scripts have uncommitted changes (results written by a run do
+    not count); "unknown" outside a git checkout."""
+    here = Path(__file__).parent
+
+    def git(*args):
+        return subprocess.run(
+            ["git", *args], capture_output=True, text=True, cwd=here, check=True
         ).stdout.strip()
-        return out.stdout.strip() + ("+dirty" if dirty else "")
+
+    try:
+        root = git("rev-parse", "--show-toplevel")
+        dirty = git("-C", root, "status", "--porcelain", "--", "eqsmooth", "examples")
+        return git("rev-parse", "HEAD") + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
