@@ -56,20 +56,7 @@ def main(argv=None) -> None:
         P.cached_outputs(None, split, cfg, fold_dir / f"sensor_{name}.npz")
     sigma = T.rmse(val.sensor, val.fold.positions)
     _, k_noise, k_lstm = jax.random.split(jax.random.key(cfg.model_seed), 3)
-    flags = a.smoother.split("_")[3:]
-    res = T.train_smoother(
-        cfg,
-        a.smoother.split("_")[1],
-        a.smoother.split("_")[2],
-        train,
-        val,
-        sigma,
-        k_noise,
-        fold_dir,
-        a.smoother,
-        learn_dynamics="learndyn" in flags,
-        view=T.view_factor(a.smoother),
-    )
+    res = T.train_factor_graph(cfg, a.smoother, train, val, sigma, k_noise, fold_dir)
     steps = cfg.eval_solver_steps
     smoothed = T.predict_split(
         lambda m, b: T.smoothed_positions(m, b, steps),

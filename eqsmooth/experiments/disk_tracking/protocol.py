@@ -93,24 +93,8 @@ def _train_method(cfg, method, train, val, sensor, sigma, models, keys, fold_dir
         if start is None:
             start = T.make_smoother_model("hetero", sigma, k_noise, cfg.dtype)
         return T.train_finetune(cfg, train, val, sensor, start, fold_dir, method)
-    if parts[0] == "smoother":
-        return T.train_smoother(
-            cfg,
-            parts[1],
-            parts[2],
-            train,
-            val,
-            sigma,
-            k_noise,
-            fold_dir,
-            method,
-            learn_dynamics="learndyn" in parts[3:],
-            view=T.view_factor(method),
-        )
-    if parts[0] == "ekf":
-        return T.train_ekf(
-            cfg, parts[1], parts[2], train, val, sigma, k_noise, fold_dir, method
-        )
+    if parts[0] in ("smoother", "ekf"):
+        return T.train_factor_graph(cfg, method, train, val, sigma, k_noise, fold_dir)
     if parts[0] == "lstm":
         return T.train_lstm(cfg, parts[1] == "bi", train, val, k_lstm, fold_dir, method)
     raise ValueError(f"unknown method {method!r}")

@@ -240,32 +240,34 @@ def make_splits(
     )
 
 
-def _train(
-    model,
-    loss_fn,
-    data,
-    *,
-    cfg,
-    steps,
-    batch,
-    lr,
-    seed,
-    work,
-    name,
-    valid_data,
-    valid_loss_fn,
-    eval_every,
-):
-    """[`eqsmooth.learn.train`][] with this experiment's optimiser and files."""
+# Each training stage: the `Config` prefix of its steps, batch and learning
+# rate, the `Config` field of its validation interval, and its seed offset
+# from `cfg.model_seed`.
+_STAGES = {
+    "sensor": ("sensor", "sensor_eval_every", 0),
+    "smoother": ("fg", "eval_every", 1),
+    "ekf": ("fg", "eval_every", 2),
+    "lstm": ("lstm", "eval_every", 3),
+    "finetune": ("finetune", "finetune_eval_every", 4),
+}
+
+
+def _train(cfg, stage: str, work, name, model, loss_fn, data, valid, valid_loss_fn):
+    """[`eqsmooth.learn.train`][] of one stage (a key of `_STAGES`) with this
+    experiment's optimiser and files `work/<name>.ckpt` and `.jsonl`; `data`
+    trains, `valid` validates."""
+    prefix, eval_field, seed_offset = _STAGES[stage]
+    steps = getattr(cfg, f"{prefix}_steps")
+    lr = getattr(cfg, f"{prefix}_lr")
     return eqs.learn.train(
         model,
         loss_fn,
         data,
         optimizer=make_optimizer(cfg, lr, steps),
         num_steps=steps,
-        batch_size=batch,
-        seed=seed,
-        validation=eqs.learn.Validation(valid_data, valid_loss_fn, eval_every),
+        batch_size=getattr(cfg, f"{prefix}_batch"),
+        seed=cfg.model_seed + seed_offset,
+        validation=eqs.learn.Validation(valid, valid_loss_fn, getattr(cfg, eval_field)),
         checkpoints=eqs.learn.Checkpoints(
             work / f"{name}.ckpt", every=max(steps // 20, 50)
         ),
@@ -309,20 +311,10 @@ def _frames(split: Split, dtype) -> dict[str, np.ndarray]:
 
 
 def pretrain_sensor(cfg: Config, train: Split, val: Split, key, work: Path):
+    model = make_sensor(cfg, key)
+    data, valid = _frames(train, cfg.dtype), _frames(val, cfg.dtype)
     return _train(
-        make_sensor(cfg, key),
-        sensor_loss,
-        _frames(train, cfg.dtype),
-        cfg=cfg,
-        steps=cfg.sensor_steps,
-        batch=cfg.sensor_batch,
-        lr=cfg.sensor_lr,
-        seed=cfg.model_seed,
-        work=work,
-        name="sensor",
-        valid_data=_frames(val, cfg.dtype),
-        valid_loss_fn=sensor_mse_px,
-        eval_every=cfg.sensor_eval_every,
+        cfg, "sensor", work, "sensor", model, sensor_loss, data, valid, sensor_mse_px
     )
 
 
@@ -589,48 +581,6 @@ def _position_mse(predict):
     return loss
 
 
-def train_smoother(
-    cfg: Config,
-    kind: str,
-    loss: str,
-    train: Split,
-    val: Split,
-    sigma: float,
-    key,
-    work: Path,
-    name: str,
-    learn_dynamics: bool = False,
-    view: str | None = None,
-):
-    model = make_smoother_model(kind, sigma, key, cfg.dtype, view)
-    if learn_dynamics:
-        model = dataclasses.replace(model, learn_dynamics=True)
-    if loss == "surrogate":
-        loss_fn = _per_sequence(surrogate_loss_one, cfg.surrogate_steps)
-    elif loss == "implicit":
-        loss_fn = _per_sequence(implicit_loss_one, cfg.eval_solver_steps)
-    elif loss == "nll":
-        loss_fn = _per_sequence(joint_nll_one)
-    else:
-        raise ValueError(f"unknown smoother loss {loss!r}")
-    steps = cfg.eval_solver_steps
-    return _train(
-        model,
-        loss_fn,
-        train.sequences(cfg.dtype),
-        cfg=cfg,
-        steps=cfg.fg_steps,
-        batch=cfg.fg_batch,
-        lr=cfg.fg_lr,
-        seed=cfg.model_seed + 1,
-        work=work,
-        name=name,
-        valid_data=val.sequences(cfg.dtype),
-        valid_loss_fn=_position_mse(lambda m, b: smoothed_positions(m, b, steps)),
-        eval_every=cfg.eval_every,
-    )
-
-
 def predict_split(predict, model, data: dict, batch: int = 32):
     """`predict(model, batch)` over a whole split, in padded batches of one
     shape; `predict` returns an array or a tuple of arrays (batch first)."""
@@ -694,33 +644,35 @@ def ekf_positions(model, batch):
     return _ekf_batch(model, batch["meas"], batch["counts"], x0)[0][..., :2]
 
 
-def train_ekf(
-    cfg: Config,
-    kind: str,
-    loss: str,
-    train: Split,
-    val: Split,
-    sigma: float,
-    key,
-    work: Path,
-    name: str,
+def train_factor_graph(
+    cfg: Config, method: str, train: Split, val: Split, sigma: float, key, work: Path
 ):
-    one = {"mse": ekf_mse_one, "nll": ekf_nll_one}[loss]
-    return _train(
-        make_smoother_model(kind, sigma, key, cfg.dtype),
-        _per_sequence(one),
-        train.sequences(cfg.dtype),
-        cfg=cfg,
-        steps=cfg.fg_steps,
-        batch=cfg.fg_batch,
-        lr=cfg.fg_lr,
-        seed=cfg.model_seed + 2,
-        work=work,
-        name=name,
-        valid_data=val.sequences(cfg.dtype),
-        valid_loss_fn=_position_mse(ekf_positions),
-        eval_every=cfg.eval_every,
-    )
+    """Train the smoother or EKF `method`, named `smoother_<kind>_<loss>[_flags]`
+    (flags `learndyn` and those of [`view_factor`][]) or `ekf_<kind>_<loss>`,
+    with checkpoints `work/<method>.ckpt`."""
+    family, kind, loss, *flags = method.split("_")
+    if family == "ekf":
+        loss_fn = _per_sequence({"mse": ekf_mse_one, "nll": ekf_nll_one}[loss])
+        model = make_smoother_model(kind, sigma, key, cfg.dtype)
+        valid_loss = _position_mse(ekf_positions)
+    elif family == "smoother":
+        model = make_smoother_model(kind, sigma, key, cfg.dtype, view_factor(method))
+        if "learndyn" in flags:
+            model = dataclasses.replace(model, learn_dynamics=True)
+        if loss == "surrogate":
+            loss_fn = _per_sequence(surrogate_loss_one, cfg.surrogate_steps)
+        elif loss == "implicit":
+            loss_fn = _per_sequence(implicit_loss_one, cfg.eval_solver_steps)
+        elif loss == "nll":
+            loss_fn = _per_sequence(joint_nll_one)
+        else:
+            raise ValueError(f"unknown smoother loss {loss!r}")
+        steps = cfg.eval_solver_steps
+        valid_loss = _position_mse(lambda m, b: smoothed_positions(m, b, steps))
+    else:
+        raise ValueError(f"not a smoother or EKF method: {method!r}")
+    data, valid = train.sequences(cfg.dtype), val.sequences(cfg.dtype)
+    return _train(cfg, family, work, method, model, loss_fn, data, valid, valid_loss)
 
 
 # ---------------------------------------------------------------------------
@@ -758,21 +710,10 @@ def train_lstm(
     model = M.LstmTracker(
         key, bidirectional, train.features.shape[-1], hidden=cfg.lstm_hidden
     )
-    return _train(
-        _cast(model, cfg.dtype),
-        lstm_loss,
-        _windows(train, cfg.lstm_subsequence, cfg.dtype),
-        cfg=cfg,
-        steps=cfg.lstm_steps,
-        batch=cfg.lstm_batch,
-        lr=cfg.lstm_lr,
-        seed=cfg.model_seed + 3,
-        work=work,
-        name=name,
-        valid_data=_lstm_data(val, cfg.dtype),
-        valid_loss_fn=_position_mse(lstm_positions),
-        eval_every=cfg.eval_every,
-    )
+    model = _cast(model, cfg.dtype)
+    data = _windows(train, cfg.lstm_subsequence, cfg.dtype)
+    valid, valid_loss = _lstm_data(val, cfg.dtype), _position_mse(lstm_positions)
+    return _train(cfg, "lstm", work, name, model, lstm_loss, data, valid, valid_loss)
 
 
 # ---------------------------------------------------------------------------
@@ -819,18 +760,10 @@ def _finetune_data(split: Split, dtype) -> dict[str, np.ndarray]:
 
 def train_finetune(cfg: Config, train: Split, val: Split, sensor, smoother, work, name):
     steps = cfg.eval_solver_steps
-    return _train(
+    model, loss_fn = (
         FinetuneModel(sensor, smoother),
         _finetune_loss(cfg.surrogate_steps),
-        _finetune_data(train, cfg.dtype),
-        cfg=cfg,
-        steps=cfg.finetune_steps,
-        batch=cfg.finetune_batch,
-        lr=cfg.finetune_lr,
-        seed=cfg.model_seed + 4,
-        work=work,
-        name=name,
-        valid_data=_finetune_data(val, cfg.dtype),
-        valid_loss_fn=_position_mse(lambda m, b: finetune_positions(m, b, steps)),
-        eval_every=cfg.finetune_eval_every,
     )
+    data, valid = _finetune_data(train, cfg.dtype), _finetune_data(val, cfg.dtype)
+    valid_loss = _position_mse(lambda m, b: finetune_positions(m, b, steps))
+    return _train(cfg, "finetune", work, name, model, loss_fn, data, valid, valid_loss)
