@@ -5,7 +5,15 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
-from ._utils import as_float_array, as_matrices, broadcast_batch, check_on_group
+from ._utils import (
+    as_float_array,
+    as_matrices,
+    as_vectors,
+    broadcast_batch,
+    check_on_group,
+    check_unit_norm,
+    default_float_dtype,
+)
 
 
 # Stands for "the concrete group of `self`" (beartype rejects `typing.Self` on
@@ -20,6 +28,12 @@ class AbstractLieGroup(eqx.Module):
     A group element stores one array of parameters whose last axis has size
     `parameters_dim`; any leading axes are batch axes, and every operation broadcasts
     over them. Tangent vectors have shape `(*batch, tangent_dim)`.
+
+    Constructors take `check=True` by default: concrete parameters whose
+    rotation part is not finite with unit norm (within `max(1e-3, 10 eps)`)
+    raise `ValueError`. Traced values (under `jit` or `vmap`) are not
+    checked. `check=False` accepts any parameters, e.g. to call
+    `normalize()` on them.
     """
 
     tangent_dim: eqx.AbstractClassVar[int]
@@ -38,7 +52,6 @@ class AbstractLieGroup(eqx.Module):
         """The underlying parameter array, of shape `(*batch, parameters_dim)`."""
 
     @classmethod
-    @abc.abstractmethod
     def identity(
         cls: type[_G], batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
     ) -> _G:
@@ -53,6 +66,34 @@ class AbstractLieGroup(eqx.Module):
 
         The identity, with parameters of shape `(*batch_shape, parameters_dim)`.
         """
+        dtype = default_float_dtype() if dtype is None else dtype
+        # Every group's parameters are (1, 0, ..., 0) at the identity: cos = 1
+        # or qw = 1, then zeros.
+        params = jnp.zeros((cls.parameters_dim,), dtype).at[0].set(1.0)
+        shape = (*batch_shape, cls.parameters_dim)
+        return cls(jnp.broadcast_to(params, shape), check=False)
+
+    @classmethod
+    def _from_rotation_parameters(
+        cls: type[_G], rotation: Array, translation: ArrayLike
+    ) -> _G:
+        """A rigid motion from its rotation's parameters and a translation."""
+        who = f"{cls.__name__}.from_rotation_and_translation"
+        t = as_vectors(translation, cls.space_dim, who, "translation", like=rotation)
+        r, t = broadcast_batch(rotation, t)
+        return cls(jnp.concatenate([r, t], axis=-1), check=False)
+
+    @classmethod
+    def _checked_parameters(
+        cls, field: str, value: ArrayLike, rotation_dim: int, check: bool
+    ) -> Array:
+        """`value` as the parameter array `field` of a new element: shape
+        checked, and with `check` its first `rotation_dim` entries of unit
+        norm (when concrete)."""
+        value = as_vectors(value, cls.parameters_dim, cls.__name__, field)
+        if check:
+            check_unit_norm(cls.__name__, field, value, rotation_dim)
+        return value
 
     @classmethod
     @abc.abstractmethod

@@ -11,7 +11,6 @@ from ._utils import (
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_unit_norm,
     coef_a,
     coef_b,
     coef_c,
@@ -45,15 +44,12 @@ class SE2(AbstractLieGroup):
         """**Arguments:**
 
         - `unit_complex_xy`: `(cos, sin, x, y)`, shape `(*batch, 4)`.
-        - `check`: raise `ValueError` if the parameters are concrete and the
-            rotation part is not finite with unit norm (within
-            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
-            not checked. `check=False` accepts any parameters, e.g. to
-            call `normalize()` on them.
+        - `check`: check concrete parameters (see
+            [`eqsmooth.lie.AbstractLieGroup`][]).
         """
-        self.unit_complex_xy = as_vectors(unit_complex_xy, 4, "SE2", "unit_complex_xy")
-        if check:
-            check_unit_norm("SE2", "unit_complex_xy", self.unit_complex_xy, 2)
+        self.unit_complex_xy = self._checked_parameters(
+            "unit_complex_xy", unit_complex_xy, 2, check
+        )
 
     # ---------------------------------------------------------------- constructors
 
@@ -61,29 +57,10 @@ class SE2(AbstractLieGroup):
     def from_rotation_and_translation(
         cls, rotation: SO2, translation: Real[ArrayLike, "*#batch 2"]
     ) -> "SE2":
-        """Build a rigid motion `p -> rotation @ p + translation`.
-
-        **Arguments:**
-
-        - `rotation`: an [`eqsmooth.lie.SO2`][].
-        - `translation`: array of shape `(*batch, 2)`; batch axes broadcast against
-            those of `rotation`.
-
-        **Returns:**
-
-        The rigid motion.
-        """
-        z, t = broadcast_batch(
-            rotation.unit_complex,
-            as_vectors(
-                translation,
-                2,
-                "SE2.from_rotation_and_translation",
-                "translation",
-                like=rotation.unit_complex,
-            ),
-        )
-        return cls(jnp.concatenate([z, t], axis=-1), check=False)
+        """The rigid motion `p -> rotation @ p + translation`, from an
+        [`eqsmooth.lie.SO2`][] and a translation `(*batch, 2)` (their batch
+        axes broadcast)."""
+        return cls._from_rotation_parameters(rotation.parameters(), translation)
 
     @classmethod
     def from_xy_theta(
@@ -110,16 +87,6 @@ class SE2(AbstractLieGroup):
         )
         return cls(
             jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1), check=False
-        )
-
-    @classmethod
-    def identity(
-        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
-    ) -> "SE2":
-        dtype = default_float_dtype() if dtype is None else dtype
-        return cls(
-            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4)),
-            check=False,
         )
 
     @classmethod

@@ -10,7 +10,6 @@ from ._utils import (
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_unit_norm,
     coef_a,
     coef_b,
     coef_c,
@@ -71,15 +70,10 @@ class SE3(AbstractLieGroup):
         """**Arguments:**
 
         - `wxyz_xyz`: `(qw, qx, qy, qz, x, y, z)`, shape `(*batch, 7)`.
-        - `check`: raise `ValueError` if the parameters are concrete and the
-            rotation part is not finite with unit norm (within
-            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
-            not checked. `check=False` accepts any parameters, e.g. to
-            call `normalize()` on them.
+        - `check`: check concrete parameters (see
+            [`eqsmooth.lie.AbstractLieGroup`][]).
         """
-        self.wxyz_xyz = as_vectors(wxyz_xyz, 7, "SE3", "wxyz_xyz")
-        if check:
-            check_unit_norm("SE3", "wxyz_xyz", self.wxyz_xyz, 4)
+        self.wxyz_xyz = self._checked_parameters("wxyz_xyz", wxyz_xyz, 4, check)
 
     # ---------------------------------------------------------------- constructors
 
@@ -87,37 +81,10 @@ class SE3(AbstractLieGroup):
     def from_rotation_and_translation(
         cls, rotation: SO3, translation: Real[ArrayLike, "*#batch 3"]
     ) -> "SE3":
-        """Build a rigid motion `p -> rotation @ p + translation`.
-
-        **Arguments:**
-
-        - `rotation`: an [`eqsmooth.lie.SO3`][].
-        - `translation`: array of shape `(*batch, 3)`; batch axes broadcast against
-            those of `rotation`.
-
-        **Returns:**
-
-        The rigid motion.
-        """
-        q, t = broadcast_batch(
-            rotation.wxyz,
-            as_vectors(
-                translation,
-                3,
-                "SE3.from_rotation_and_translation",
-                "translation",
-                like=rotation.wxyz,
-            ),
-        )
-        return cls(jnp.concatenate([q, t], axis=-1), check=False)
-
-    @classmethod
-    def identity(
-        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
-    ) -> "SE3":
-        dtype = default_float_dtype() if dtype is None else dtype
-        params = jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype)
-        return cls(jnp.broadcast_to(params, (*batch_shape, 7)), check=False)
+        """The rigid motion `p -> rotation @ p + translation`, from an
+        [`eqsmooth.lie.SO3`][] and a translation `(*batch, 3)` (their batch
+        axes broadcast)."""
+        return cls._from_rotation_parameters(rotation.parameters(), translation)
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 6"]) -> "SE3":

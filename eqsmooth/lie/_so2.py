@@ -10,7 +10,6 @@ from ._utils import (
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_unit_norm,
     default_float_dtype,
     rotate_pairs,
     stack_matrix,
@@ -37,15 +36,12 @@ class SO2(AbstractLieGroup):
         """**Arguments:**
 
         - `unit_complex`: `(cos, sin)` of the rotation angle, shape `(*batch, 2)`.
-        - `check`: raise `ValueError` if the parameters are concrete and the
-            rotation part is not finite with unit norm (within
-            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
-            not checked. `check=False` accepts any parameters, e.g. to
-            call `normalize()` on them.
+        - `check`: check concrete parameters (see
+            [`eqsmooth.lie.AbstractLieGroup`][]).
         """
-        self.unit_complex = as_vectors(unit_complex, 2, "SO2", "unit_complex")
-        if check:
-            check_unit_norm("SO2", "unit_complex", self.unit_complex, 2)
+        self.unit_complex = self._checked_parameters(
+            "unit_complex", unit_complex, 2, check
+        )
 
     # ---------------------------------------------------------------- constructors
 
@@ -63,16 +59,6 @@ class SO2(AbstractLieGroup):
         """
         theta = as_float_array(theta)
         return cls(jnp.stack([jnp.cos(theta), jnp.sin(theta)], axis=-1), check=False)
-
-    @classmethod
-    def identity(
-        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
-    ) -> "SO2":
-        dtype = default_float_dtype() if dtype is None else dtype
-        return cls(
-            jnp.broadcast_to(jnp.array([1.0, 0.0], dtype), (*batch_shape, 2)),
-            check=False,
-        )
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 1"]) -> "SO2":

@@ -10,7 +10,6 @@ from ._utils import (
     as_matrices,
     as_vectors,
     broadcast_batch,
-    check_unit_norm,
     coef_a,
     coef_b,
     coef_c,
@@ -55,15 +54,10 @@ class SO3(AbstractLieGroup):
         """**Arguments:**
 
         - `wxyz`: quaternion `(w, x, y, z)`, shape `(*batch, 4)`.
-        - `check`: raise `ValueError` if the parameters are concrete and the
-            rotation part is not finite with unit norm (within
-            `max(1e-3, 10 eps)`). Traced values (under `jit` or `vmap`) are
-            not checked. `check=False` accepts any parameters, e.g. to
-            call `normalize()` on them.
+        - `check`: check concrete parameters (see
+            [`eqsmooth.lie.AbstractLieGroup`][]).
         """
-        self.wxyz = as_vectors(wxyz, 4, "SO3", "wxyz")
-        if check:
-            check_unit_norm("SO3", "wxyz", self.wxyz, 4)
+        self.wxyz = self._checked_parameters("wxyz", wxyz, 4, check)
 
     # ---------------------------------------------------------------- constructors
 
@@ -112,16 +106,6 @@ class SO3(AbstractLieGroup):
             cls.from_z_radians(yaw)
             .compose(cls.from_y_radians(pitch))
             .compose(cls.from_x_radians(roll))
-        )
-
-    @classmethod
-    def identity(
-        cls, batch_shape: tuple[int, ...] = (), dtype: DTypeLike | None = None
-    ) -> "SO3":
-        dtype = default_float_dtype() if dtype is None else dtype
-        return cls(
-            jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0, 0.0], dtype), (*batch_shape, 4)),
-            check=False,
         )
 
     @classmethod
