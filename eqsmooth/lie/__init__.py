@@ -24,7 +24,10 @@ angle `pi` (`atan2`-based logarithm). The logarithm ignores the norm of the rota
 parameters, so slightly unnormalized elements give sensible results.
 """
 
-from ._base import AbstractLieGroup as AbstractLieGroup
+from ._base import (
+    AbstractLieGroup as AbstractLieGroup,
+    AbstractRigidMotion as AbstractRigidMotion,
+)
 from ._se2 import SE2 as SE2
 from ._se3 import SE3 as SE3
 from ._so2 import SO2 as SO2

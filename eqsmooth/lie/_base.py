@@ -2,6 +2,7 @@ import abc
 from typing import Any, overload, TypeVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
@@ -19,6 +20,7 @@ from ._utils import (
 # Stands for "the concrete group of `self`" (beartype rejects `typing.Self` on
 # individually decorated methods, which is how the jaxtyping import hook checks).
 _G = TypeVar("_G", bound="AbstractLieGroup")
+_R = TypeVar("_R", bound="AbstractRigidMotion")
 
 
 class AbstractLieGroup(eqx.Module):
@@ -72,16 +74,6 @@ class AbstractLieGroup(eqx.Module):
         params = jnp.zeros((cls.parameters_dim,), dtype).at[0].set(1.0)
         shape = (*batch_shape, cls.parameters_dim)
         return cls(jnp.broadcast_to(params, shape), check=False)
-
-    @classmethod
-    def _from_rotation_parameters(
-        cls: type[_G], rotation: Array, translation: ArrayLike
-    ) -> _G:
-        """A rigid motion from its rotation's parameters and a translation."""
-        who = f"{cls.__name__}.from_rotation_and_translation"
-        t = as_vectors(translation, cls.space_dim, who, "translation", like=rotation)
-        r, t = broadcast_batch(rotation, t)
-        return cls(jnp.concatenate([r, t], axis=-1), check=False)
 
     @classmethod
     def _checked_parameters(
@@ -394,6 +386,49 @@ class AbstractLieGroup(eqx.Module):
                 )
             return self.compose(other)
         return self.apply(other)
+
+
+class AbstractRigidMotion(AbstractLieGroup):
+    """Base class of [`eqsmooth.lie.SE2`][] and [`eqsmooth.lie.SE3`][]: the
+    parameters of a rotation group's element, then a translation."""
+
+    rotation_group: eqx.AbstractClassVar[type[AbstractLieGroup]]
+    """The rotation group (`SO2` or `SO3`)."""
+
+    @classmethod
+    def _from_rotation_parameters(
+        cls: type[_R], rotation: Array, translation: ArrayLike
+    ) -> _R:
+        """A rigid motion from its rotation's parameters and a translation."""
+        who = f"{cls.__name__}.from_rotation_and_translation"
+        t = as_vectors(translation, cls.space_dim, who, "translation", like=rotation)
+        r, t = broadcast_batch(rotation, t)
+        return cls(jnp.concatenate([r, t], axis=-1), check=False)
+
+    @classmethod
+    def _from_group_matrix(cls: type[_R], matrix: Float[Array, "*batch n n"]) -> _R:
+        n = cls.space_dim
+        rotation = cls.rotation_group.from_matrix(matrix[..., :n, :n], check=False)
+        return cls._from_rotation_parameters(rotation.parameters(), matrix[..., :n, n])
+
+    @classmethod
+    def sample_uniform(
+        cls: type[_R],
+        key: PRNGKeyArray,
+        batch_shape: tuple[int, ...] = (),
+        dtype: DTypeLike | None = None,
+    ) -> _R:
+        dtype = default_float_dtype() if dtype is None else dtype
+        key_rot, key_trans = jax.random.split(key)
+        translation = jax.random.uniform(
+            key_trans,
+            (*batch_shape, cls.space_dim),
+            dtype=dtype,
+            minval=-1.0,
+            maxval=1.0,
+        )
+        rotation = cls.rotation_group.sample_uniform(key_rot, batch_shape, dtype)
+        return cls._from_rotation_parameters(rotation.parameters(), translation)
 
 
 def check_parameters(name: str, params: Array, size: int) -> None:

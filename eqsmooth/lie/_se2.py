@@ -1,10 +1,9 @@
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
+from jaxtyping import Array, ArrayLike, Float, Real
 
-from ._base import AbstractLieGroup
+from ._base import AbstractRigidMotion
 from ._so2 import SO2
 from ._utils import (
     as_float_array,
@@ -14,7 +13,6 @@ from ._utils import (
     coef_a,
     coef_b,
     coef_c,
-    default_float_dtype,
     rotate_pairs,
     signs,
     sinc,
@@ -22,7 +20,7 @@ from ._utils import (
 )
 
 
-class SE2(AbstractLieGroup):
+class SE2(AbstractRigidMotion):
     """Rigid motions of the plane.
 
     Parameters are `(cos, sin, x, y)`: a unit complex number for the rotation and the
@@ -36,6 +34,7 @@ class SE2(AbstractLieGroup):
     tangent_dim: ClassVar[int] = 3
     parameters_dim: ClassVar[int] = 4
     matrix_dim: ClassVar[int] = 3
+    rotation_group: ClassVar[type[SO2]] = SO2
     space_dim: ClassVar[int] = 2
 
     def __init__(
@@ -100,28 +99,6 @@ class SE2(AbstractLieGroup):
         y = b * vx + a * vy
         return cls(
             jnp.stack([jnp.cos(theta), jnp.sin(theta), x, y], axis=-1), check=False
-        )
-
-    @classmethod
-    def _from_group_matrix(cls, matrix: Float[Array, "*batch n n"]) -> "SE2":
-        return cls.from_rotation_and_translation(
-            SO2.from_matrix(matrix[..., :2, :2], check=False), matrix[..., :2, 2]
-        )
-
-    @classmethod
-    def sample_uniform(
-        cls,
-        key: PRNGKeyArray,
-        batch_shape: tuple[int, ...] = (),
-        dtype: DTypeLike | None = None,
-    ) -> "SE2":
-        dtype = default_float_dtype() if dtype is None else dtype
-        key_rot, key_trans = jax.random.split(key)
-        translation = jax.random.uniform(
-            key_trans, (*batch_shape, 2), dtype=dtype, minval=-1.0, maxval=1.0
-        )
-        return cls.from_rotation_and_translation(
-            SO2.sample_uniform(key_rot, batch_shape, dtype), translation
         )
 
     # ------------------------------------------------------------- Lie algebra

@@ -1,10 +1,9 @@
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
+from jaxtyping import Array, ArrayLike, Float, Real
 
-from ._base import AbstractLieGroup
+from ._base import AbstractRigidMotion
 from ._so3 import skew, SO3
 from ._utils import (
     as_matrices,
@@ -13,7 +12,6 @@ from ._utils import (
     coef_a,
     coef_b,
     coef_c,
-    default_float_dtype,
     se3_a2,
     se3_a3,
 )
@@ -50,7 +48,7 @@ def _block(top_left: Array, top_right: Array, bottom_right: Array) -> Array:
     )
 
 
-class SE3(AbstractLieGroup):
+class SE3(AbstractRigidMotion):
     """Rigid motions of space.
 
     Parameters are `(qw, qx, qy, qz, x, y, z)`: a quaternion for the rotation (see
@@ -64,6 +62,7 @@ class SE3(AbstractLieGroup):
     tangent_dim: ClassVar[int] = 6
     parameters_dim: ClassVar[int] = 7
     matrix_dim: ClassVar[int] = 4
+    rotation_group: ClassVar[type[SO3]] = SO3
     space_dim: ClassVar[int] = 3
 
     def __init__(self, wxyz_xyz: Float[ArrayLike, "*batch 7"], check: bool = True):
@@ -96,28 +95,6 @@ class SE3(AbstractLieGroup):
         translation = rho + coef_a(t) * w_rho + coef_b(t) * jnp.cross(omega, w_rho)
         return cls(
             jnp.concatenate([SO3.exp(omega).wxyz, translation], axis=-1), check=False
-        )
-
-    @classmethod
-    def _from_group_matrix(cls, matrix: Float[Array, "*batch n n"]) -> "SE3":
-        return cls.from_rotation_and_translation(
-            SO3.from_matrix(matrix[..., :3, :3], check=False), matrix[..., :3, 3]
-        )
-
-    @classmethod
-    def sample_uniform(
-        cls,
-        key: PRNGKeyArray,
-        batch_shape: tuple[int, ...] = (),
-        dtype: DTypeLike | None = None,
-    ) -> "SE3":
-        dtype = default_float_dtype() if dtype is None else dtype
-        key_rot, key_trans = jax.random.split(key)
-        translation = jax.random.uniform(
-            key_trans, (*batch_shape, 3), dtype=dtype, minval=-1.0, maxval=1.0
-        )
-        return cls.from_rotation_and_translation(
-            SO3.sample_uniform(key_rot, batch_shape, dtype), translation
         )
 
     # ------------------------------------------------------------- Lie algebra
