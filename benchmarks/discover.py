@@ -267,6 +267,26 @@ def rate(k: int, n: int) -> dict:
     return {"k": k, "n": n, "rate": k / n if n else float("nan"), "ci95": [lo, hi]}
 
 
+def naming_rates(c: Counter, n: int, alone: str, correct: str) -> dict:
+    """Rates of the truth named alone (key `alone`), in a set, either (`correct`),
+    with extras, of a wrong name and of none, from `classify`'s counts `c`."""
+    out = {alone: rate(c["exact"], n), "truth_in_set": rate(c["set"], n)}
+    out[correct] = rate(c["exact"] + c["set"], n)
+    pairs = (
+        ("truth_plus_extra", "extra"),
+        ("wrong_name", "wrong"),
+        ("nothing_named", "none"),
+    )
+    return out | {key: rate(c[k], n) for key, k in pairs}
+
+
+def _head(config: dict, n: int, c: Counter, sequences_per_set: int) -> dict:
+    """The fields every record of this benchmark starts with."""
+    head = {"benchmark": "discover", "config": config | _data_config(sequences_per_set)}
+    head |= {"n": n, "failures": c["failures"], "crashes": c["failures"]}
+    return head | {k: c[k] for k in ("flagged", "status_failed")}
+
+
 def fmt_rate(r: dict) -> str:
     if not r["n"]:
         return "–"
@@ -352,14 +372,7 @@ def effect_cell(
         "measurement_model": _model_config(model),
     }
     config |= {"snr_target": level, "coefficient": coef}
-    return {
-        "benchmark": "discover",
-        "config": config | _data_config(sequences_per_set),
-        "n": n,
-        "failures": c["failures"],
-        "crashes": c["failures"],
-        "flagged": c["flagged"],
-        "status_failed": c["status_failed"],
+    return _head(config, n, c, sequences_per_set) | {
         "tentative": rate(c["tentative"], n),
         # A name not marked tentative (for an effect outside the library every
         # such name is a wrong, confident one).
@@ -369,12 +382,7 @@ def effect_cell(
         "median_s": statistics.median(times) if times else float("nan"),
         "p90_s": _q(times, 0.9),
         "detection": rate(c["detected"], n),
-        "named_truth_alone": rate(c["exact"], n),
-        "truth_in_set": rate(c["set"], n),
-        "correct_naming": rate(c["exact"] + c["set"], n),
-        "truth_plus_extra": rate(c["extra"], n),
-        "wrong_name": rate(c["wrong"], n),
-        "nothing_named": rate(c["none"], n),
+        **naming_rates(c, n, "named_truth_alone", "correct_naming"),
         "unnamed_structure": rate(c["unnamed"], n),
         "other_names": dict(wrong_names),
         "coef_n": len(rel),
@@ -423,14 +431,7 @@ def null_cell(num, log, noise="gauss", model=MODEL, sequences_per_set=B) -> dict
     n = len(outs)
     config = {"effect": "none", "noise": noise, "noise_description": NOISES[noise]}
     config |= {"measurement_model": _model_config(model), "truth": None}
-    return {
-        "benchmark": "discover",
-        "config": config | _data_config(sequences_per_set),
-        "n": n,
-        "failures": c["failures"],
-        "crashes": c["failures"],
-        "flagged": c["flagged"],
-        "status_failed": c["status_failed"],
+    return _head(config, n, c, sequences_per_set) | {
         "median_s": statistics.median(times) if times else float("nan"),
         "p90_s": _q(times, 0.9),
         "false_discovery": rate(c["named_any"], n),

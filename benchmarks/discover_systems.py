@@ -49,6 +49,7 @@ from discover import (  # noqa: E402
     classify,
     fmt_rate,
     guarded_run,
+    naming_rates,
     rate,
     run_workflow,
 )
@@ -252,15 +253,8 @@ def cell(
     if truth is None:
         return rec | {"anything_named": rate(c["named_any"], n)}
     err = np.median(np.abs(np.asarray(coefs) - coef) / coef) if coefs else None
-    return rec | {
-        "truth_alone": rate(c["exact"], n),
-        "truth_in_set": rate(c["set"], n),
-        "correct": rate(c["exact"] + c["set"], n),
-        "truth_plus_extra": rate(c["extra"], n),
-        "wrong_name": rate(c["wrong"], n),
-        "nothing_named": rate(c["none"], n),
-        "coefficient_median_rel_error": None if err is None else float(err),
-    }
+    rec |= naming_rates(c, n, "truth_alone", "correct")
+    return rec | {"coefficient_median_rel_error": None if err is None else float(err)}
 
 
 def _effect_row(r) -> str:

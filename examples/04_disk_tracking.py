@@ -25,6 +25,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from eqsmooth.experiments._cli import experiment_parser
 from eqsmooth.experiments.disk_tracking import fresh, protocol, report, train
 
 
@@ -35,18 +36,17 @@ _FLOAT = ("sensor_lr", "fg_lr", "lstm_lr", "finetune_lr")
 
 
 def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
-    p = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    p = experiment_parser(
+        __doc__,
+        quick="small run (~5 minutes)",
+        out="results/disk",
+        folds="test folds to run",
     )
-    p.add_argument("--quick", action="store_true", help="small run (~5 minutes)")
-    p.add_argument("--out", type=Path, default=Path("results/disk"))
     p.add_argument(
         "--work",
         type=Path,
         help="checkpoints and caches (default: runs/disk, or OUT/work with --quick)",
     )
-    p.add_argument("--folds", type=int, nargs="+", help="test folds to run")
     p.add_argument(
         "--rerun",
         action="store_true",

@@ -35,25 +35,22 @@ budgeted at 90 minutes.
         --out results/kitti_variant   # the pre-declared data variant
 """
 
-import argparse
 import dataclasses
 import gc
 from pathlib import Path
 
 import jax
 
+from eqsmooth.experiments._cli import experiment_parser
 from eqsmooth.experiments.kitti_vo import data as D, experiment as E, report
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    p.add_argument("--quick", action="store_true", help="small CPU run (CI)")
-    p.add_argument("--out", type=Path, default=Path("results/kitti"))
-    p.add_argument(
-        "--folds", type=int, nargs="+", help="folds to run (default: all; quick: 3)"
+    p = experiment_parser(
+        __doc__,
+        quick="small CPU run (CI)",
+        out="results/kitti",
+        folds="folds to run (default: all; quick: 3)",
     )
     p.add_argument("--methods", nargs="+", choices=E.METHODS)
     p.add_argument("--poses-dir", default=str(D.DEFAULT_POSES_DIR))

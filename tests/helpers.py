@@ -82,6 +82,46 @@ def random_chain(seed: int, T: int = 6, dim: int = 2, robust: bool = False):
     return graph, init, truth
 
 
+def prior_and_odometry(prior, prior_sigmas, a, b, odo, odo_sigmas):
+    """A prior `prior` on pose 0 and between factors `odo` from poses `a` to
+    poses `b` (variables "x"), each with diagonal noise of the sigmas given."""
+    import eqsmooth as eqs
+
+    return [
+        eqs.PriorFactor(
+            eqs.Var("x", [0]), prior, eqs.DiagonalNoise.from_sigmas(prior_sigmas)
+        ),
+        eqs.BetweenFactor(
+            eqs.Var("x", a),
+            eqs.Var("x", b),
+            odo,
+            eqs.DiagonalNoise.from_sigmas(odo_sigmas),
+        ),
+    ]
+
+
+def loop_graph(truth, N: int, dof: int, rng, noise_scale: float, noise):
+    """Odometry with noise model `noise` around the `N` poses `truth` and back
+    to the first (measurements perturbed by `noise_scale` tangent draws from
+    `rng`, `dof` a pose), and a tight prior on the first pose."""
+    import eqsmooth as eqs
+
+    a = np.concatenate([np.arange(N - 1), [N - 1]])
+    b = np.concatenate([np.arange(1, N), [0]])
+    rel = truth[a].inverse() @ truth[b]
+    meas = rel @ type(truth).exp(jnp.asarray(noise_scale * rng.normal(size=(N, dof))))
+    return eqs.FactorGraph(
+        [
+            eqs.BetweenFactor(eqs.Var("pose", a), eqs.Var("pose", b), meas, noise),
+            eqs.PriorFactor(
+                eqs.Var("pose", [0]),
+                truth[np.array([0])],
+                eqs.IsotropicNoise(sqrt_precision=1e3),
+            ),
+        ]
+    )
+
+
 def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
     """A noisy SE(2) loop with odometry and one loop closure; anchored."""
     import eqsmooth as eqs
@@ -92,25 +132,8 @@ def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
     truth = eqs.SE2.from_xy_theta(
         jnp.asarray(xs[:, 0]), jnp.asarray(xs[:, 1]), jnp.asarray(xs[:, 2])
     )
-    a = np.concatenate([np.arange(N - 1), [N - 1]])
-    b = np.concatenate([np.arange(1, N), [0]])
-    rel = truth[a].inverse() @ truth[b]
-    meas = rel @ eqs.SE2.exp(jnp.asarray(noise_scale * rng.normal(size=(N, 3))))
-    graph = eqs.FactorGraph(
-        [
-            eqs.BetweenFactor(
-                eqs.Var("pose", a),
-                eqs.Var("pose", b),
-                meas,
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05])),
-            ),
-            eqs.PriorFactor(
-                eqs.Var("pose", [0]),
-                truth[np.array([0])],
-                eqs.IsotropicNoise(sqrt_precision=1e3),
-            ),
-        ]
-    )
+    noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05]))
+    graph = loop_graph(truth, N, 3, rng, noise_scale, noise)
     init = {"pose": truth @ eqs.SE2.exp(jnp.asarray(0.2 * rng.normal(size=(N, 3))))}
     return graph, init, truth
 

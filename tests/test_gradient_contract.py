@@ -232,14 +232,19 @@ def _mse_weights(values):
 # ------------------------------------------------------- SE(2) with landmarks
 
 
+def _pose_sampler(group, dof: int, rng):
+    """`draw(n, s=1.0)`: `n` poses of `group` (`dof` tangent coordinates) at
+    tangent scale `s`, drawn from `rng`."""
+    return lambda n, s=1.0: group.exp(jnp.asarray(s * rng.normal(size=(n, dof))))
+
+
 @functools.cache
 def _se2_theta():
     import eqsmooth as eqs
 
     rng = np.random.default_rng(0)
 
-    def se2(n, s=1.0):
-        return eqs.SE2.exp(jnp.asarray(s * rng.normal(size=(n, 3))))
+    se2 = _pose_sampler(eqs.SE2, 3, rng)
 
     poses = se2(3)
     marks = jnp.asarray(rng.normal(size=(2, 2)) * 2.0)
@@ -356,8 +361,7 @@ def _se3_theta():
 
     rng = np.random.default_rng(1)
 
-    def se3(n, s=1.0):
-        return eqs.SE3.exp(jnp.asarray(s * rng.normal(size=(n, 6))))
+    se3 = _pose_sampler(eqs.SE3, 6, rng)
 
     poses = se3(2)
     mark = jnp.asarray(rng.normal(size=(1, 3)) * 2.0)

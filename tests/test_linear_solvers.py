@@ -308,21 +308,26 @@ def test_sparse_assembly_matches_dense_normal_matrix():
 # ---------------------------------------------------------------------------
 
 
+def _assert_matches_reference(name, lin, damping):
+    """The solver `name` solves `lin` (damped by `damping`) to the reference."""
+    import eqsmooth as eqs
+
+    delta, result = _solve(_solvers()[name], lin, damping)
+    assert result == eqs.RESULTS.successful
+    np.testing.assert_allclose(
+        flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
+    )
+
+
 @pytest.mark.parametrize("damped", [False, True])
 @pytest.mark.parametrize(
     "name", ["dense", "tridiag", "pcg", "pcg-chain", "sparse", CHOLMOD]
 )
 def test_chain_matches_reference(name, damped):
-    import eqsmooth as eqs
-
     for seed in (0, 1):
         lin = _chain_lin(seed)
         damping = random_damping(lin, seed) if damped else None
-        delta, result = _solve(_solvers()[name], lin, damping)
-        assert result == eqs.RESULTS.successful
-        np.testing.assert_allclose(
-            flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
-        )
+        _assert_matches_reference(name, lin, damping)
 
 
 @pytest.mark.parametrize(
@@ -337,15 +342,9 @@ def test_chain_matches_reference(name, damped):
     ],
 )
 def test_graph_matches_reference(name, damped):
-    import eqsmooth as eqs
-
     lin = _loop_lin(0)
     damping = random_damping(lin, 3) if damped else None
-    delta, result = _solve(_solvers()[name], lin, damping)
-    assert result == eqs.RESULTS.successful
-    np.testing.assert_allclose(
-        flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
-    )
+    _assert_matches_reference(name, lin, damping)
 
 
 @pytest.mark.parametrize("damped", [False, True])
@@ -353,16 +352,10 @@ def test_graph_matches_reference(name, damped):
     "name", ["dense", "pcg", "pcg-chain", "sparse", CHOLMOD, SPARSAX]
 )
 def test_loop_closures_match_reference(name, damped):
-    import eqsmooth as eqs
-
     for seed in (0, 1):
         lin = _closure_lin(seed)
         damping = random_damping(lin, seed) if damped else None
-        delta, result = _solve(_solvers()[name], lin, damping)
-        assert result == eqs.RESULTS.successful
-        np.testing.assert_allclose(
-            flat(lin, delta), reference(lin, damping), rtol=0, atol=1e-9
-        )
+        _assert_matches_reference(name, lin, damping)
 
 
 def _residual_norms(lin, damping, delta):

@@ -9,7 +9,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 import pytest
-from helpers import random_chain, se2_loop
+from helpers import loop_graph, random_chain, se2_loop
 
 
 def se3_loop(seed: int, N: int = 6, noise_scale: float = 0.05):
@@ -27,24 +27,8 @@ def se3_loop(seed: int, N: int = 6, noise_scale: float = 0.05):
     for t in range(N - 1):
         poses.append(poses[-1] @ eqs.SE3.exp(steps[t]))
     truth = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *poses)
-    a = np.concatenate([np.arange(N - 1), [N - 1]])
-    b = np.concatenate([np.arange(1, N), [0]])
-    rel = truth[a].inverse() @ truth[b]
-    meas = rel @ eqs.SE3.exp(jnp.asarray(noise_scale * rng.normal(size=(N, 6))))
-    graph = eqs.FactorGraph(
-        [
-            eqs.BetweenFactor(
-                eqs.Var("pose", a),
-                eqs.Var("pose", b),
-                meas,
-                eqs.IsotropicNoise(sqrt_precision=10.0),
-            ),
-            eqs.PriorFactor(
-                eqs.Var("pose", [0]),
-                truth[np.array([0])],
-                eqs.IsotropicNoise(sqrt_precision=1e3),
-            ),
-        ]
+    graph = loop_graph(
+        truth, N, 6, rng, noise_scale, eqs.IsotropicNoise(sqrt_precision=10.0)
     )
     init = {"pose": truth @ eqs.SE3.exp(jnp.asarray(0.1 * rng.normal(size=(N, 6))))}
     return graph, init

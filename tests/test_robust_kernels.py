@@ -84,13 +84,10 @@ def test_rho_and_weight_closed_forms(name):
     assert np.all(np.isfinite(np.asarray(jax.jacfwd(lambda t: noise.rho(t)[1])(s))))
 
 
-@pytest.mark.parametrize("name", list(_kernels()))
-def test_matches_gtsam_mestimators(name):
-    gtsam = pytest.importorskip("gtsam")
-    import eqsmooth as eqs
-
+def _gtsam_estimator(gtsam, name: str, scale: float):
+    """GTSAM's m-estimator of the kernel `name`, at `scale`."""
     M = gtsam.noiseModel.mEstimator
-    cls = {
+    return {
         "tukey": M.Tukey,
         "geman_mcclure": M.GemanMcClure,
         "welsch": M.Welsch,
@@ -98,8 +95,15 @@ def test_matches_gtsam_mestimators(name):
         "fair": M.Fair,
         "l2_dead_zone": M.L2WithDeadZone,
         "truncated": M.TruncatedLeastSquares,
-    }[name]
-    ref = cls.Create(SCALE)
+    }[name].Create(scale)
+
+
+@pytest.mark.parametrize("name", list(_kernels()))
+def test_matches_gtsam_mestimators(name):
+    gtsam = pytest.importorskip("gtsam")
+    import eqsmooth as eqs
+
+    ref = _gtsam_estimator(gtsam, name, SCALE)
     noise = _kernels()[name](eqs.IsotropicNoise(sqrt_precision=1.0), SCALE)
     rho, drho = noise.rho(jnp.asarray(ERRORS**2))
     np.testing.assert_allclose(
@@ -222,16 +226,7 @@ def test_outlier_graph_matches_gtsam(name):
     init = truth + 0.1 * rng.standard_normal((T, 3))
     odo_s, gps_s = np.array([0.05, 0.05, 0.02]), 0.1
     scale = {"dcs": 2.0, "l2_dead_zone": 0.5}.get(name, 2.0)
-    M = gtsam.noiseModel.mEstimator
-    est = {
-        "tukey": M.Tukey,
-        "geman_mcclure": M.GemanMcClure,
-        "welsch": M.Welsch,
-        "dcs": M.DCS,
-        "fair": M.Fair,
-        "l2_dead_zone": M.L2WithDeadZone,
-        "truncated": M.TruncatedLeastSquares,
-    }[name].Create(scale)
+    est = _gtsam_estimator(gtsam, name, scale)
 
     g = gtsam.NonlinearFactorGraph()
     g.add(

@@ -50,6 +50,22 @@ def _logs0(problem: str):
     return jnp.log(jnp.array([0.1, 0.1, 0.05] if problem == "loop" else [0.2, 0.25]))
 
 
+def _optx_solve(problem: str, logs, **kw):
+    """`optx.least_squares` of `problem` with noise scales `exp(logs)`: 12
+    tight Gauss-Newton steps, `kw` to `optx.least_squares`."""
+    import eqsmooth as eqs
+
+    graph, init = _loop() if problem == "loop" else _chain()
+    return optx.least_squares(
+        eqs.solve.graph_residuals,
+        eqs.GaussNewton(gtol=1e-13, ftol=0.0, xtol=1e-14),
+        init,
+        args=_with_log_sigmas(problem, graph, logs),
+        max_steps=12,
+        **kw,
+    )
+
+
 def _outputs(sol):
     """Scalars a user may differentiate, from one solve."""
     import eqsmooth as eqs
@@ -136,18 +152,8 @@ def test_optx_route_with_our_implicit_adjoint_state_is_differentiable():
     # solution is differentiable as in eqsmooth's driver.
     import eqsmooth as eqs
 
-    graph, init = _loop()
-
     def f(logs):
-        g = _with_log_sigmas("loop", graph, logs)
-        sol = optx.least_squares(
-            eqs.solve.graph_residuals,
-            eqs.GaussNewton(gtol=1e-13, ftol=0.0, xtol=1e-14),
-            init,
-            args=g,
-            max_steps=12,
-            adjoint=eqs.ImplicitAdjoint(),
-        )
+        sol = _optx_solve("loop", logs, adjoint=eqs.ImplicitAdjoint())
         marg = eqs.marginal_covariances(sol.state.lin)["pose"]
         return jnp.stack(
             [
@@ -162,19 +168,8 @@ def test_optx_route_with_our_implicit_adjoint_state_is_differentiable():
 def test_optx_default_adjoint_is_right_on_euclidean_values():
     # The README's route: optimistix's own ImplicitAdjoint differentiates the
     # ambient optimality condition, which is the right one for arrays.
-    import eqsmooth as eqs
-
-    graph, init = _chain()
-
     def f(logs):
-        g = _with_log_sigmas("chain", graph, logs)
-        sol = optx.least_squares(
-            eqs.solve.graph_residuals,
-            eqs.GaussNewton(gtol=1e-13, ftol=0.0, xtol=1e-14),
-            init,
-            args=g,
-            max_steps=12,
-        )
+        sol = _optx_solve("chain", logs)
         return jnp.sum(jnp.sin(3.0 * sol.value["x"]))[None]
 
     _assert_matches_fd(f, _logs0("chain"))

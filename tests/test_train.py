@@ -58,6 +58,31 @@ def _same(a, b):
 _LINE0 = Line(jnp.asarray(0.0), jnp.asarray(0.0))
 
 
+def _like():
+    """A `TrainState` shaped like a run of `_LINE0` under `optax.sgd`."""
+    return TrainState(
+        model=_LINE0,
+        opt_state=optax.sgd(0.05).init(_LINE0),
+        step=0,
+        seed=0,
+        best_model=_LINE0,
+        best_metric=0.0,
+        best_step=0,
+    )
+
+
+def _train_line(**kw):
+    """`train` of `_LINE0` on `_line_data(2.0)` with `optax.sgd(0.05)`, 60
+    steps of batch 8 and no progress bar, but for what `kw` says."""
+    defaults = dict(
+        optimizer=optax.sgd(0.05),
+        num_steps=60,
+        batch_size=8,
+        logging=Logging(progress=False),
+    )
+    return train(_LINE0, _line_loss, _line_data(2.0), **{**defaults, **kw})
+
+
 def test_make_optimizer_warmup_decay_and_clipping():
     params = {"a": jnp.zeros(3)}
     grads = {"a": jnp.array([3.0, -4.0, 0.0])}  # global norm 5
@@ -192,15 +217,8 @@ def test_augment_sees_a_key_per_step_and_never_touches_validation():
 def test_model_selection_keeps_best_validation_model(tmp_path):
     # Training pulls the slope to 2; validation prefers slope 1, which the
     # trajectory passes on its way: the best model is an intermediate one.
-    res = train(
-        _LINE0,
-        _line_loss,
-        _line_data(2.0),
-        optimizer=optax.sgd(0.05),
-        num_steps=60,
-        batch_size=8,
+    res = _train_line(
         validation=Validation(_line_data(1.0, seed=1), every=5),
-        logging=Logging(progress=False),
         checkpoints=Checkpoints(tmp_path / "ckpt.eqx", every=7),
     )
     valid = {r["step"]: r["valid_loss"] for r in res.history if "valid_loss" in r}
@@ -228,15 +246,7 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
     assert header["metadata"] == {"num_examples": 32, "batch_size": 8}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.eqx", "ckpt.eqx.prev"]
     assert read_checkpoint_header(tmp_path / "ckpt.eqx.prev")["step"] == 56
-    like = TrainState(
-        model=_LINE0,
-        opt_state=optax.sgd(0.05).init(_LINE0),
-        step=0,
-        seed=0,
-        best_model=_LINE0,
-        best_metric=0.0,
-        best_step=0,
-    )
+    like = _like()
     state = load_checkpoint(ckpt, like)
     assert state.step == 60 and state.best_step == best_step
     assert _same(state.model, res.model)
@@ -244,59 +254,21 @@ def test_model_selection_keeps_best_validation_model(tmp_path):
     assert state.best_metric == res.best_valid_loss
 
     # Resuming a finished run does nothing; a different seed is refused.
-    again = train(
-        _LINE0,
-        _line_loss,
-        _line_data(2.0),
-        optimizer=optax.sgd(0.05),
-        num_steps=60,
-        batch_size=8,
-        validation=Validation(_line_data(1.0, seed=1)),
-        logging=Logging(progress=False),
-        checkpoints=Checkpoints(ckpt),
+    again = _train_line(
+        validation=Validation(_line_data(1.0, seed=1)), checkpoints=Checkpoints(ckpt)
     )
     assert _same(again.model, res.model)
     assert again.best_step == best_step
     with pytest.raises(ValueError, match="seed"):
-        train(
-            _LINE0,
-            _line_loss,
-            _line_data(2.0),
-            optimizer=optax.sgd(0.05),
-            num_steps=60,
-            batch_size=8,
-            seed=1,
-            logging=Logging(progress=False),
-            checkpoints=Checkpoints(ckpt),
-        )
+        _train_line(seed=1, checkpoints=Checkpoints(ckpt))
 
 
 def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
-    kw = dict(
-        optimizer=optax.sgd(0.05),
-        num_steps=12,
-        batch_size=8,
-        logging=Logging(progress=False),
-    )
     ckpt = tmp_path / "ckpt.eqx"
-    full = train(_LINE0, _line_loss, _line_data(2.0), **kw)
+    full = _train_line(num_steps=12)
     # Stop at step 10 (checkpoints at 5 and 10), then damage the newest file.
-    train(
-        _LINE0,
-        _line_loss,
-        _line_data(2.0),
-        checkpoints=Checkpoints(ckpt, every=5),
-        **{**kw, "num_steps": 10},
-    )
-    like = TrainState(
-        model=_LINE0,
-        opt_state=optax.sgd(0.05).init(_LINE0),
-        step=0,
-        seed=0,
-        best_model=_LINE0,
-        best_metric=0.0,
-        best_step=0,
-    )
+    _train_line(checkpoints=Checkpoints(ckpt, every=5), num_steps=10)
+    like = _like()
     good = ckpt.read_bytes()
     ckpt.write_bytes(good[:-3])
     with pytest.raises(CheckpointError, match="truncated"):
@@ -309,19 +281,13 @@ def test_damaged_checkpoints_are_named_and_the_previous_one_is_used(tmp_path):
     # Resuming falls back to the checkpoint of step 5, says so, and still
     # ends bitwise where an uninterrupted run ends (the data order is fixed).
     with pytest.warns(UserWarning, match="corrupted.*step 5"):
-        res = train(
-            _LINE0,
-            _line_loss,
-            _line_data(2.0),
-            checkpoints=Checkpoints(ckpt, every=5),
-            **kw,
-        )
+        res = _train_line(checkpoints=Checkpoints(ckpt, every=5), num_steps=12)
     assert res.step == 12 and _same(res.model, full.model)
     # With both files damaged there is nothing to resume from: say why.
     ckpt.write_bytes(good[:-3])
     previous_checkpoint(ckpt).write_bytes(b"garbage\n")
     with pytest.raises(CheckpointError, match="no usable checkpoint.*truncated"):
-        train(_LINE0, _line_loss, _line_data(2.0), checkpoints=Checkpoints(ckpt), **kw)
+        _train_line(checkpoints=Checkpoints(ckpt), num_steps=12)
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):

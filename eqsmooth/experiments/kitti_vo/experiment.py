@@ -356,6 +356,44 @@ def _write_json(path: Path, obj) -> None:
     tmp.replace(path)
 
 
+def _train_stage(
+    path: Path,
+    model,
+    loss,
+    data,
+    validation,
+    *,
+    lr: float,
+    steps: int,
+    warmup: int,
+    checkpoint_every: int,
+    optimizer_options: dict | None = None,
+    **options,
+):
+    """[`eqsmooth.learn.train`][] for `steps` steps, warming up for
+    `min(warmup, steps // 10)` of them, with the checkpoints `<path>.ckpt` and
+    the log `<path>.jsonl`; `options` go to `train` as they are."""
+    optimizer = eqs.learn.make_optimizer(
+        lr,
+        warmup_steps=min(warmup, steps // 10),
+        decay_steps=steps,
+        **(optimizer_options or {}),
+    )
+    return eqs.learn.train(
+        model,
+        loss,
+        data,
+        optimizer=optimizer,
+        num_steps=steps,
+        validation=validation,
+        checkpoints=eqs.learn.Checkpoints(
+            path.with_name(path.name + ".ckpt"), every=checkpoint_every
+        ),
+        logging=eqs.learn.Logging(path.with_name(path.name + ".jsonl")),
+        **options,
+    )
+
+
 def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     spec = D.fold_spec(fold)
     out.mkdir(parents=True, exist_ok=True)
@@ -421,26 +459,23 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             f"{len(valid_pairs['pairs'])} validation pairs"
         )
         t1 = time.perf_counter()
-        res = eqs.learn.train(
+        res = _train_stage(
+            work / "sensor",
             sensor,
             sensor_train_loss,
             train_pairs,
-            optimizer=eqs.learn.make_optimizer(
-                cfg.sensor_lr,
-                warmup_steps=min(200, cfg.sensor_steps // 10),
-                decay_steps=cfg.sensor_steps,
-                weight_decay=cfg.sensor_weight_decay,
+            eqs.learn.Validation(
+                valid_pairs, sensor_valid_loss, every=max(cfg.sensor_steps // 10, 1)
             ),
+            lr=cfg.sensor_lr,
+            steps=cfg.sensor_steps,
+            warmup=200,
+            checkpoint_every=200,
+            optimizer_options=dict(weight_decay=cfg.sensor_weight_decay),
             augment=augment_pairs if cfg.sensor_augment else None,
-            num_steps=cfg.sensor_steps,
             batch_size=cfg.sensor_batch,
             seed=cfg.model_seed,
             has_aux=True,
-            validation=eqs.learn.Validation(
-                valid_pairs, sensor_valid_loss, every=max(cfg.sensor_steps // 10, 1)
-            ),
-            checkpoints=eqs.learn.Checkpoints(work / "sensor.ckpt", every=200),
-            logging=eqs.learn.Logging(work / "sensor.jsonl"),
         )
         sensor = res.best_model
         timings["sensor_train_s"] = time.perf_counter() - t1
@@ -520,23 +555,21 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         train_loss, valid_loss = losses(method, cfg)
         steps = cfg.lstm_steps if method == "lstm" else cfg.steps
         t1 = time.perf_counter()
-        res = eqs.learn.train(
+        valid = None
+        if cfg.validate:
+            valid = eqs.learn.Validation(valid_w, valid_loss, every=cfg.eval_every)
+        res = _train_stage(
+            work / method,
             model,
             train_loss,
             train_w,
-            optimizer=eqs.learn.make_optimizer(
-                cfg.lr, warmup_steps=min(50, steps // 10), decay_steps=steps
-            ),
-            num_steps=steps,
+            valid,
+            lr=cfg.lr,
+            steps=steps,
+            warmup=50,
+            checkpoint_every=100,
             batch_size=min(cfg.batch, train_w["z"].shape[0]),
             seed=cfg.model_seed,
-            validation=(
-                eqs.learn.Validation(valid_w, valid_loss, every=cfg.eval_every)
-                if cfg.validate
-                else None
-            ),
-            checkpoints=eqs.learn.Checkpoints(work / f"{method}.ckpt", every=100),
-            logging=eqs.learn.Logging(work / f"{method}.jsonl"),
             on_nonfinite="skip",
         )
         train_s = time.perf_counter() - t1

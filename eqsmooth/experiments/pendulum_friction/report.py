@@ -41,6 +41,12 @@ def p_text(p: float) -> str:
     return f"{p:.1e}" if p > 0 else "< 1e-300"  # below double precision
 
 
+def ci_text(c: dict, fmt: str) -> str:
+    """A fitted coefficient's `95% CI [lo, hi]`, the bounds formatted by `fmt`."""
+    lo, hi = c["interval"]
+    return f"95% CI [{lo:{fmt}}, {hi:{fmt}}]"
+
+
 def print_results(
     p: Prepared, fits: dict, sim_rms: dict, balance: dict, elapsed: float
 ) -> None:
@@ -77,9 +83,8 @@ def print_results(
         )
     print("add (named terms fitted together):")
     for c in report["add"]["coefficients"]:
-        lo, hi = c["interval"]
         print(
-            f"  {c['name']}: {c['value']:.4g} (95% CI [{lo:.4g}, {hi:.4g}])"
+            f"  {c['name']}: {c['value']:.4g} ({ci_text(c, '.4g')})"
             + ("" if c["sign_ok"] else "  <- sign against physics")
         )
     noise = report["add"]["noise_scales"]
@@ -88,10 +93,9 @@ def print_results(
         f"{p.angle_sigma * noise['measurement']:.2e} rad"
     )
     for c in authors_report["add"]["coefficients"]:
-        lo, hi = c["interval"]
         print(
-            f"viscous-only model: rate {c['value']:.4f} s^-1 (95% CI [{lo:.4f}, "
-            f"{hi:.4f}]); published {PUBLISHED_VISCOUS_RATE} s^-1"
+            f"viscous-only model: rate {c['value']:.4f} s^-1 ({ci_text(c, '.4f')}); "
+            f"published {PUBLISHED_VISCOUS_RATE} s^-1"
         )
 
     def coef(fit, name, digits):
