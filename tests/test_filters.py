@@ -46,20 +46,16 @@ def _linear_problem():
         eqs.SqrtInformationNoise.from_covariance(jnp.asarray(Q_COV)),
         params=jnp.asarray(F_MAT),
     )
-    meas1 = eqs.FunctionFactor(
-        _lin_meas,
-        (eqs.Var("x", t1),),
-        eqs.IsotropicNoise.from_sigma(jnp.asarray(sig1)),
-        data=jnp.asarray(z1),
-        params=jnp.asarray(H1),
-    )
-    meas2 = eqs.FunctionFactor(
-        _lin_meas,
-        (eqs.Var("x", t2),),
-        eqs.SqrtInformationNoise.from_covariance(jnp.asarray(R2_COV)),
-        data=jnp.asarray(z2),
-        params=jnp.eye(2, dtype=jnp.float64),
-    )
+
+    def meas(times, noise, z, H):
+        z, H = jnp.asarray(z), jnp.asarray(H)
+        return eqs.FunctionFactor(
+            _lin_meas, (eqs.Var("x", times),), noise, data=z, params=H
+        )
+
+    meas1 = meas(t1, eqs.IsotropicNoise.from_sigma(jnp.asarray(sig1)), z1, H1)
+    R2 = eqs.SqrtInformationNoise.from_covariance(jnp.asarray(R2_COV))
+    meas2 = meas(t2, R2, z2, jnp.eye(2, dtype=jnp.float64))
     # Per time step, the updates in the filter's order (stack 1, then stack 2).
     updates = {k: [] for k in range(T)}
     for i, k in enumerate(t1):

@@ -9,6 +9,7 @@ not the exact data (the conventions of every residual then matter).
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import prior_and_odometry
 
 
 gtsam = pytest.importorskip("gtsam")
@@ -98,16 +99,13 @@ def test_pose2_slam_matches_gtsam():
 
     graph = eqs.FactorGraph(
         [
-            eqs.PriorFactor(
-                eqs.Var("x", [0]),
+            *prior_and_odometry(
                 _pose2s([[0.0, 0.0, 0.0]]),
-                eqs.DiagonalNoise.from_sigmas(prior_s),
-            ),
-            eqs.BetweenFactor(
-                eqs.Var("x", [0, 1, 2, 3, 4]),
-                eqs.Var("x", [1, 2, 3, 4, 1]),
+                prior_s,
+                [0, 1, 2, 3, 4],
+                [1, 2, 3, 4, 1],
                 _pose2s(np.vstack([ODO, LOOP])),
-                eqs.DiagonalNoise.from_sigmas(odo_s),
+                odo_s,
             ),
         ]
     )
@@ -166,16 +164,8 @@ def test_planar_slam_matches_gtsam():
     obs_a = np.array(obs)
     graph = eqs.FactorGraph(
         [
-            eqs.PriorFactor(
-                eqs.Var("x", [0]),
-                _pose2s([[0.0, 0.0, 0.0]]),
-                eqs.DiagonalNoise.from_sigmas(prior_s),
-            ),
-            eqs.BetweenFactor(
-                eqs.Var("x", [0, 1]),
-                eqs.Var("x", [1, 2]),
-                _pose2s(odo),
-                eqs.DiagonalNoise.from_sigmas(odo_s),
+            *prior_and_odometry(
+                _pose2s([[0.0, 0.0, 0.0]]), prior_s, [0, 1], [1, 2], _pose2s(odo), odo_s
             ),
             eqs.BearingRangeFactor(
                 eqs.Var("x", obs_a[:, 0].astype(int)),

@@ -79,26 +79,24 @@ def test_bad_range(factor, bad):
             eqs.BearingRangeFactor(xs, ls, jnp.array([0.1, 0.2]), ranges, N1)
 
 
-@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
-@pytest.mark.parametrize("factor", ["BearingFactor", "BearingRangeFactor"])
-def test_non_finite_2d_bearing(factor, bad):
-    bearing = jnp.array([0.1, bad])
-    xs, ls = eqs.Var("x", [0, 0]), eqs.Var("l", [0, 1])
-    with raises(ValueError, f"{factor}.bearing", "rows [1]", "not finite"):
-        if factor == "BearingFactor":
-            eqs.BearingFactor(xs, ls, bearing, N1)
-        else:
-            eqs.BearingRangeFactor(xs, ls, bearing, jnp.array([1.0, 1.0]), N1)
-
-
 @pytest.mark.parametrize(
-    "row", [[0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [0.0, np.inf, 1.0]]
+    "good, bad, says",
+    [
+        *[(0.1, bad, "not finite") for bad in (np.nan, np.inf, -np.inf)],
+        *[
+            ([0.0, 0.0, 1.0], row, "zero or non-finite")
+            for row in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [0.0, np.inf, 1.0])
+        ],
+    ],
+    ids=["2d-nan", "2d-inf", "2d-minus-inf", "3d-zero", "3d-nan", "3d-inf"],
 )
 @pytest.mark.parametrize("factor", ["BearingFactor", "BearingRangeFactor"])
-def test_bad_3d_bearing(factor, row):
-    bearing = jnp.array([[0.0, 0.0, 1.0], row])
+def test_bad_bearing(factor, good, bad, says):
+    """A 2-D bearing (an angle) must be finite, a 3-D one (a direction)
+    finite and non-zero: row 1 of `[good, bad]` is named."""
+    bearing = jnp.array([good, bad])
     xs, ls = eqs.Var("x", [0, 0]), eqs.Var("l", [0, 1])
-    with raises(ValueError, f"{factor}.bearing", "rows [1]", "zero or non-finite"):
+    with raises(ValueError, f"{factor}.bearing", "rows [1]", says):
         if factor == "BearingFactor":
             eqs.BearingFactor(xs, ls, bearing, N1)
         else:

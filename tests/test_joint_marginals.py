@@ -4,6 +4,7 @@ inverse of JᵀJ, and the fast path from a Solution's stored linearisation."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import prior_and_odometry
 
 
 def _dense_cov(lin):
@@ -63,16 +64,13 @@ def test_marginals_from_a_solution():
     poses = eqs.SE2.from_xy_theta(*(jnp.asarray(xyt[:, i]) for i in range(3)))
     graph = eqs.FactorGraph(
         [
-            eqs.PriorFactor(
-                eqs.Var("x", [0]),
+            *prior_and_odometry(
                 poses[:1],
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05])),
-            ),
-            eqs.BetweenFactor(
-                eqs.Var("x", [0, 1]),
-                eqs.Var("x", [1, 2]),
+                jnp.array([0.1, 0.1, 0.05]),
+                [0, 1],
+                [1, 2],
                 poses[:2].inverse() @ poses[1:],
-                eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1])),
+                jnp.array([0.2, 0.2, 0.1]),
             ),
             eqs.TranslationPriorFactor(
                 eqs.Var("x", [2]),

@@ -203,19 +203,16 @@ def _assert_small(errors, tol):
 
 
 @group_param
+@pytest.mark.parametrize(
+    "check, tol",
+    [(_check_algebra, 1e-9), (_check_jacobians, 1e-7)],
+    ids=["algebra", "jacobians"],
+)
 @prop_settings
 @given(seed=st.integers(0, 2**32 - 1), angle=angle_strategy)
-def test_algebra_properties(group, seed, angle):
-    errors = _check_algebra(group, _random_inputs(group, seed, angle))
-    _assert_small(errors, 1e-9)
-
-
-@group_param
-@prop_settings
-@given(seed=st.integers(0, 2**32 - 1), angle=angle_strategy)
-def test_jacobians(group, seed, angle):
-    errors = _check_jacobians(group, _random_inputs(group, seed, angle))
-    _assert_small(errors, 1e-7)
+def test_properties(group, check, tol, seed, angle):
+    """The algebra's identities to 1e-9 and the Jacobians to 1e-7."""
+    _assert_small(check(group, _random_inputs(group, seed, angle)), tol)
 
 
 # ---------------------------------------------------- special angles and gradients
@@ -257,7 +254,7 @@ def _special_angle_derivatives(group, xi):
             lambda p: jnp.sum(group(p).jlog(), axis=(-1, -2))[..., None], params
         )[:, 0, :],
     }
-    # left_jacobian(xi) is right_jacobian(-xi), checked by test_jacobians.
+    # left_jacobian(xi) is right_jacobian(-xi), checked by test_properties[jacobians].
     for name in ("right_jacobian", "right_jacobian_inv"):
         fn = getattr(group, name)
         out[name + "_jac"] = jax.vmap(jax.jacfwd(fn))(xi)

@@ -21,20 +21,17 @@ def test_constant_head_starts_at_one_over_sigma():
     np.testing.assert_allclose(scalar, 0.25, rtol=1e-6)
 
 
+def _head(inputs: int, depth: int, key, floor, **kw):
+    """A heteroscedastic head of width 8 around the constant `[0.5, 2.0]`."""
+    return L.HeteroscedasticNoiseHead(
+        np.array([0.5, 2.0]), inputs, width=8, depth=depth, key=key, floor=floor, **kw
+    )
+
+
 @pytest.mark.parametrize("learn_scale", [False, True])
 def test_heteroscedastic_head(learn_scale):
     key = jax.random.key(0)
-    head = L.HeteroscedasticNoiseHead(
-        np.array([0.5, 2.0]),
-        3,
-        width=8,
-        depth=2,
-        key=key,
-        floor=(0.1, 0.2),
-        learn_scale=learn_scale,
-        shift=1.0,
-        scale=2.0,
-    )
+    head = _head(3, 2, key, (0.1, 0.2), learn_scale=learn_scale, shift=1.0, scale=2.0)
     x = jax.random.normal(key, (4, 6, 3))
     out = head(x)
     assert out.shape == (4, 6, 2)
@@ -54,16 +51,7 @@ def test_heteroscedastic_head(learn_scale):
 
 def test_head_gradients_match_finite_differences():
     key = jax.random.key(1)
-    head = L.HeteroscedasticNoiseHead(
-        np.array([0.5, 2.0]),
-        2,
-        width=8,
-        depth=1,
-        key=key,
-        floor=0.1,
-        learn_scale=True,
-        dtype=jnp.float64,
-    )
+    head = _head(2, 1, key, 0.1, learn_scale=True, dtype=jnp.float64)
     head = eqx.tree_at(
         lambda h: h.mlp.layers[-1].weight,
         head,
