@@ -179,23 +179,15 @@ def train_models(train_data, valid_data, iters: int, args):
         validation=Validation(valid_data, every=25),
         optimizer=make_optimizer(3e-2, warmup_steps=20, decay_steps=iters),
     )
-    progress = not args.no_progress
+
+    def fit(model, loss, name):
+        log = Logging(args.out / f"train_{name}.jsonl", progress=not args.no_progress)
+        return train(model, loss, train_data, logging=log, **common)
+
     t0 = time.perf_counter()
-    homo = train(
-        hand,
-        surrogate,
-        train_data,
-        logging=Logging(args.out / "train_surrogate.jsonl", progress=progress),
-        **common,
-    )
+    homo = fit(hand, surrogate, "surrogate")
     t1 = time.perf_counter()
-    hetero = train(
-        hetero0,
-        nll,
-        train_data,
-        logging=Logging(args.out / "train_nll.jsonl", progress=progress),
-        **common,
-    )
+    hetero = fit(hetero0, nll, "nll")
     t2 = time.perf_counter()
     return hand, homo, hetero, (t1 - t0, t2 - t1)
 

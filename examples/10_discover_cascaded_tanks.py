@@ -204,44 +204,27 @@ def tank_library(ts: float, x1_levels, x2_levels) -> tuple[dc.Candidate, ...]:
     """Overflow of either tank at a few levels, a saturating sensor and
     three distractors, all written with `Candidate.from_function`."""
     C = dc.Candidate.from_function
+
+    def overflow(fn, tank: int, lv, suffix="", also=""):
+        """Overflow of tank `tank` (1 upper, 2 lower) above level `lv`."""
+        lv = round(float(lv), 2)
+        where = "upper" if tank == 1 else "lower"
+        return C(
+            f"{where} overflow > {lv}{suffix}",
+            fn,
+            level=lv,
+            ts=ts,
+            sign=1,
+            unit="1/s",
+            description=f"ẋ{tank} -= c·max(x{tank} − {lv}, 0){also}",
+        )
+
     out = []
     for lv in x1_levels:
-        lv = round(float(lv), 2)
-        out.append(
-            C(
-                f"upper overflow > {lv} (lost)",
-                overflow_lost,
-                level=lv,
-                ts=ts,
-                sign=1,
-                unit="1/s",
-                description=f"ẋ1 -= c·max(x1 − {lv}, 0)",
-            )
-        )
-        out.append(
-            C(
-                f"upper overflow > {lv} (to lower)",
-                overflow_to_lower,
-                level=lv,
-                ts=ts,
-                sign=1,
-                unit="1/s",
-                description=f"ẋ1 -= c·max(x1 − {lv}, 0), ẋ2 += same",
-            )
-        )
+        out.append(overflow(overflow_lost, 1, lv, " (lost)"))
+        out.append(overflow(overflow_to_lower, 1, lv, " (to lower)", ", ẋ2 += same"))
     for lv in x2_levels:
-        lv = round(float(lv), 2)
-        out.append(
-            C(
-                f"lower overflow > {lv}",
-                lower_overflow,
-                level=lv,
-                ts=ts,
-                sign=1,
-                unit="1/s",
-                description=f"ẋ2 -= c·max(x2 − {lv}, 0)",
-            )
-        )
+        out.append(overflow(lower_overflow, 2, lv))
     out += [
         C(
             "sensor saturation",
