@@ -232,22 +232,24 @@ def _mse_weights(values):
 # ------------------------------------------------------- SE(2) with landmarks
 
 
-def _pose_sampler(group, dof: int, rng):
-    """`draw(n, s=1.0)`: `n` poses of `group` (`dof` tangent coordinates) at
-    tangent scale `s`, drawn from `rng`."""
-    return lambda n, s=1.0: group.exp(jnp.asarray(s * rng.normal(size=(n, dof))))
+def _poses_and_marks(group, dof: int, seed: int, num_poses: int, mark_shape):
+    """`rng = default_rng(seed)`, `draw(n, s=1.0)` (`n` poses of `group`,
+    `dof` tangent coordinates, at tangent scale `s`, drawn from `rng`), then
+    `num_poses` poses and landmarks of shape `mark_shape` (scale 2) drawn."""
+    rng = np.random.default_rng(seed)
+
+    def draw(n, s=1.0):
+        return group.exp(jnp.asarray(s * rng.normal(size=(n, dof))))
+
+    poses = draw(num_poses)
+    return rng, draw, poses, jnp.asarray(rng.normal(size=mark_shape) * 2.0)
 
 
 @functools.cache
 def _se2_theta():
     import eqsmooth as eqs
 
-    rng = np.random.default_rng(0)
-
-    se2 = _pose_sampler(eqs.SE2, 3, rng)
-
-    poses = se2(3)
-    marks = jnp.asarray(rng.normal(size=(2, 2)) * 2.0)
+    rng, se2, poses, marks = _poses_and_marks(eqs.SE2, 3, 0, 3, (2, 2))
     odo = poses[:2].inverse() @ poses[1:] @ se2(2, 0.1)
     local = (poses[np.array([0, 1, 2])].inverse()).apply(marks[np.array([0, 1, 1])])
     noisy = local + 0.1 * rng.normal(size=local.shape)
@@ -359,12 +361,7 @@ def test_graph_routes_on_se2_landmarks():
 def _se3_theta():
     import eqsmooth as eqs
 
-    rng = np.random.default_rng(1)
-
-    se3 = _pose_sampler(eqs.SE3, 6, rng)
-
-    poses = se3(2)
-    mark = jnp.asarray(rng.normal(size=(1, 3)) * 2.0)
+    rng, se3, poses, mark = _poses_and_marks(eqs.SE3, 6, 1, 2, (1, 3))
     local = poses.inverse().apply(mark[np.array([0, 0])])
     # Bearings are unit vectors: the builder normalises these raw vectors, so
     # a perturbation of the raw vector is one in tangent coordinates of S².
