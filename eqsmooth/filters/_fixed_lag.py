@@ -1,0 +1,451 @@
+"""A differentiable fixed-lag smoother on manifolds, built from factors.
+
+Each step adds the newest state, marginalises the state that leaves the
+window into a Gaussian prior on its successor (the Schur complement of the
+normal matrix at the current estimates: GTSAM's convention), and solves the
+window by Gauss-Newton. One step is a pure function of the window, so a
+recorded sequence is one `lax.scan`, batched with `vmap` and differentiated
+through the solves with the adjoints of [`eqsmooth.solve.least_squares`][].
+"""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, PyTree
+
+from ..factors import (
+    AbstractFactor,
+    FactorGraph,
+    IsotropicNoise,
+    MaskedNoise,
+    per_row_fields,
+    shared_field,
+    Var,
+    with_rows,
+)
+from ..manifold import local, retract, tangent_dim
+from ..solve import (
+    AbstractAdjoint,
+    AbstractGraphSolver,
+    FixedStepGaussNewton,
+    least_squares,
+    UnrolledAdjoint,
+)
+from ._ekf import _chain_order, _checked_measurements, _layers, _value_and_jac
+from ._rows import row_whitening
+
+
+class FixedLagSolution(eqx.Module):
+    """What [`eqsmooth.filters.fixed_lag_smoother`][] returns.
+
+    **Fields:**
+
+    - `mean`: the online estimate of every state, `x_{t|0:t}` (the newest
+        state of the window solved at step `t`), leading axis `T`.
+    - `lagged_mean`: the estimate of `x_t` when it leaves the window,
+        `x_{t|0:t+L-1}` (the states of the last window: at the end), leading
+        axis `T`.
+    - `windows`: every step's solved window, leading axes `(T, L)`; slot `i`
+        of step `t` holds the state of time `window_start[t] + i` (slots past
+        `t` are unused before the window fills).
+    - `window_start`: the time of each window's first slot, `(T,)`.
+    - `prior_mean`: the mean of the Gaussian prior on each window's first
+        state (the marginal of everything that left the window, or the
+        initial belief), leading axis `T`.
+    - `prior_covariance`: its covariance in the tangent coordinates of
+        `prior_mean`, `(T, d, d)`.
+    """
+
+    mean: PyTree
+    lagged_mean: PyTree
+    windows: PyTree
+    window_start: Array
+    prior_mean: PyTree
+    prior_covariance: Float[Array, "T d d"]
+
+
+class _TangentPrior(AbstractFactor):
+    """A Gaussian prior kept in the tangent space of a fixed anchor:
+    residual `R · local(anchor, x) + c` (one row)."""
+
+    variables: tuple[Var, ...]
+    noise: IsotropicNoise
+    anchor: PyTree
+    sqrt_information: Float[Array, "n d d"]
+    offset: Float[Array, "n d"]
+
+    def residual(self, x: PyTree) -> Float[Array, " d"]:
+        return self.sqrt_information @ local(self.anchor, x) + self.offset
+
+
+class _Rows(AbstractFactor):
+    """Rows of a user's factor stack placed on window slots: residual
+    `R_i · base_i(states)`, with `base_i` the stack's row `i` rebuilt from
+    `rows` and `R_i` its square-root information (rows masked by `noise`)."""
+
+    variables: tuple[Var, ...]
+    noise: MaskedNoise
+    rows: dict
+    sqrt_information: Float[Array, "n m m"]
+    base: AbstractFactor = shared_field()
+
+    def residual(self, *states: PyTree) -> Float[Array, " m"]:
+        return self.sqrt_information @ with_rows(self.base, self.rows).residual(*states)
+
+
+class _Pin(AbstractFactor):
+    """Holds an unused window slot where it is: residual `local(value, x)`,
+    active only on unused slots."""
+
+    variables: tuple[Var, ...]
+    noise: MaskedNoise
+    value: PyTree
+
+    def residual(self, x: PyTree) -> Float[Array, " d"]:
+        return local(self.value, x)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Model:
+    """The chain's factors split into row arrays (indexed by time inside the
+    scan) and the static rest."""
+
+    transition: AbstractFactor
+    trans_rows: dict  # per-row fields, in time order (row t: x_t -> x_t+1)
+    trans_R: Array  # (T-1, d, d)
+    measurements: tuple[AbstractFactor, ...]
+    meas_rows: tuple[dict, ...]  # per stack: per-row fields (n_j rows)
+    meas_R: tuple[Array, ...]  # per stack: (n_j, m_j, m_j)
+    meas_table: tuple[np.ndarray, ...]  # per stack: (T, K_j) row of (t, layer)
+    meas_mask: tuple[np.ndarray, ...]  # per stack: (T, K_j)
+    group: str
+    T: int
+
+
+def _take(tree, index):
+    """Rows `index` of every array leaf (a scalar index drops the row axis)."""
+    return jax.tree_util.tree_map(
+        lambda a: jnp.take(jnp.asarray(a), index, axis=0) if eqx.is_array(a) else a,
+        tree,
+    )
+
+
+def _model(transition, measurements, mean0, dtype) -> _Model:
+    group, perm = _chain_order(transition)
+    d = tangent_dim(mean0)
+    T = transition.num_rows + 1
+    trans_R, _ = row_whitening(transition, d, dtype)
+    trans_rows = _take(per_row_fields(transition), jnp.asarray(perm))
+    rows, Rs, tables, masks = [], [], [], []
+    for f in measurements:
+        one = with_rows(f, _take(per_row_fields(f), 0))
+        m = jax.eval_shape(one.residual, mean0).shape[0]
+        R, _ = row_whitening(f, m, dtype)
+        _, table, mask = _layers(f.variables[0].ids, T)
+        rows.append(per_row_fields(f))
+        Rs.append(R)
+        tables.append(table)
+        masks.append(mask)
+    return _Model(
+        transition,
+        trans_rows,
+        trans_R[perm],
+        tuple(measurements),
+        tuple(rows),
+        tuple(Rs),
+        tuple(tables),
+        tuple(masks),
+        group,
+        T,
+    )
+
+
+def _predict(model: _Model, x_prev, t, prediction_steps: int):
+    """`x_t` from `x_{t-1}` by Newton steps on the transition residual."""
+    d = tangent_dim(x_prev)
+    dtype = model.trans_R.dtype
+    row = with_rows(model.transition, _take(model.trans_rows, t - 1))
+    W = model.trans_R[t - 1]
+    b = x_prev
+    for _ in range(prediction_steps):
+
+        def r_w(db, b=b):
+            return W @ row.residual(x_prev, retract(b, db))
+
+        r, B = _value_and_jac(r_w, d, dtype)
+        b = retract(b, -jnp.linalg.solve(B, r))
+    return b
+
+
+def _marginalise(model: _Model, prior, x0, x1, tau):
+    """The prior on `x1` left by marginalising `x0` (time `tau`): the factors
+    touching `x0` (its prior, its measurements, the transition `tau -> tau+1`)
+    linearised at `(x0, x1)`, then the Schur complement on `x1`."""
+    anchor, R0, c0 = prior
+    d = R0.shape[0]
+    trans = with_rows(model.transition, _take(model.trans_rows, tau))
+    meas = [
+        (
+            f,
+            _take(rows, jnp.asarray(table)[tau]),
+            R[jnp.asarray(table)[tau]],
+            jnp.asarray(mask)[tau],
+        )
+        for f, rows, R, table, mask in zip(
+            model.measurements,
+            model.meas_rows,
+            model.meas_R,
+            model.meas_table,
+            model.meas_mask,
+        )
+    ]
+
+    def residuals(delta):
+        y0, y1 = retract(x0, delta[:d]), retract(x1, delta[d:])
+        out = [R0 @ local(anchor, y0) + c0]
+        out.append(model.trans_R[tau] @ trans.residual(y0, y1))
+        for f, rows, R, mask in meas:
+            for k in range(mask.shape[0]):
+                r = R[k] @ with_rows(f, _take(rows, k)).residual(y0)
+                out.append(jnp.where(mask[k], r, jnp.zeros_like(r)))
+        return jnp.concatenate(out)
+
+    r, J = _value_and_jac(residuals, 2 * d, R0.dtype)
+    H, b = J.T @ J, J.T @ r
+    H00, H01, H11 = H[:d, :d], H[:d, d:], H[d:, d:]
+    K = jnp.linalg.solve(H00, jnp.concatenate([H01, b[:d, None]], axis=1))
+    S = H11 - H01.T @ K[:, :d]
+    g = b[d:] - H01.T @ K[:, d]
+    L = jnp.linalg.cholesky(0.5 * (S + S.T))
+    c = jax.scipy.linalg.solve_triangular(L, g, lower=True)
+    return x1, L.T, c
+
+
+def _unit(dtype) -> IsotropicNoise:
+    return IsotropicNoise(sqrt_precision=jnp.asarray(1.0, dtype))
+
+
+def _window_graph(model: _Model, values, prior, start, t, lag: int):
+    """The factor graph of the window whose first slot is time `start`."""
+    g = model.group
+    slots = np.arange(lag)
+    times = start + jnp.asarray(slots)
+    used = times <= t
+    anchor, R0, c0 = prior
+    stacks = [
+        _TangentPrior(
+            (Var(g, [0]),),
+            _unit(R0.dtype),
+            jax.tree_util.tree_map(lambda a: a[None], anchor),
+            R0[None],
+            c0[None],
+        ),
+        _Pin(
+            (Var(g, slots),),
+            MaskedNoise(_unit(R0.dtype), ~used),
+            jax.lax.stop_gradient(values),
+        ),
+    ]
+    if lag > 1:
+        index = jnp.clip(times[:-1], 0, model.T - 2)
+        stacks.append(
+            _Rows(
+                (Var(g, slots[:-1]), Var(g, slots[1:])),
+                MaskedNoise(_unit(R0.dtype), used[1:]),
+                _take(model.trans_rows, index),
+                model.trans_R[index],
+                model.transition,
+            )
+        )
+    for f, rows, R, table, mask in zip(
+        model.measurements,
+        model.meas_rows,
+        model.meas_R,
+        model.meas_table,
+        model.meas_mask,
+    ):
+        clipped = jnp.clip(times, 0, model.T - 1)
+        for k in range(mask.shape[1]):
+            index = jnp.asarray(table[:, k])[clipped]
+            active = jnp.asarray(mask[:, k])[clipped] & used
+            stacks.append(
+                _Rows(
+                    (Var(g, slots),),
+                    MaskedNoise(_unit(R0.dtype), active),
+                    _take(rows, index),
+                    R[index],
+                    f,
+                )
+            )
+    return FactorGraph(stacks)
+
+
+def _step(model, lag, solver, adjoint, prediction_steps, carry, t):
+    values, prior = carry
+    last = jnp.minimum(t - 1, lag - 1)
+    x_prev = jax.tree_util.tree_map(lambda a: a[jnp.maximum(last, 0)], values)
+    x_new = lax.cond(
+        t > 0,
+        lambda: _predict(model, x_prev, jnp.maximum(t, 1), prediction_steps),
+        lambda: x_prev,
+    )
+
+    def slide():
+        first = jax.tree_util.tree_map(lambda a: a[0], values)
+        second = x_new if lag == 1 else jax.tree_util.tree_map(lambda a: a[1], values)
+        new_prior = _marginalise(model, prior, first, second, jnp.maximum(t - lag, 0))
+        shifted = jax.tree_util.tree_map(
+            lambda a, b: jnp.concatenate([a[1:], b[None]]), values, x_new
+        )
+        return shifted, new_prior
+
+    def grow():
+        slot = jnp.minimum(t, lag - 1)
+        grown = jax.tree_util.tree_map(lambda a, b: a.at[slot].set(b), values, x_new)
+        return grown, prior
+
+    values, prior = lax.cond(t >= lag, slide, grow)
+    start = jnp.maximum(t - lag + 1, 0)
+    graph = _window_graph(model, values, prior, start, t, lag)
+    sol = least_squares(graph, {model.group: values}, solver, adjoint=adjoint)
+    values = sol.value[model.group]
+    anchor, R0, c0 = prior
+    cov = jnp.linalg.inv(R0.T @ R0)
+    mean = retract(anchor, -jnp.linalg.solve(R0, c0))
+    return (values, prior), (values, start, mean, cov)
+
+
+def fixed_lag_smoother(
+    transition: AbstractFactor,
+    measurements: AbstractFactor | tuple[AbstractFactor, ...],
+    initial_mean: PyTree,
+    initial_covariance: Float[ArrayLike, "d d"],
+    *,
+    lag: int,
+    solver: AbstractGraphSolver = FixedStepGaussNewton(num_steps=3),
+    adjoint: AbstractAdjoint = UnrolledAdjoint(),
+    prediction_steps: int = 1,
+) -> FixedLagSolution:
+    """Fixed-lag smoothing of a chain `x_0 → … → x_{T−1}`, one step at a time.
+
+    At step `t` the window holds the `lag` newest states (fewer at the
+    start). The new state is predicted from the transition, the state that
+    leaves the window is marginalised into a Gaussian prior on its successor
+    (the Schur complement of the normal matrix of the factors that touch it,
+    linearised at the current estimates, as GTSAM's
+    `BatchFixedLagSmoother` does; the prior is then kept linear in the
+    tangent space of that estimate, the "first-estimate" choice), and the
+    window is solved by `solver` from the previous estimates. With
+    `lag ≥ T` the last window is the batch smoother's solution; with a
+    linear-Gaussian model the newest state is the Kalman filter's marginal
+    for every `lag`, and the prior on a window's first state is the
+    filter's prediction.
+
+    The factors are those of [`eqsmooth.filters.ekf`][]: `transition`, a
+    stack whose rows link `x_t` to `x_{t+1}` with a residual that determines
+    `x_{t+1}`, and measurement stacks touching one state each (several rows
+    per time step allowed), with Gaussian noise.
+
+    **Arguments:**
+
+    - `transition`, `measurements`: as for [`eqsmooth.filters.ekf`][].
+    - `initial_mean`, `initial_covariance`: the Gaussian belief on `x_0`
+        (covariance in its tangent coordinates).
+    - `lag`: the number of states in the window, `1 ≤ lag ≤ T`.
+    - `solver`: the window's solver: by default
+        [`eqsmooth.solve.FixedStepGaussNewton`][] (a fixed number of steps
+        per update, so every update costs the same); a converging solver
+        such as `GaussNewton()` for the implicit adjoint.
+    - `adjoint`: how each window solve is differentiated (see
+        [`eqsmooth.solve.least_squares`][]): unrolled by default;
+        `ImplicitAdjoint()` needs a converging `solver`.
+    - `prediction_steps`: Newton steps that predict a new state from the
+        transition.
+
+    **Returns:** a [`eqsmooth.filters.FixedLagSolution`][].
+    """
+    if isinstance(lag, bool) or not isinstance(lag, int) or lag < 1:
+        raise ValueError(f"fixed_lag_smoother: lag must be an int >= 1, got {lag!r}")
+    if not isinstance(transition, AbstractFactor):
+        raise TypeError(
+            "fixed_lag_smoother: transition must be an AbstractFactor, got "
+            f"{type(transition).__name__}"
+        )
+    measurements = _checked_measurements(transition, measurements)
+    if not measurements:
+        raise ValueError("fixed_lag_smoother: give at least one measurement stack")
+    T = transition.num_rows + 1
+    if lag > T:
+        raise ValueError(
+            f"fixed_lag_smoother: lag {lag} is longer than the {T} states of the "
+            "chain (use lag = T for the batch smoother's answer)"
+        )
+    if not isinstance(solver, AbstractGraphSolver):
+        raise TypeError(
+            "fixed_lag_smoother: solver must be an eqsmooth graph solver such as "
+            f"FixedStepGaussNewton or GaussNewton, got {type(solver).__name__}"
+        )
+    for f in (transition, *measurements):
+        _check_finite_rows(f)
+    d = tangent_dim(initial_mean)
+    cov0 = jnp.asarray(initial_covariance)
+    if cov0.shape != (d, d):
+        raise ValueError(
+            f"fixed_lag_smoother: initial_covariance has shape {cov0.shape}; the "
+            f"state has tangent dimension {d}, so it must be ({d}, {d})"
+        )
+    dtype = cov0.dtype
+    model = _model(transition, measurements, initial_mean, dtype)
+    L0 = jnp.linalg.cholesky(cov0)
+    R0 = jax.scipy.linalg.solve_triangular(L0, jnp.eye(d, dtype=dtype), lower=True)
+    prior = (initial_mean, R0, jnp.zeros((d,), dtype))
+    values = jax.tree_util.tree_map(
+        lambda a: jnp.broadcast_to(a, (lag, *jnp.shape(a))), initial_mean
+    )
+
+    def step(carry, t):
+        return _step(model, lag, solver, adjoint, prediction_steps, carry, t)
+
+    _, (windows, start, pmean, pcov) = lax.scan(step, (values, prior), jnp.arange(T))
+    return _solution(windows, start, pmean, pcov, lag, T)
+
+
+def _check_finite_rows(factor: AbstractFactor) -> None:
+    """A non-finite measurement would fail every window it enters: name the
+    stack and the rows up front (concrete arrays only; traced ones are the
+    solver's to report)."""
+    bad = None
+    for leaf in jax.tree_util.tree_leaves(per_row_fields(factor)):
+        if isinstance(leaf, jax.core.Tracer) or not eqx.is_inexact_array(leaf):
+            continue
+        a = np.asarray(leaf)
+        rows = ~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+        bad = rows if bad is None else bad | rows
+    if bad is not None and bad.any():
+        raise ValueError(
+            f"fixed_lag_smoother: factor {type(factor).__name__} has non-finite "
+            f"data in rows {np.flatnonzero(bad)[:10].tolist()} (times "
+            f"{factor.variables[0].ids[bad][:10].tolist()}); drop those rows or "
+            "mask them in the smoother's own graph"
+        )
+
+
+def _solution(windows, start, pmean, pcov, lag: int, T: int) -> FixedLagSolution:
+    t = np.arange(T)
+    start_np = np.maximum(t - lag + 1, 0)
+    online = jax.tree_util.tree_map(lambda w: w[t, t - start_np], windows)
+    # x_t leaves the window after step t + lag - 1 (or stays to the end).
+    final = np.minimum(t + lag - 1, T - 1)
+    lagged = jax.tree_util.tree_map(lambda w: w[final, t - start_np[final]], windows)
+    return FixedLagSolution(
+        mean=online,
+        lagged_mean=lagged,
+        windows=windows,
+        window_start=start,
+        prior_mean=pmean,
+        prior_covariance=pcov,
+    )

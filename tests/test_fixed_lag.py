@@ -1,0 +1,143 @@
+"""Fixed-lag smoother: tied to the Kalman filter, the batch smoother and
+finite differences (the problems of test_filters)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxtyping
+import numpy as np
+import pytest
+from hostile import raises
+from test_filters import (
+    _linear_problem,
+    _numpy_kalman,
+    _se2_initial,
+    _se2_problem,
+    F_MAT,
+    M0,
+    P0,
+    Q_COV,
+    T,
+)
+
+import eqsmooth as eqs
+
+
+@eqx.filter_jit
+def _run(trans, meas, mean0, cov0, lag, solver, adjoint):
+    return eqs.filters.fixed_lag_smoother(
+        trans, meas, mean0, cov0, lag=lag, solver=solver, adjoint=adjoint
+    )
+
+
+_GN = eqs.FixedStepGaussNewton(num_steps=3)
+_UNROLLED = eqs.solve.UnrolledAdjoint()
+
+
+@pytest.mark.parametrize("lag", [1, 3])
+def test_linear_chain_is_the_kalman_filter(lag):
+    trans, meas, updates = _linear_problem()
+    means, _, pmeans, *_ = _numpy_kalman(updates)
+    sol = _run(trans, meas, jnp.asarray(M0), jnp.asarray(P0), lag, _GN, _UNROLLED)
+    # The newest state is the filter's marginal, whatever the lag.
+    np.testing.assert_allclose(sol.mean, means, rtol=0, atol=1e-10)
+    # The prior on each window's first state is the exact marginal of what
+    # left the window: the filter's prediction of that state.
+    first = np.maximum(np.arange(T) - lag + 1, 0)
+    _, covs, *_ = _numpy_kalman(updates)
+    # The filter's predicted covariances: P0, then F P_t|t Fᵀ + Q.
+    pred = [P0] + [F_MAT @ covs[k] @ F_MAT.T + Q_COV for k in range(T - 1)]
+    np.testing.assert_allclose(sol.prior_mean, pmeans[first], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(
+        sol.prior_covariance, np.stack(pred)[first], rtol=0, atol=1e-10
+    )
+
+
+def test_lag_T_is_the_batch_smoother():
+    trans, meas, truth = _se2_problem(1.0, 1.0)
+    mean0, cov0 = _se2_initial(truth)
+    solver = eqs.FixedStepGaussNewton(num_steps=6)
+    sol = _run(trans, meas, mean0, cov0, T, solver, _UNROLLED)
+    prior = eqs.PriorFactor(
+        eqs.Var("s", [0]),
+        jax.tree_util.tree_map(lambda a: a[None], mean0),
+        eqs.SqrtInformationNoise.from_covariance(cov0),
+    )
+    graph = eqs.FactorGraph([prior, trans, meas])
+    init = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (T, *a.shape)), mean0)
+    batch = eqs.least_squares(graph, {"s": init}, eqs.GaussNewton()).value["s"]
+    last = jax.tree_util.tree_map(lambda a: a[-1], sol.windows)
+    np.testing.assert_allclose(eqs.local(last, batch, batch_ndim=1), 0, atol=1e-6)
+    # Every state is in the last window, so the lagged estimate is the batch one.
+    np.testing.assert_allclose(
+        eqs.local(sol.lagged_mean, batch, batch_ndim=1), 0, atol=1e-6
+    )
+
+
+def _loss(scale, solver, adjoint, lag=3):
+    trans, meas, truth = _se2_problem(scale, 1.0)
+    mean0, cov0 = _se2_initial(truth)
+    sol = _run(trans, meas, mean0, cov0, lag, solver, adjoint)
+    err = sol.mean["pose"].translation() - truth["pose"].translation()
+    return jnp.sum(err**2) + jnp.sum(sol.lagged_mean["vel"] ** 2)
+
+
+@pytest.mark.parametrize(
+    "solver, adjoint, rtol",
+    [
+        (eqs.FixedStepGaussNewton(num_steps=6), eqs.solve.UnrolledAdjoint(), 1e-7),
+        # Exact at a stationary point: what is left is GaussNewton's tolerance.
+        (eqs.GaussNewton(), eqs.solve.ImplicitAdjoint(), 1e-4),
+    ],
+)
+def test_gradient_matches_central_differences(solver, adjoint, rtol):
+    s, h = 1.3, 1e-5
+    g = jax.grad(_loss)(s, solver, adjoint)
+    fd = (_loss(s + h, solver, adjoint) - _loss(s - h, solver, adjoint)) / (2 * h)
+    assert abs(float(g)) > 1e-3
+    np.testing.assert_allclose(float(g), float(fd), rtol=rtol)
+
+
+def test_hostile_input():
+    trans, meas, updates = _linear_problem()
+    m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
+    run = eqs.filters.fixed_lag_smoother
+    with raises(ValueError, "lag must be an int >= 1", "0"):
+        run(trans, meas, m0, p0, lag=0)
+    with raises(ValueError, "lag 7", "6 states"):
+        run(trans, meas, m0, p0, lag=T + 1)
+    with raises(ValueError, "at least one measurement stack"):
+        run(trans, (), m0, p0, lag=2)
+    # (the test suite's jaxtyping hook checks the annotation first; without
+    # it, the function's own check raises a TypeError naming the solver)
+    with raises(jaxtyping.TypeCheckError, "fixed_lag_smoother", "parameter 'solver'"):
+        run(trans, meas, m0, p0, lag=2, solver=eqs.BlockTridiagonal())
+    with raises(ValueError, "initial_covariance", "(2, 2)"):
+        run(trans, meas, m0, jnp.eye(3), lag=2)
+    # A measurement past the chain's end reaches outside every window.
+    late = eqs.FunctionFactor(
+        meas[0].fn,
+        (eqs.Var("x", [T]),),
+        meas[0].noise,
+        data=meas[0].data[:1],
+        params=meas[0].params,
+    )
+    with raises(ValueError, "time indices up to 6"):
+        run(trans, (late,), m0, p0, lag=2)
+    bad = eqx.tree_at(lambda f: f.data, meas[0], meas[0].data.at[2].set(jnp.nan))
+    with raises(ValueError, "non-finite", "rows [2]", "times [2]"):
+        run(trans, (bad, meas[1]), m0, p0, lag=2)
+
+
+def test_vmap_over_sequences():
+    trans, (meas1, meas2), _ = _linear_problem()
+    m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
+    data = jnp.stack([meas1.data, meas1.data + 0.5])
+
+    def one(z):
+        m = eqx.tree_at(lambda f: f.data, meas1, z)
+        return eqs.filters.fixed_lag_smoother(trans, (m, meas2), m0, p0, lag=2).mean
+
+    batched = eqx.filter_jit(jax.vmap(one))(data)
+    for i in range(2):
+        np.testing.assert_allclose(batched[i], one(data[i]), rtol=0, atol=1e-12)
