@@ -241,12 +241,7 @@ def ekf(
             f"ekf: prediction_steps must be an int >= 1, got {prediction_steps!r}"
         )
     d = tangent_dim(initial_mean)
-    initial_covariance = jnp.asarray(initial_covariance)
-    if initial_covariance.shape != (d, d):
-        raise ValueError(
-            f"ekf: initial_covariance has shape {initial_covariance.shape}; the state "
-            f"has tangent dimension {d}, so it must be ({d}, {d})"
-        )
+    initial_covariance = checked_covariance("ekf", initial_covariance, d)
     initial_mean, initial_covariance = _check_initial_belief(
         initial_mean, initial_covariance
     )
@@ -259,6 +254,17 @@ def ekf(
         reset_covariance,
         throw,
     )
+
+
+def checked_covariance(who: str, cov: ArrayLike, d: int) -> Array:
+    """`cov` as an array of shape `(d, d)`, else a `ValueError` naming `who`."""
+    cov = jnp.asarray(cov)
+    if cov.shape != (d, d):
+        raise ValueError(
+            f"{who}: initial_covariance has shape {cov.shape}; the state has "
+            f"tangent dimension {d}, so it must be ({d}, {d})"
+        )
+    return cov
 
 
 def _checked_measurements(transition, measurements) -> tuple[AbstractFactor, ...]:

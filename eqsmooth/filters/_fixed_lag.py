@@ -35,7 +35,13 @@ from ..solve import (
     least_squares,
     UnrolledAdjoint,
 )
-from ._ekf import _chain_order, _checked_measurements, _layers, _value_and_jac
+from ._ekf import (
+    _chain_order,
+    _checked_measurements,
+    _layers,
+    _value_and_jac,
+    checked_covariance,
+)
 from ._rows import row_whitening
 
 
@@ -125,6 +131,18 @@ class _Model:
     group: str
     T: int
 
+    def stacks(self) -> list[tuple]:
+        """Per measurement stack: (factor, rows, R, table, mask)."""
+        return list(
+            zip(
+                self.measurements,
+                self.meas_rows,
+                self.meas_R,
+                self.meas_table,
+                self.meas_mask,
+            )
+        )
+
 
 def _take(tree, index):
     """Rows `index` of every array leaf (a scalar index drops the row axis)."""
@@ -195,13 +213,7 @@ def _marginalise(model: _Model, prior, x0, x1, tau):
             R[jnp.asarray(table)[tau]],
             jnp.asarray(mask)[tau],
         )
-        for f, rows, R, table, mask in zip(
-            model.measurements,
-            model.meas_rows,
-            model.meas_R,
-            model.meas_table,
-            model.meas_mask,
-        )
+        for f, rows, R, table, mask in model.stacks()
     ]
 
     def residuals(delta):
@@ -261,13 +273,7 @@ def _window_graph(model: _Model, values, prior, start, t, lag: int):
                 model.transition,
             )
         )
-    for f, rows, R, table, mask in zip(
-        model.measurements,
-        model.meas_rows,
-        model.meas_R,
-        model.meas_table,
-        model.meas_mask,
-    ):
+    for f, rows, R, table, mask in model.stacks():
         clipped = jnp.clip(times, 0, model.T - 1)
         for k in range(mask.shape[1]):
             index = jnp.asarray(table[:, k])[clipped]
@@ -392,12 +398,7 @@ def fixed_lag_smoother(
     for f in (transition, *measurements):
         _check_finite_rows(f)
     d = tangent_dim(initial_mean)
-    cov0 = jnp.asarray(initial_covariance)
-    if cov0.shape != (d, d):
-        raise ValueError(
-            f"fixed_lag_smoother: initial_covariance has shape {cov0.shape}; the "
-            f"state has tangent dimension {d}, so it must be ({d}, {d})"
-        )
+    cov0 = checked_covariance("fixed_lag_smoother", initial_covariance, d)
     dtype = cov0.dtype
     model = _model(transition, measurements, initial_mean, dtype)
     L0 = jnp.linalg.cholesky(cov0)
@@ -441,11 +442,6 @@ def _solution(windows, start, pmean, pcov, lag: int, T: int) -> FixedLagSolution
     # x_t leaves the window after step t + lag - 1 (or stays to the end).
     final = np.minimum(t + lag - 1, T - 1)
     lagged = jax.tree_util.tree_map(lambda w: w[final, t - start_np[final]], windows)
-    return FixedLagSolution(
-        mean=online,
-        lagged_mean=lagged,
-        windows=windows,
-        window_start=start,
-        prior_mean=pmean,
-        prior_covariance=pcov,
-    )
+    # (fields in order: mean, lagged_mean, windows, window_start, prior_mean,
+    # prior_covariance)
+    return FixedLagSolution(online, lagged, windows, start, pmean, pcov)
