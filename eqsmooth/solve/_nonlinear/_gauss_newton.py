@@ -1,4 +1,4 @@
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.lax as lax
@@ -150,6 +150,21 @@ def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
     return values, new_state, None
 
 
+def _solver_init(self, fn, y, args, options, f_struct, aux_struct, tags):
+    """`init` of both Gauss-Newton solvers (optimistix's signature)."""
+    del aux_struct, tags
+    return _init(fn, y, args, options, f_struct, type(self).__name__)
+
+
+def _solver_step(self, fn, y, args, options: dict[str, Any], state, tags):
+    """`step` of both Gauss-Newton solvers (`check_steps`: a converging one
+    checks each linear solve, a fixed-step one runs its steps whatever they
+    give)."""
+    del tags  # fn was checked against the graph's residuals in init
+    graph = graph_of(args, type(self).__name__)
+    return _step(self, graph, y, state, options, check=self.check_steps)
+
+
 class GaussNewton(AbstractConvergingSolver):
     """Gauss-Newton on the manifold: solve `JᵀJ δ = −Jᵀr`, set `x ← x ⊕ δ`.
 
@@ -176,14 +191,9 @@ class GaussNewton(AbstractConvergingSolver):
     gtol: float = eqx.field(static=True, default=1e-10)
     xtol: float = eqx.field(static=True, default=1e-10)
 
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del aux_struct, tags
-        return _init(fn, y, args, options, f_struct, "GaussNewton")
-
-    def step(self, fn, y, args, options: dict[str, Any], state, tags):
-        del tags  # fn was checked against the graph's residuals in init
-        graph = graph_of(args, "GaussNewton")
-        return _step(self, graph, y, state, options, check=True)
+    check_steps: ClassVar[bool] = True
+    init = _solver_init
+    step = _solver_step
 
     def terminate(self, fn, y, args, options, state: GaussNewtonState, tags):
         del y, args, options, tags  # fn: checked in init
@@ -228,14 +238,9 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
                 f"FixedStepGaussNewton.num_steps must be >= 1, got {self.num_steps}"
             )
 
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        del aux_struct, tags
-        return _init(fn, y, args, options, f_struct, "FixedStepGaussNewton")
-
-    def step(self, fn, y, args, options: dict[str, Any], state, tags):
-        del tags  # fn was checked against the graph's residuals in init
-        graph = graph_of(args, "FixedStepGaussNewton")
-        return _step(self, graph, y, state, options, check=False)
+    check_steps: ClassVar[bool] = False
+    init = _solver_init
+    step = _solver_step
 
     def terminate(
         self, fn, y, args, options, state: GaussNewtonState, tags
