@@ -295,9 +295,10 @@ def _check_mechanical(
         )
 
 
-def _acceleration_candidates(common, axis_names, num_inputs, coulomb_eps, wanted):
-    """The library's acceleration terms, per axis where they act on one."""
-    rate, naxes = common["rate"], len(common["positions"])
+def _acceleration_candidates(template, axis_names, num_inputs, coulomb_eps, wanted):
+    """The library's acceleration terms, per axis where they act on one
+    (`template`: an `_Acceleration` with the system's geometry)."""
+    rate, naxes = template.rate, len(template.positions)
     target = "rate" if rate else "dynamics"
     if axis_names is None:
         axis_names = [f"x{i}" for i in range(naxes)]
@@ -315,15 +316,15 @@ def _acceleration_candidates(common, axis_names, num_inputs, coulomb_eps, wanted
             desc = desc.replace("v' ", "v̇ ").replace(" dt", "")
         if kind == "constant":
             for i in range(naxes):
-                feat = _Acceleration(kind, axis=i, **common)
+                feat = dataclasses.replace(template, kind=kind, axis=i)
                 out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
         elif kind == "actuator":
             for i in range(min(num_inputs, naxes)):
-                feat = _Acceleration(kind, axis=i, input_index=i, **common)
+                feat = dataclasses.replace(template, kind=kind, axis=i, input_index=i)
                 out.append(Candidate(name + suffix(i), feat, target, 0, "", desc))
         else:
             eps = coulomb_eps if kind == "coulomb" else 1.0
-            feat = _Acceleration(kind, eps=eps, **common)
+            feat = dataclasses.replace(template, kind=kind, eps=eps)
             out.append(Candidate(name, feat, target, sign, "", desc))
     return out
 
@@ -436,15 +437,13 @@ def mechanical_library(
     if vector_field is not None:
         _check_vector_field(vector_field, state_dim, num_inputs)
     wanted = None if include is None else set(include)
-    common = dict(
-        positions=positions,
-        velocities=velocities,
-        state_dim=state_dim,
-        dt=dt,
-        vector_field=vector_field,
-        rate=rate,
+    geometry = (positions, velocities, state_dim, dt)
+    template = _Acceleration(
+        "constant", *geometry, vector_field=vector_field, rate=rate
     )
-    out = _acceleration_candidates(common, axis_names, num_inputs, coulomb_eps, wanted)
+    out = _acceleration_candidates(
+        template, axis_names, num_inputs, coulomb_eps, wanted
+    )
     if measured_positions is not None:
         out += _sensor_candidates(measured_positions, positions, velocities, wanted)
     names = [c.name for c in out]

@@ -171,6 +171,13 @@ class AbstractNoiseModel(eqx.Module):
         """Raise a `ValueError` naming `factor_name` if shapes do not fit `(n, m)`."""
 
 
+def _sqrt_precision(name: str, positional: tuple, sqrt_precision) -> Array:
+    """The keyword-only `sqrt_precision` of `name`, as a float array (checked
+    positive, with `eqx.error_if` when traced)."""
+    sqrt_precision = _keyword_only(name, positional, sqrt_precision)
+    return _positive_under_jit(name, "sqrt_precision", _as_float(sqrt_precision))
+
+
 def _keyword_only(name: str, positional: tuple, sqrt_precision):
     # `IsotropicNoise(0.1)` reads like a standard deviation but would be a
     # square-root precision: the field is keyword-only so that it cannot be
@@ -201,9 +208,8 @@ class IsotropicNoise(AbstractNoiseModel):
         *positional: object,
         sqrt_precision: Float[ArrayLike, "*rows"] | None = None,
     ):
-        sqrt_precision = _keyword_only("IsotropicNoise", positional, sqrt_precision)
-        self.sqrt_precision = _positive_under_jit(
-            "IsotropicNoise", "sqrt_precision", _as_float(sqrt_precision)
+        self.sqrt_precision = _sqrt_precision(
+            "IsotropicNoise", positional, sqrt_precision
         )
 
     def __check_init__(self):
@@ -262,9 +268,8 @@ class DiagonalNoise(AbstractNoiseModel):
         *positional: object,
         sqrt_precision: Float[ArrayLike, "*rows m"] | None = None,
     ):
-        sqrt_precision = _keyword_only("DiagonalNoise", positional, sqrt_precision)
-        self.sqrt_precision = _positive_under_jit(
-            "DiagonalNoise", "sqrt_precision", _as_float(sqrt_precision)
+        self.sqrt_precision = _sqrt_precision(
+            "DiagonalNoise", positional, sqrt_precision
         )
 
     def __check_init__(self):
