@@ -212,7 +212,13 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
         print("matplotlib is not installed: no figures")
         return []
     tag = " (QUICK RUN)" if quick else ""
-    saved = []
+    return [
+        _figure_trajectories(plt, out, fold_result, tag),
+        _figure_uncertainty(plt, out, fold_result, tag),
+    ]
+
+
+def _figure_trajectories(plt, out: Path, fold_result: dict, tag: str) -> Path:
     test = fold_result["test"]
     preds = fold_result["test_predictions"]
     models = fold_result["models"]
@@ -269,7 +275,11 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
     path = out / "fig_trajectories.png"
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
-    saved.append(path)
+    return path
+
+
+def _figure_uncertainty(plt, out: Path, fold_result: dict, tag: str) -> Path:
+    models = fold_result["models"]
 
     # (b) The paper's Fig. 5: learned uncertainty vs visible pixels.
     counts = jnp.arange(0, 150, dtype=jnp.float32)
@@ -303,5 +313,4 @@ def figures(out: Path, fold_result: dict, quick: bool) -> list[Path]:
     path = out / "fig_uncertainty.png"
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
-    saved.append(path)
-    return saved
+    return path

@@ -304,39 +304,43 @@ def _stamp(mask, ci, cj, rad):
     mask[ii[ok], jj[ok]] = True
 
 
-def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
-    """Build the world around a sequence's (camera 0) trajectory."""
-    rng = np.random.default_rng([seed, seq, 7])
-    N = xyt.shape[0]
-    margin = MAX_RANGE + 10.0
-    lo = xyt[:, :2].min(0) - margin
-    hi = xyt[:, :2].max(0) + margin
-    shape = tuple(((hi - lo) / MAP_RESOLUTION).astype(int) + 1)
+def _cells(lo, x, y):
+    """Map cells of world coordinates."""
+    return (
+        ((x - lo[0]) / MAP_RESOLUTION).astype(int),
+        ((y - lo[1]) / MAP_RESOLUTION).astype(int),
+    )
 
-    # Arc length and texture-poor stretches (about 15% of the path).
+
+def _path(rng, xyt: np.ndarray) -> dict:
+    """Arc length, texture-poor stretches (about 15% of the path) and dense
+    path samples (every 0.5 m) for road and markings."""
     step = np.linalg.norm(np.diff(xyt[:, :2], axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(step)])
-    low = np.zeros(N, bool)
+    low = np.zeros(xyt.shape[0], bool)
     s = rng.uniform(20, 200)
     while s < arc[-1]:
         length = rng.uniform(30, 90)
         low |= (arc >= s) & (arc < s + length)
         s += length + rng.uniform(150, 500)
-
-    # Dense path samples (every 0.5 m) for road and markings.
     dense = np.arange(0, arc[-1], 0.5)
-    px = np.interp(dense, arc, xyt[:, 0])
-    py = np.interp(dense, arc, xyt[:, 1])
     ang = np.interp(dense, arc, np.unwrap(xyt[:, 2]))
-    dlow = np.interp(dense, arc, low.astype(float)) > 0.5
-    normal = np.stack([-np.sin(ang), np.cos(ang)], 1)
+    return dict(
+        arc=arc,
+        low=low,
+        dense=dense,
+        px=np.interp(dense, arc, xyt[:, 0]),
+        py=np.interp(dense, arc, xyt[:, 1]),
+        dlow=np.interp(dense, arc, low.astype(float)) > 0.5,
+        normal=np.stack([-np.sin(ang), np.cos(ang)], 1),
+    )
 
-    def cells(x, y):
-        return (
-            ((x - lo[0]) / MAP_RESOLUTION).astype(int),
-            ((y - lo[1]) / MAP_RESOLUTION).astype(int),
-        )
 
+def _ground(rng, shape, lo, path: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The ground texture (grass, road, markings, crossings, flat stretches)
+    and the road mask."""
+    arc, dense, dlow = path["arc"], path["dense"], path["dlow"]
+    px, py, normal = path["px"], path["py"], path["normal"]
     # Ground: grass-like multi-scale noise, with darker and lighter patches.
     n1 = _smooth_noise(rng, shape, 40)
     n2 = _smooth_noise(rng, shape, 6)
@@ -346,7 +350,7 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
     ground = base[None, None] * (0.6 + 0.8 * tex[..., None])
     # Road: asphalt with fine grain; markings dashed on the centre, solid edges.
     road = np.zeros(shape, bool)
-    ci, cj = cells(px + 1.8 * normal[:, 0], py + 1.8 * normal[:, 1])
+    ci, cj = _cells(lo, px + 1.8 * normal[:, 0], py + 1.8 * normal[:, 1])
     _stamp(road, ci, cj, ROAD_HALF_WIDTH / MAP_RESOLUTION)
     # Fine grain plus stains and patches about a metre across (repairs, wet
     # spots): texture that a camera near the road can see move.
@@ -357,29 +361,37 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
     dashed = (dense % 9.0) < 4.5
     for lateral, sel in ((1.8, dashed), (1.8 + 3.6, True), (1.8 - 3.6, True)):
         keep = sel & ~dlow if isinstance(sel, np.ndarray) else ~dlow
-        ci, cj = cells(
-            px[keep] + lateral * normal[keep, 0], py[keep] + lateral * normal[keep, 1]
+        ci, cj = _cells(
+            lo,
+            px[keep] + lateral * normal[keep, 0],
+            py[keep] + lateral * normal[keep, 1],
         )
         _stamp(marks, ci, cj, 0.6)
     # Occasional crossings: bands of stripes across the road.
     for s in rng.uniform(0, arc[-1], size=max(1, int(arc[-1] / 250))):
         sel = (dense > s) & (dense < s + 3) & ~dlow
         for lat in np.arange(-2.0, 5.8, 0.8):
-            ci, cj = cells(
-                px[sel] + lat * normal[sel, 0], py[sel] + lat * normal[sel, 1]
+            ci, cj = _cells(
+                lo, px[sel] + lat * normal[sel, 0], py[sel] + lat * normal[sel, 1]
             )
             _stamp(marks, ci, cj, 0.8)
     ground[marks] = [230.0, 230.0, 220.0]
     # Texture-poor stretches: the ground near them is a flat, even colour.
     flat = np.zeros(shape, bool)
-    ci, cj = cells(px[dlow], py[dlow])
+    ci, cj = _cells(lo, px[dlow], py[dlow])
     if ci.size:
         _stamp(flat, ci[::4], cj[::4], 25.0 / MAP_RESOLUTION)
         ground[flat] = 0.7 * ground[flat] + 0.3 * np.array([100.0, 100.0, 95.0])
         ground[flat & ~marks] = np.array([98.0, 100.0, 92.0])
-    ground = np.clip(ground, 0, 255).astype(np.uint8)
+    return np.clip(ground, 0, 255).astype(np.uint8), road
 
-    # Vertical structures beside the path (none in texture-poor stretches).
+
+def _structures(rng, lo, path: dict, road: np.ndarray) -> np.ndarray:
+    """Vertical structures beside the path (none in texture-poor stretches,
+    none standing on the road where the path comes back): `(k, 8)` rows of
+    `(x, y, radius, height, r, g, b, kind)`."""
+    arc, dense, dlow = path["arc"], path["dense"], path["dlow"]
+    px, py, normal = path["px"], path["py"], path["normal"]
     objs = []
     s = 0.0
     while s < arc[-1]:
@@ -405,12 +417,14 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
             )
             objs.append([x, y, radius, height, *colour, kind])
     objects = np.asarray(objs, np.float64).reshape(-1, 8)
-    # Drop structures standing on the road where the path comes back.
     if objects.size:
-        oi, oj = cells(objects[:, 0], objects[:, 1])
+        oi, oj = _cells(lo, objects[:, 0], objects[:, 1])
         objects = objects[~road[oi, oj]]
+    return objects
 
-    # Per-frame nuisances.
+
+def _nuisances(seed: int, seq: int, N: int) -> tuple[np.ndarray, ...]:
+    """Per-frame gain, motion blur, pixel noise and passing occluders."""
     frng = np.random.default_rng([seed, seq, 11])
     # Brightness: a slow log-normal drift, plus shadows/tunnels (dark spells).
     drift = np.cumsum(frng.normal(0, 0.03, N))
@@ -440,7 +454,21 @@ def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
         for k in range(n):
             if t + k < N:
                 occ[t + k] = [start + (end - start) * k / n, width, top, shade]
-    return World(lo, ground, objects, low, gain, blur, noise, occ)
+    return gain, blur, noise, occ
+
+
+def build_world(xyt: np.ndarray, seed: int, seq: int) -> World:
+    """Build the world around a sequence's (camera 0) trajectory."""
+    rng = np.random.default_rng([seed, seq, 7])
+    margin = MAX_RANGE + 10.0
+    lo = xyt[:, :2].min(0) - margin
+    hi = xyt[:, :2].max(0) + margin
+    shape = tuple(((hi - lo) / MAP_RESOLUTION).astype(int) + 1)
+    path = _path(rng, xyt)
+    ground, road = _ground(rng, shape, lo, path)
+    objects = _structures(rng, lo, path, road)
+    gain, blur, noise, occ = _nuisances(seed, seq, xyt.shape[0])
+    return World(lo, ground, objects, path["low"], gain, blur, noise, occ)
 
 
 # Pre-declared data variants (docs/tutorial/visual-odometry.md): name -> seed.

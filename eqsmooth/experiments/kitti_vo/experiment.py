@@ -394,12 +394,10 @@ def _train_stage(
     )
 
 
-def run_fold(cfg: Config, fold: int, out: Path) -> dict:
+def _fold_record(cfg: Config, fold: int, result_path: Path) -> dict:
+    """The fold's results file (resumed when it exists), with this run's
+    configuration and machine."""
     spec = D.fold_spec(fold)
-    out.mkdir(parents=True, exist_ok=True)
-    work = out / "work" / f"fold_{fold}"
-    work.mkdir(parents=True, exist_ok=True)
-    result_path = out / f"fold_{fold}.json"
     result = json.loads(result_path.read_text()) if result_path.exists() else {}
     result.update(
         label=label(cfg),
@@ -413,88 +411,53 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     )
     result.setdefault("rows", {})
     result.setdefault("timings", {})
-    timings = result["timings"]
-    train_seqs = train_sequences(cfg, spec)
-    key = jax.random.key(cfg.model_seed + 1000 * fold)
+    return result
 
-    t0 = time.perf_counter()
-    # Every run of this fold (a first one and any resumed ones) records its
-    # wall time; the fold's total is their sum, work later redone included.
-    run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "git": result["git"]}
-    result.setdefault("runs", []).append(run)
 
-    def save():
-        run["wall_s"] = time.perf_counter() - t0
-        timings["total_s"] = sum(r["wall_s"] for r in result["runs"])
-        _write_json(result_path, result)
-
-    print(
-        f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
-    )
-    train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
-    valid_trajs = load_trajectories(cfg, spec.valid)
-    test_trajs = load_trajectories(cfg, spec.test)
-    timings["load_s"] = timings.get("load_s", 0.0) + time.perf_counter() - t0
-    if cfg.real_data_dir is None:
-        r = test_trajs[0]
-        frames = np.arange(min(200, r.num_frames))
-        t1 = time.perf_counter()
-        r.images(frames)
-        timings["render_ms_per_frame"] = (time.perf_counter() - t1) / frames.size * 1e3
-
-    # (1) Sensor pretraining.
-    sensor_path = out / f"sensor_fold{fold}.eqx"
+def _pretrain_sensor(cfg, key, train_trajs, valid_trajs, sensor_path, work, timings):
+    """Stage 1: the velocity sensor, pretrained on image pairs (or loaded)."""
     sensor = M.VelocitySensor(jax.random.fold_in(key, 0))
     if sensor_path.exists():
-        sensor = eqx.tree_deserialise_leaves(sensor_path, sensor)
-    else:
-        t1 = time.perf_counter()
-        train_pairs = pair_dataset(train_trajs, D.pretrain_frames, cfg.sensor_stride)
-        valid_pairs = pair_dataset(
-            valid_trajs, D.pretrain_frames, cfg.sensor_valid_stride
-        )
-        timings["sensor_data_s"] = time.perf_counter() - t1
-        print(
-            f"sensor: {len(train_pairs['pairs'])} training pairs, "
-            f"{len(valid_pairs['pairs'])} validation pairs"
-        )
-        t1 = time.perf_counter()
-        res = _train_stage(
-            work / "sensor",
-            sensor,
-            sensor_train_loss,
-            train_pairs,
-            eqs.learn.Validation(
-                valid_pairs, sensor_valid_loss, every=max(cfg.sensor_steps // 10, 1)
-            ),
-            lr=cfg.sensor_lr,
-            steps=cfg.sensor_steps,
-            warmup=200,
-            checkpoint_every=200,
-            optimizer_options=dict(weight_decay=cfg.sensor_weight_decay),
-            augment=augment_pairs if cfg.sensor_augment else None,
-            batch_size=cfg.sensor_batch,
-            seed=cfg.model_seed,
-            has_aux=True,
-        )
-        sensor = res.best_model
-        timings["sensor_train_s"] = time.perf_counter() - t1
-        timings["sensor_best_step"] = res.best_step
-        timings["sensor_valid_mse_normalised"] = res.best_valid_loss
-        eqx.tree_serialise_leaves(sensor_path, sensor)
-        del train_pairs, valid_pairs
-    save()
-
-    # (2) Cache the frozen sensor's outputs.
+        return eqx.tree_deserialise_leaves(sensor_path, sensor)
     t1 = time.perf_counter()
-    caches = {}
-    cache_dir = work / "cache"
-    cache_dir.mkdir(exist_ok=True)
-    all_trajs = (
-        [(t, "train") for t in train_trajs]
-        + [(t, "valid") for t in valid_trajs]
-        + [(t, "test") for t in test_trajs]
+    train_pairs = pair_dataset(train_trajs, D.pretrain_frames, cfg.sensor_stride)
+    valid_pairs = pair_dataset(valid_trajs, D.pretrain_frames, cfg.sensor_valid_stride)
+    timings["sensor_data_s"] = time.perf_counter() - t1
+    print(
+        f"sensor: {len(train_pairs['pairs'])} training pairs, "
+        f"{len(valid_pairs['pairs'])} validation pairs"
     )
+    t1 = time.perf_counter()
+    res = _train_stage(
+        work / "sensor",
+        sensor,
+        sensor_train_loss,
+        train_pairs,
+        eqs.learn.Validation(
+            valid_pairs, sensor_valid_loss, every=max(cfg.sensor_steps // 10, 1)
+        ),
+        lr=cfg.sensor_lr,
+        steps=cfg.sensor_steps,
+        warmup=200,
+        checkpoint_every=200,
+        optimizer_options=dict(weight_decay=cfg.sensor_weight_decay),
+        augment=augment_pairs if cfg.sensor_augment else None,
+        batch_size=cfg.sensor_batch,
+        seed=cfg.model_seed,
+        has_aux=True,
+    )
+    timings["sensor_train_s"] = time.perf_counter() - t1
+    timings["sensor_best_step"] = res.best_step
+    timings["sensor_valid_mse_normalised"] = res.best_valid_loss
+    eqx.tree_serialise_leaves(sensor_path, res.best_model)
+    return res.best_model
+
+
+def _sensor_caches(sensor, trajs_by_role, cache_dir: Path) -> dict:
+    """Stage 2: the frozen sensor's outputs per trajectory, cached on disk."""
+    caches = {}
+    cache_dir.mkdir(exist_ok=True)
+    all_trajs = [(t, role) for role, trajs in trajs_by_role for t in trajs]
     for tr, role in tqdm(all_trajs, desc="sensor cache"):
         path = cache_dir / (tr.name.replace("/", "_") + ".npz")
         if path.exists():
@@ -505,30 +468,30 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         first = 0 if role != "train" else int(D.smoother_frames(tr.num_frames)[0])
         caches[tr.name] = trajectory_cache(sensor, tr, first)
         np.savez(path, **caches[tr.name])
-    timings["cache_s"] = timings.get("cache_s", 0.0) + time.perf_counter() - t1
+    return caches
 
-    def windows_of(trajs, length, stride, role):
-        ws = []
-        for tr in trajs:
-            c = caches[tr.name]
-            frames = (
-                np.arange(tr.num_frames)
-                if role != "train"
-                else D.smoother_frames(tr.num_frames)
-            )
-            starts = D.windows(frames, length, stride)
-            if starts.size:
-                ws.append(make_windows(tr, c, starts, length))
-        return concat(ws)
 
-    train_w = windows_of(train_trajs, cfg.window, cfg.window_stride, "train")
-    valid_w = windows_of(valid_trajs, cfg.window, cfg.window, "valid")
-    scored = test_trajs[: cfg.eval_copies] if cfg.eval_copies else test_trajs
-    test_w = windows_of(scored, cfg.eval_window, None, "test")
-    # Sensor accuracy on the smoother-training windows sets the noise heads' start.
+def _windows_of(caches, trajs, length, stride, role):
+    ws = []
+    for tr in trajs:
+        c = caches[tr.name]
+        frames = (
+            np.arange(tr.num_frames)
+            if role != "train"
+            else D.smoother_frames(tr.num_frames)
+        )
+        starts = D.windows(frames, length, stride)
+        if starts.size:
+            ws.append(make_windows(tr, c, starts, length))
+    return concat(ws)
+
+
+def _sensor_summary(train_w, valid_w, test_w) -> tuple[np.ndarray, dict]:
+    """The sensor's RMSE on the smoother-training windows (the noise heads'
+    start) and the window counts."""
     err = train_w["z"] - train_w["velocity"]
     sigmas = np.sqrt(np.mean(err.reshape(-1, 2) ** 2, 0))
-    result["sensor"] = {
+    summary = {
         "train_window_rmse": sigmas.tolist(),
         "test_rmse": np.sqrt(
             np.mean((test_w["z"] - test_w["velocity"]).reshape(-1, 2) ** 2, 0)
@@ -537,18 +500,11 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         "num_valid_windows": int(valid_w["z"].shape[0]),
         "num_test_windows": int(test_w["z"].shape[0]),
     }
-    print(
-        f"windows: {train_w['z'].shape[0]} train, {valid_w['z'].shape[0]} valid, "
-        f"{test_w['z'].shape[0]} test; sensor RMSE (v, ω) {sigmas}"
-    )
+    return sigmas, summary
 
-    # Dead reckoning from the sensor: a reference row, no training.
-    if "dead_reckoning" not in result["rows"]:
-        m, _ = evaluate("dead_reckoning", None, test_w)
-        result["rows"]["dead_reckoning"] = _row(m, 0.0, 0.0, None)
-    save()
 
-    # (3) + (4) Train and score each method.
+def _train_and_score(cfg, key, sigmas, train_w, valid_w, test_w, work, result, save):
+    """Stages 3 and 4: train each method (resumable) and score it once."""
     models = {}
     for i, method in enumerate(cfg.methods):
         model = build_model(method, sigmas, jax.random.fold_in(key, 10 + i))
@@ -585,6 +541,75 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
             f"{result['rows'][method]['rot_deg_per_m']:.4f} deg/m"
         )
         save()
+    return models
+
+
+def run_fold(cfg: Config, fold: int, out: Path) -> dict:
+    """Run (or resume) every stage of fold `fold`; write `fold_K.json` under
+    `out` after each; return the result, the models and the test data."""
+    spec = D.fold_spec(fold)
+    out.mkdir(parents=True, exist_ok=True)
+    work = out / "work" / f"fold_{fold}"
+    work.mkdir(parents=True, exist_ok=True)
+    result_path = out / f"fold_{fold}.json"
+    result = _fold_record(cfg, fold, result_path)
+    timings = result["timings"]
+    train_seqs = train_sequences(cfg, spec)
+    key = jax.random.key(cfg.model_seed + 1000 * fold)
+
+    t0 = time.perf_counter()
+    # Every run of this fold (a first one and any resumed ones) records its
+    # wall time; the fold's total is their sum, work later redone included.
+    run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "git": result["git"]}
+    result.setdefault("runs", []).append(run)
+
+    def save():
+        run["wall_s"] = time.perf_counter() - t0
+        timings["total_s"] = sum(r["wall_s"] for r in result["runs"])
+        _write_json(result_path, result)
+
+    print(
+        f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
+    )
+    train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
+    valid_trajs = load_trajectories(cfg, spec.valid)
+    test_trajs = load_trajectories(cfg, spec.test)
+    timings["load_s"] = timings.get("load_s", 0.0) + time.perf_counter() - t0
+    if cfg.real_data_dir is None:
+        r = test_trajs[0]
+        frames = np.arange(min(200, r.num_frames))
+        t1 = time.perf_counter()
+        r.images(frames)
+        timings["render_ms_per_frame"] = (time.perf_counter() - t1) / frames.size * 1e3
+
+    sensor_path = out / f"sensor_fold{fold}.eqx"
+    sensor = _pretrain_sensor(
+        cfg, key, train_trajs, valid_trajs, sensor_path, work, timings
+    )
+    save()
+
+    t1 = time.perf_counter()
+    roles = (("train", train_trajs), ("valid", valid_trajs), ("test", test_trajs))
+    caches = _sensor_caches(sensor, roles, work / "cache")
+    timings["cache_s"] = timings.get("cache_s", 0.0) + time.perf_counter() - t1
+    train_w = _windows_of(caches, train_trajs, cfg.window, cfg.window_stride, "train")
+    valid_w = _windows_of(caches, valid_trajs, cfg.window, cfg.window, "valid")
+    scored = test_trajs[: cfg.eval_copies] if cfg.eval_copies else test_trajs
+    test_w = _windows_of(caches, scored, cfg.eval_window, None, "test")
+    sigmas, result["sensor"] = _sensor_summary(train_w, valid_w, test_w)
+    print(
+        f"windows: {train_w['z'].shape[0]} train, {valid_w['z'].shape[0]} valid, "
+        f"{test_w['z'].shape[0]} test; sensor RMSE (v, ω) {sigmas}"
+    )
+
+    # Dead reckoning from the sensor: a reference row, no training.
+    if "dead_reckoning" not in result["rows"]:
+        m, _ = evaluate("dead_reckoning", None, test_w)
+        result["rows"]["dead_reckoning"] = _row(m, 0.0, 0.0, None)
+    save()
+    models = _train_and_score(
+        cfg, key, sigmas, train_w, valid_w, test_w, work, result, save
+    )
     save()
     return {
         "result": result,
