@@ -306,6 +306,20 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
     assert outcome[0] == 2 and set(np.asarray(outcome[1:]).tolist()) <= {0, 1}
 
 
+def test_method_names_choose_the_surrogate_steps():
+    from eqsmooth.experiments.disk_tracking import train
+
+    cfg = train.Config()
+    assert train.surrogate_steps(cfg, "smoother_hetero_surrogate") == 3
+    assert train.surrogate_steps(cfg, "smoother_hetero_surrogate_k5") == 5
+    assert train.surrogate_steps(cfg, "smoother_hetero_surrogate_learndyn_k1") == 1
+    assert set(train.EXTRA_METHODS) >= {
+        "smoother_hetero_surrogate_k1",
+        "smoother_hetero_surrogate_k5",
+        "smoother_hetero_truncated",
+    }
+
+
 def test_splits_keep_the_test_fold_out():
     from eqsmooth.experiments.disk_tracking import train
 
@@ -411,6 +425,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     for loss in (
         lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3),
         lambda m: train.joint_nll_one(m, meas, counts, truth),
+        lambda m: train.truncated_loss_one(m, meas, counts, truth, 10),
         lambda m: train.ekf_mse_one(m, meas, counts, truth),
         lambda m: train.ekf_nll_one(m, meas, counts, truth),
     ):

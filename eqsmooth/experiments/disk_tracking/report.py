@@ -22,6 +22,9 @@ PAPER = {
     "smoother_hetero_surrogate_learndyn": "—",
     "smoother_hetero_surrogate_learndyn_view": "—",
     "smoother_hetero_finetune": "—",
+    "smoother_hetero_surrogate_k1": "—",
+    "smoother_hetero_surrogate_k5": "—",
+    "smoother_hetero_truncated": "—",
     "smoother_const_surrogate": "8.104 ± 0.167",
     "smoother_const_nll": "8.182 ± 0.175",
     "ekf_hetero_mse": "3.083 ± 0.095",
@@ -46,6 +49,11 @@ LABELS = {
     ),
     "smoother_hetero_finetune": (
         "smoother, heteroscedastic, CNN fine-tuned through the smoother (ours)"
+    ),
+    "smoother_hetero_surrogate_k1": "smoother, heteroscedastic, surrogate loss (K=1)",
+    "smoother_hetero_surrogate_k5": "smoother, heteroscedastic, surrogate loss (K=5)",
+    "smoother_hetero_truncated": (
+        "smoother, heteroscedastic, truncated adjoint (last step; ours)"
     ),
     "smoother_const_surrogate": "smoother, constant, surrogate loss (K=3)",
     "smoother_const_nll": "smoother, constant, joint NLL",

@@ -114,7 +114,14 @@ class Config:
 
 # Methods that run only when asked for (`--methods`): tried, not in the protocol.
 # "..._robustview" puts a Geman-McClure kernel on the out-of-view factor.
-EXTRA_METHODS = ("smoother_hetero_surrogate_learndyn_robustview",)
+EXTRA_METHODS = (
+    "smoother_hetero_surrogate_learndyn_robustview",
+    # Rows a reviewer asked for (issue 33): the K ablation of the surrogate
+    # loss and the converged solve differentiated through its last step only.
+    "smoother_hetero_surrogate_k1",
+    "smoother_hetero_surrogate_k5",
+    "smoother_hetero_truncated",
+)
 
 
 def quick_config(**overrides) -> Config:
@@ -488,6 +495,29 @@ def implicit_loss_one(model: SmootherModel, meas, counts, truth, max_steps: int)
     return jnp.mean(err * err)
 
 
+def truncated_loss_one(model: SmootherModel, meas, counts, truth, max_steps: int):
+    """MSE of the converged MAP positions, differentiated through the last
+    Gauss-Newton step only ([`eqsmooth.TruncatedAdjoint`][]`(1)`): the cheap
+    approximation of the implicit gradient."""
+    graph = _fixed_dynamics(model).graph(meas, counts, truth[0])
+    sol = eqs.least_squares(
+        graph,
+        {"x": truth},
+        eqs.GaussNewton(eqs.BlockTridiagonal()),
+        max_steps=max_steps,
+        adjoint=eqs.solve.TruncatedAdjoint(1),
+        throw=False,
+    )
+    err = (sol.value["x"][:, :2] - truth[:, :2]) / D.POSITION_STD
+    return jnp.mean(err * err)
+
+
+def surrogate_steps(cfg: Config, method: str) -> int:
+    """K of the surrogate loss: the config's, or a method flag `k<K>`."""
+    ks = [int(f[1:]) for f in method.split("_")[3:] if f[:1] == "k" and f[1:].isdigit()]
+    return ks[0] if ks else cfg.surrogate_steps
+
+
 def joint_nll_one(model: SmootherModel, meas, counts, truth):
     """Joint NLL of the ground truth, per frame ([`eqsmooth.learn.joint_nll`][])."""
     graph = _fixed_dynamics(model).graph(meas, counts, truth[0])
@@ -660,9 +690,11 @@ def train_factor_graph(
         if "learndyn" in flags:
             model = dataclasses.replace(model, learn_dynamics=True)
         if loss == "surrogate":
-            loss_fn = _per_sequence(surrogate_loss_one, cfg.surrogate_steps)
+            loss_fn = _per_sequence(surrogate_loss_one, surrogate_steps(cfg, method))
         elif loss == "implicit":
             loss_fn = _per_sequence(implicit_loss_one, cfg.eval_solver_steps)
+        elif loss == "truncated":
+            loss_fn = _per_sequence(truncated_loss_one, cfg.eval_solver_steps)
         elif loss == "nll":
             loss_fn = _per_sequence(joint_nll_one)
         else:
