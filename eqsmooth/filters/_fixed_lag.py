@@ -23,6 +23,7 @@ from ..factors import (
     IsotropicNoise,
     MaskedNoise,
     per_row_fields,
+    PriorFactor,
     shared_field,
     Var,
     with_rows,
@@ -39,6 +40,7 @@ from ._ekf import (
     _chain_order,
     _checked_measurements,
     _layers,
+    _row_dim,
     _value_and_jac,
     checked_covariance,
 )
@@ -103,18 +105,6 @@ class _Rows(AbstractFactor):
         return self.sqrt_information @ with_rows(self.base, self.rows).residual(*states)
 
 
-class _Pin(AbstractFactor):
-    """Holds an unused window slot where it is: residual `local(value, x)`,
-    active only on unused slots."""
-
-    variables: tuple[Var, ...]
-    noise: MaskedNoise
-    value: PyTree
-
-    def residual(self, x: PyTree) -> Float[Array, " d"]:
-        return local(self.value, x)
-
-
 @dataclasses.dataclass(frozen=True)
 class _Model:
     """The chain's factors split into row arrays (indexed by time inside the
@@ -160,8 +150,7 @@ def _model(transition, measurements, mean0, dtype) -> _Model:
     trans_rows = _take(per_row_fields(transition), jnp.asarray(perm))
     rows, Rs, tables, masks = [], [], [], []
     for f in measurements:
-        one = with_rows(f, _take(per_row_fields(f), 0))
-        m = jax.eval_shape(one.residual, mean0).shape[0]
+        m = _row_dim(f, per_row_fields(f), mean0)
         R, _ = row_whitening(f, m, dtype)
         _, table, mask = _layers(f.variables[0].ids, T)
         rows.append(per_row_fields(f))
@@ -256,10 +245,11 @@ def _window_graph(model: _Model, values, prior, start, t, lag: int):
             R0[None],
             c0[None],
         ),
-        _Pin(
-            (Var(g, slots),),
-            MaskedNoise(_unit(R0.dtype), ~used),
+        # Unused slots stay where they are (and add nothing once used).
+        PriorFactor(
+            Var(g, slots),
             jax.lax.stop_gradient(values),
+            MaskedNoise(_unit(R0.dtype), ~used),
         ),
     ]
     if lag > 1:
@@ -319,10 +309,7 @@ def _step(model, lag, solver, adjoint, prediction_steps, carry, t):
     graph = _window_graph(model, values, prior, start, t, lag)
     sol = least_squares(graph, {model.group: values}, solver, adjoint=adjoint)
     values = sol.value[model.group]
-    anchor, R0, c0 = prior
-    cov = jnp.linalg.inv(R0.T @ R0)
-    mean = retract(anchor, -jnp.linalg.solve(R0, c0))
-    return (values, prior), (values, start, mean, cov)
+    return (values, prior), (values, start, prior)
 
 
 def fixed_lag_smoother(
@@ -411,8 +398,8 @@ def fixed_lag_smoother(
     def step(carry, t):
         return _step(model, lag, solver, adjoint, prediction_steps, carry, t)
 
-    _, (windows, start, pmean, pcov) = lax.scan(step, (values, prior), jnp.arange(T))
-    return _solution(windows, start, pmean, pcov, lag, T)
+    _, (windows, start, priors) = lax.scan(step, (values, prior), jnp.arange(T))
+    return _solution(windows, start, priors, lag, T)
 
 
 def _check_finite_rows(factor: AbstractFactor) -> None:
@@ -435,7 +422,13 @@ def _check_finite_rows(factor: AbstractFactor) -> None:
         )
 
 
-def _solution(windows, start, pmean, pcov, lag: int, T: int) -> FixedLagSolution:
+def _prior_moments(anchor, R, c):
+    """Mean and covariance of the prior `½‖R local(anchor, x) + c‖²`."""
+    return retract(anchor, -jnp.linalg.solve(R, c)), jnp.linalg.inv(R.T @ R)
+
+
+def _solution(windows, start, priors, lag: int, T: int) -> FixedLagSolution:
+    pmean, pcov = jax.vmap(_prior_moments)(*priors)
     t = np.arange(T)
     start_np = np.maximum(t - lag + 1, 0)
     online = jax.tree_util.tree_map(lambda w: w[t, t - start_np], windows)

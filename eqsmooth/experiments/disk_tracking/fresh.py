@@ -16,7 +16,6 @@ finished folds. Resumable like the protocol (checkpoints under --work).
 """
 
 import json
-import math
 import os
 from pathlib import Path
 
@@ -121,12 +120,6 @@ def run(cfg: T.Config, fold: int, out: Path, work: Path, cache_dir, log=print) -
     return path
 
 
-def _mean_se(vals) -> dict:
-    v = np.asarray(vals, float)
-    se = float(v.std(ddof=1) / math.sqrt(len(v))) if len(v) > 1 else None
-    return dict(mean=float(v.mean()), stderr=se, folds=v.tolist())
-
-
 def summarise(out: Path) -> tuple[dict, str]:
     """`fresh.json` and its markdown table from every `fresh/fold_K.json`."""
     paths = sorted(
@@ -140,8 +133,8 @@ def summarise(out: Path) -> tuple[dict, str]:
     for m in methods:
         recs = [f["records"][m] for f in folds]
         rows[m] = dict(
-            fresh=_mean_se([r["fresh_rmse"] for r in recs]),
-            test_retrained=_mean_se([r["test_rmse"] for r in recs]),
+            fresh=report.mean_se([r["fresh_rmse"] for r in recs]),
+            test_retrained=report.mean_se([r["test_rmse"] for r in recs]),
         )
         drift = [
             r["test_rmse"] - r["committed_test_rmse"]
@@ -160,7 +153,7 @@ def summarise(out: Path) -> tuple[dict, str]:
         if a not in rows or b not in rows:
             continue
         d = np.array(rows[a]["fresh"]["folds"]) - np.array(rows[b]["fresh"]["folds"])
-        s = _mean_se(d)
+        s = report.mean_se(d)
         s["better_folds"] = int(np.sum(d < 0))
         paired[f"{a} - {b}"] = s
         se = "" if s["stderr"] is None else f" ± {s['stderr']:.3f}"

@@ -98,13 +98,15 @@ def machine() -> dict:
 def summarise(folds: list[dict]) -> dict[str, dict]:
     """Mean and standard error (sample std/√n) over folds of each method's test RMSE."""
     methods = [m for m in LABELS if all(m in f["records"] for f in folds)]
-    out = {}
-    for m in methods:
-        vals = np.array([f["records"][m]["test_rmse"] for f in folds])
-        # The sample std (ddof=1), as the paper's column (and the KITTI report).
-        se = float(vals.std(ddof=1) / math.sqrt(len(vals))) if len(vals) > 1 else None
-        out[m] = dict(mean=float(vals.mean()), stderr=se, folds=vals.tolist())
-    return out
+    return {m: mean_se([f["records"][m]["test_rmse"] for f in folds]) for m in methods}
+
+
+def mean_se(values) -> dict:
+    """Mean, standard error (sample std/√n, ddof=1, as the paper's column and
+    the KITTI report) and the values; `stderr` is None for one value."""
+    v = np.asarray(values, float)
+    se = float(v.std(ddof=1) / math.sqrt(len(v))) if len(v) > 1 else None
+    return dict(mean=float(v.mean()), stderr=se, folds=v.tolist())
 
 
 def load_folds(out: Path) -> list[dict]:
