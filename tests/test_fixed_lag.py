@@ -141,3 +141,181 @@ def test_vmap_over_sequences():
     batched = eqx.filter_jit(jax.vmap(one))(data)
     for i in range(2):
         np.testing.assert_allclose(batched[i], one(data[i]), rtol=0, atol=1e-12)
+
+
+# --- closures (loop closures inside the window) --------------------------------
+
+
+def _lin_link(a, b, data, params):
+    return b - params @ a - data
+
+
+def _linear_links(pairs):
+    """Linear links `x_b − P x_a − z` between the given (a, b) time pairs."""
+    rng = np.random.default_rng(1)
+    a, b = (np.array(v) for v in zip(*pairs))
+    z = rng.normal(size=(len(pairs), 2))
+    P = np.array([[0.9, 0.2], [-0.1, 1.1]])
+    cov = np.array([[0.4, 0.1], [0.1, 0.3]])
+    link = eqs.FunctionFactor(
+        _lin_link,
+        (eqs.Var("x", a), eqs.Var("x", b)),
+        eqs.SqrtInformationNoise.from_covariance(jnp.asarray(cov)),
+        data=jnp.asarray(z),
+        params=jnp.asarray(P),
+    )
+    return link, [(ai, bi, P, cov, zi) for ai, bi, zi in zip(a, b, z)]
+
+
+def _numpy_posterior_means(updates, links, upto):
+    """The exact posterior mean of x_0..x_upto given every factor on those
+    states (dense information form)."""
+    n = 2 * (upto + 1)
+    H, g = np.zeros((n, n)), np.zeros(n)
+
+    def add(rows, J, r0, cov):  # factor ‖J x[rows] + r0‖² with covariance cov
+        W = np.linalg.inv(cov)
+        idx = np.concatenate([np.arange(2 * k, 2 * k + 2) for k in rows])
+        H[np.ix_(idx, idx)] += J.T @ W @ J
+        g[idx] -= J.T @ W @ r0
+
+    add([0], np.eye(2), -M0, P0)
+    for k in range(upto):
+        add([k, k + 1], np.hstack([-F_MAT, np.eye(2)]), np.zeros(2), Q_COV)
+    for k in range(upto + 1):
+        for Hm, Rm, z in updates[k]:
+            add([k], Hm, -z, Rm)
+    for a, b, P, cov, z in links:
+        if max(a, b) <= upto:
+            add([a, b], np.hstack([-P, np.eye(2)]), -z, cov)
+    return np.linalg.solve(H, g).reshape(-1, 2)
+
+
+@pytest.mark.parametrize(
+    "lag, pairs", [(3, [(0, 2), (2, 4), (5, 3)]), (4, [(0, 2), (1, 4), (5, 3)])]
+)
+def test_closures_marginalise_exactly_on_a_linear_chain(lag, pairs):
+    trans, meas, updates = _linear_problem()
+    link, links = _linear_links(pairs)
+    sol = eqs.filters.fixed_lag_smoother(
+        trans, meas, jnp.asarray(M0), jnp.asarray(P0), lag=lag, closures=link
+    )
+    for t in range(T):
+        exact = _numpy_posterior_means(updates, links, t)
+        # online: x_t given everything up to t; lagged: x_t when it leaves
+        np.testing.assert_allclose(sol.mean[t], exact[t], rtol=0, atol=1e-6)
+        end = min(t + lag - 1, T - 1)
+        lagged = _numpy_posterior_means(updates, links, end)[t]
+        np.testing.assert_allclose(sol.lagged_mean[t], lagged, rtol=0, atol=1e-6)
+
+
+def _se2_link(a, b, data, params):
+    return 10.0 * (eqs.local(a["pose"], b["pose"]) - data)
+
+
+def _se2_closures(truth, pairs):
+    a, b = (np.array(v) for v in zip(*pairs))
+    rel = eqs.local(truth["pose"][a], truth["pose"][b], batch_ndim=1)
+    noise = 0.02 * np.random.default_rng(2).normal(size=rel.shape)
+    return eqs.FunctionFactor(
+        _se2_link,
+        (eqs.Var("s", a), eqs.Var("s", b)),
+        eqs.IsotropicNoise(sqrt_precision=jnp.asarray(1.0)),
+        data=rel + noise,
+    )
+
+
+_SE2_PAIRS = [(0, 3), (4, 1), (2, 5)]
+
+
+@eqx.filter_jit
+def _run_links(trans, meas, links, mean0, cov0, lag, solver, adjoint):
+    return eqs.filters.fixed_lag_smoother(
+        trans,
+        meas,
+        mean0,
+        cov0,
+        lag=lag,
+        closures=links,
+        solver=solver,
+        adjoint=adjoint,
+    )
+
+
+def test_closures_lag_T_is_the_batch_smoother():
+    trans, meas, truth = _se2_problem(1.0, 1.0)
+    links = _se2_closures(truth, _SE2_PAIRS)
+    mean0, cov0 = _se2_initial(truth)
+    sol = _run_links(
+        trans,
+        meas,
+        links,
+        mean0,
+        cov0,
+        T,
+        eqs.FixedStepGaussNewton(num_steps=6),
+        _UNROLLED,
+    )
+    prior = eqs.PriorFactor(
+        eqs.Var("s", [0]),
+        jax.tree_util.tree_map(lambda a: a[None], mean0),
+        eqs.SqrtInformationNoise.from_covariance(cov0),
+    )
+    graph = eqs.FactorGraph([prior, trans, meas, links])
+    init = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (T, *a.shape)), mean0)
+    batch = eqs.least_squares(graph, {"s": init}, eqs.GaussNewton()).value["s"]
+    np.testing.assert_allclose(
+        eqs.local(sol.lagged_mean, batch, batch_ndim=1), 0, atol=1e-6
+    )
+
+
+def _links_loss(scale, lag=4):
+    trans, meas, truth = _se2_problem(scale, 1.0)
+    links = _se2_closures(truth, _SE2_PAIRS)
+    mean0, cov0 = _se2_initial(truth)
+    sol = _run_links(
+        trans,
+        meas,
+        links,
+        mean0,
+        cov0,
+        lag,
+        eqs.FixedStepGaussNewton(num_steps=4),
+        _UNROLLED,
+    )
+    err = sol.mean["pose"].translation() - truth["pose"].translation()
+    return jnp.sum(err**2) + jnp.sum(sol.prior_covariance)
+
+
+def test_closures_gradient_matches_central_differences():
+    s, h = 1.3, 1e-5
+    g = jax.grad(_links_loss)(s)
+    fd = (_links_loss(s + h) - _links_loss(s - h)) / (2 * h)
+    assert abs(float(g)) > 1e-3
+    np.testing.assert_allclose(float(g), float(fd), rtol=1e-6)
+
+
+def test_closures_hostile_input():
+    trans, meas, _ = _linear_problem()
+    m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
+    run = eqs.filters.fixed_lag_smoother
+    link, _ = _linear_links([(0, 2), (1, 4)])
+    with raises(
+        ValueError,
+        "closure factor FunctionFactor row 1",
+        "times 1 and 4",
+        "lag - 1 = 2",
+        "outside the window",
+    ):
+        run(trans, meas, m0, p0, lag=3, closures=link)
+    same, _ = _linear_links([(2, 2)])
+    with raises(ValueError, "row 0 links times 2 and 2"):
+        run(trans, meas, m0, p0, lag=3, closures=same)
+    other = eqx.tree_at(
+        lambda f: f.variables, link, (eqs.Var("y", [0, 1]), eqs.Var("x", [2, 3]))
+    )
+    with raises(ValueError, "must link two states of group 'x'"):
+        run(trans, meas, m0, p0, lag=3, closures=other)
+    bad = eqx.tree_at(lambda f: f.data, link, link.data.at[0].set(jnp.nan))
+    with raises(ValueError, "non-finite", "rows [0]"):
+        run(trans, meas, m0, p0, lag=4, closures=bad)

@@ -44,7 +44,7 @@ from ._ekf import (
     _value_and_jac,
     checked_covariance,
 )
-from ._rows import row_whitening
+from ._rows import check_gaussian, check_rows, row_whitening
 
 
 class FixedLagSolution(eqx.Module):
@@ -77,17 +77,28 @@ class FixedLagSolution(eqx.Module):
 
 
 class _TangentPrior(AbstractFactor):
-    """A Gaussian prior kept in the tangent space of a fixed anchor:
-    residual `R · local(anchor, x) + c` (one row)."""
+    """A Gaussian prior on the first `S` slots of the window, kept in the
+    tangent spaces of fixed anchors: residual `R · [local(aᵢ, xᵢ)]ᵢ + c`
+    (one row; `anchor` stacks the `S` anchors)."""
 
     variables: tuple[Var, ...]
     noise: IsotropicNoise
     anchor: PyTree
-    sqrt_information: Float[Array, "n d d"]
-    offset: Float[Array, "n d"]
+    sqrt_information: Float[Array, "n Sd Sd"]
+    offset: Float[Array, "n Sd"]
 
-    def residual(self, x: PyTree) -> Float[Array, " d"]:
-        return self.sqrt_information @ local(self.anchor, x) + self.offset
+    def residual(self, *xs: PyTree) -> Float[Array, " Sd"]:
+        return self.sqrt_information @ _stacked_local(self.anchor, xs) + self.offset
+
+
+def _stacked_local(anchors: PyTree, xs) -> Array:
+    """`[local(anchors[i], xs[i])]ᵢ`, concatenated."""
+    return jnp.concatenate(
+        [
+            local(jax.tree_util.tree_map(lambda a, i=i: a[i], anchors), x)
+            for i, x in enumerate(xs)
+        ]
+    )
 
 
 class _Rows(AbstractFactor):
@@ -106,6 +117,21 @@ class _Rows(AbstractFactor):
 
 
 @dataclasses.dataclass(frozen=True)
+class _Links:
+    """One stack of factors linking two states of the chain (loop closures):
+    rows indexed by their earlier time (for marginalisation) and, per
+    (span, order) group, by their later time (for the window's stacks)."""
+
+    factor: AbstractFactor
+    rows: dict  # per-row fields
+    R: Array  # (n, m, m)
+    span: np.ndarray  # (n,) later time - earlier time
+    swap: np.ndarray  # (n,) the factor's first variable is the later state
+    early: tuple[np.ndarray, np.ndarray]  # (T, K) table and mask by earlier time
+    late: tuple[tuple[int, bool, np.ndarray, np.ndarray], ...]  # (s, swap, table, mask)
+
+
+@dataclasses.dataclass(frozen=True)
 class _Model:
     """The chain's factors split into row arrays (indexed by time inside the
     scan) and the static rest."""
@@ -118,8 +144,10 @@ class _Model:
     meas_R: tuple[Array, ...]  # per stack: (n_j, m_j, m_j)
     meas_table: tuple[np.ndarray, ...]  # per stack: (T, K_j) row of (t, layer)
     meas_mask: tuple[np.ndarray, ...]  # per stack: (T, K_j)
+    links: tuple[_Links, ...]
     group: str
     T: int
+    S: int  # slots of the window's prior: the longest span (1 for a chain)
 
     def stacks(self) -> list[tuple]:
         """Per measurement stack: (factor, rows, R, table, mask)."""
@@ -142,7 +170,7 @@ def _take(tree, index):
     )
 
 
-def _model(transition, measurements, mean0, dtype) -> _Model:
+def _model(transition, measurements, links, mean0, dtype) -> _Model:
     group, perm = _chain_order(transition)
     d = tangent_dim(mean0)
     T = transition.num_rows + 1
@@ -157,6 +185,8 @@ def _model(transition, measurements, mean0, dtype) -> _Model:
         Rs.append(R)
         tables.append(table)
         masks.append(mask)
+    link_models = tuple(_link_model(f, mean0, T, dtype) for f in links)
+    S = max([1] + [int(lk.span.max()) for lk in link_models])
     return _Model(
         transition,
         trans_rows,
@@ -166,9 +196,28 @@ def _model(transition, measurements, mean0, dtype) -> _Model:
         tuple(Rs),
         tuple(tables),
         tuple(masks),
+        link_models,
         group,
         T,
+        S,
     )
+
+
+def _link_model(factor: AbstractFactor, mean0, T: int, dtype) -> _Links:
+    ia, ib = (np.asarray(v.ids) for v in factor.variables)
+    rows = per_row_fields(factor)
+    R, _ = row_whitening(factor, _row_dim(factor, rows, mean0, mean0), dtype)
+    early, late = np.minimum(ia, ib), np.maximum(ia, ib)
+    span, swap = late - early, ia > ib
+    _, table, mask = _layers(early, T)
+    groups = []
+    for s in np.unique(span):
+        for sw in (False, True):
+            idx = np.flatnonzero((span == s) & (swap == sw))
+            if idx.size:
+                _, t_late, m_late = _layers(late[idx], T)
+                groups.append((int(s), sw, idx[t_late], m_late))
+    return _Links(factor, rows, R, span, swap, (table, mask), tuple(groups))
 
 
 def _predict(model: _Model, x_prev, t, prediction_steps: int):
@@ -188,42 +237,76 @@ def _predict(model: _Model, x_prev, t, prediction_steps: int):
     return b
 
 
-def _marginalise(model: _Model, prior, x0, x1, tau):
-    """The prior on `x1` left by marginalising `x0` (time `tau`): the factors
-    touching `x0` (its prior, its measurements, the transition `tau -> tau+1`)
-    linearised at `(x0, x1)`, then the Schur complement on `x1`."""
+def _slot(tree, i):
+    return jax.tree_util.tree_map(lambda a: a[i], tree)
+
+
+def _marginal_residuals(model: _Model, prior, xs, tau):
+    """The whitened residuals of the factors touching slot 0 (time `tau`),
+    as a function of the tangent step of slots `0..S`."""
     anchor, R0, c0 = prior
-    d = R0.shape[0]
+    S, d = model.S, tangent_dim(_slot(xs, 0))
     trans = with_rows(model.transition, _take(model.trans_rows, tau))
     meas = [
-        (
-            f,
-            _take(rows, jnp.asarray(table)[tau]),
-            R[jnp.asarray(table)[tau]],
-            jnp.asarray(mask)[tau],
-        )
+        (f, rows, R, jnp.asarray(table)[tau], jnp.asarray(mask)[tau])
         for f, rows, R, table, mask in model.stacks()
     ]
 
     def residuals(delta):
-        y0, y1 = retract(x0, delta[:d]), retract(x1, delta[d:])
-        out = [R0 @ local(anchor, y0) + c0]
-        out.append(model.trans_R[tau] @ trans.residual(y0, y1))
-        for f, rows, R, mask in meas:
+        ys = [retract(_slot(xs, i), delta[i * d : (i + 1) * d]) for i in range(S + 1)]
+        stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *ys)
+        out = [R0 @ _stacked_local(anchor, ys[:S]) + c0]
+        out.append(model.trans_R[tau] @ trans.residual(ys[0], ys[1]))
+        for f, rows, R, index, active in meas:
+            for k in range(active.shape[0]):
+                r = R[index[k]] @ with_rows(f, _take(rows, index[k])).residual(ys[0])
+                out.append(jnp.where(active[k], r, jnp.zeros_like(r)))
+        for lk in model.links:
+            table, mask = (jnp.asarray(a)[tau] for a in lk.early)
             for k in range(mask.shape[0]):
-                r = R[k] @ with_rows(f, _take(rows, k)).residual(y0)
+                row = table[k]
+                other = _slot(stacked, jnp.asarray(lk.span)[row])
+                swap = jnp.asarray(lk.swap)[row]
+                a, b = (
+                    jax.tree_util.tree_map(lambda p, q: jnp.where(swap, p, q), u, v)
+                    for u, v in ((other, ys[0]), (ys[0], other))
+                )
+                r = lk.R[row] @ with_rows(lk.factor, _take(lk.rows, row)).residual(a, b)
                 out.append(jnp.where(mask[k], r, jnp.zeros_like(r)))
         return jnp.concatenate(out)
 
-    r, J = _value_and_jac(residuals, 2 * d, R0.dtype)
+    return residuals, (S + 1) * d
+
+
+def _jitter(H):
+    """A relative floor on a prior's information (slots a link may reach but
+    no factor has yet informed keep a factorisable prior)."""
+    n = H.shape[0]
+    return (
+        jnp.sqrt(jnp.finfo(H.dtype).eps) * jnp.trace(H) / n * jnp.eye(n, dtype=H.dtype)
+    )
+
+
+def _marginalise(model: _Model, prior, xs, tau):
+    """The prior on slots `1..S` left by marginalising slot 0 (time `tau`):
+    the factors touching it (the prior, its measurements, the transition
+    `tau -> tau+1`, links from it) linearised at the current estimates `xs`
+    of slots `0..S`, then the Schur complement on slots `1..S`."""
+    residuals, n = _marginal_residuals(model, prior, xs, tau)
+    d = n // (model.S + 1)
+    r, J = _value_and_jac(residuals, n, prior[1].dtype)
     H, b = J.T @ J, J.T @ r
     H00, H01, H11 = H[:d, :d], H[:d, d:], H[d:, d:]
     K = jnp.linalg.solve(H00, jnp.concatenate([H01, b[:d, None]], axis=1))
-    S = H11 - H01.T @ K[:, :d]
-    g = b[d:] - H01.T @ K[:, d]
-    L = jnp.linalg.cholesky(0.5 * (S + S.T))
+    S = H11 - H01.T @ K[:, :-1]
+    S = 0.5 * (S + S.T)
+    if model.S > 1:
+        S = S + _jitter(S)
+    g = b[d:] - H01.T @ K[:, -1]
+    L = jnp.linalg.cholesky(S)
     c = jax.scipy.linalg.solve_triangular(L, g, lower=True)
-    return x1, L.T, c
+    anchor = jax.tree_util.tree_map(lambda a: a[1:], xs)
+    return anchor, L.T, c
 
 
 def _unit(dtype) -> IsotropicNoise:
@@ -239,7 +322,7 @@ def _window_graph(model: _Model, values, prior, start, t, lag: int):
     anchor, R0, c0 = prior
     stacks = [
         _TangentPrior(
-            (Var(g, [0]),),
+            tuple(Var(g, [i]) for i in range(model.S)),
             _unit(R0.dtype),
             jax.tree_util.tree_map(lambda a: a[None], anchor),
             R0[None],
@@ -277,6 +360,25 @@ def _window_graph(model: _Model, values, prior, start, t, lag: int):
                     f,
                 )
             )
+    for lk in model.links:
+        for span, swap, table, mask in lk.late:
+            k = slots[: lag - span]
+            late = jnp.clip(start + k + span, 0, model.T - 1)
+            pair = (
+                (Var(g, k + span), Var(g, k)) if swap else (Var(g, k), Var(g, k + span))
+            )
+            for layer in range(mask.shape[1]):
+                index = jnp.asarray(table[:, layer])[late]
+                active = jnp.asarray(mask[:, layer])[late] & (start + k + span <= t)
+                stacks.append(
+                    _Rows(
+                        pair,
+                        MaskedNoise(_unit(R0.dtype), active),
+                        _take(lk.rows, index),
+                        lk.R[index],
+                        lk.factor,
+                    )
+                )
     return FactorGraph(stacks)
 
 
@@ -291,13 +393,12 @@ def _step(model, lag, solver, adjoint, prediction_steps, carry, t):
     )
 
     def slide():
-        first = jax.tree_util.tree_map(lambda a: a[0], values)
-        second = x_new if lag == 1 else jax.tree_util.tree_map(lambda a: a[1], values)
-        new_prior = _marginalise(model, prior, first, second, jnp.maximum(t - lag, 0))
-        shifted = jax.tree_util.tree_map(
-            lambda a, b: jnp.concatenate([a[1:], b[None]]), values, x_new
+        ext = jax.tree_util.tree_map(
+            lambda a, b: jnp.concatenate([a, b[None]]), values, x_new
         )
-        return shifted, new_prior
+        xs = jax.tree_util.tree_map(lambda a: a[: model.S + 1], ext)
+        new_prior = _marginalise(model, prior, xs, jnp.maximum(t - lag, 0))
+        return jax.tree_util.tree_map(lambda a: a[1:], ext), new_prior
 
     def grow():
         slot = jnp.minimum(t, lag - 1)
@@ -319,6 +420,7 @@ def fixed_lag_smoother(
     initial_covariance: Float[ArrayLike, "d d"],
     *,
     lag: int,
+    closures: AbstractFactor | tuple[AbstractFactor, ...] = (),
     solver: AbstractGraphSolver = FixedStepGaussNewton(num_steps=3),
     adjoint: AbstractAdjoint = UnrolledAdjoint(),
     prediction_steps: int = 1,
@@ -349,6 +451,12 @@ def fixed_lag_smoother(
     - `initial_mean`, `initial_covariance`: the Gaussian belief on `x_0`
         (covariance in its tangent coordinates).
     - `lag`: the number of states in the window, `1 ≤ lag ≤ T`.
+    - `closures`: factor stacks whose rows link two states of the chain at
+        most `lag − 1` steps apart (loop closures, skip links). A row enters
+        the window with its later state and is marginalised with its
+        earlier one, so the prior then spans the states up to the longest
+        link ahead (a dense Gaussian on those `S` states, with a relative
+        information floor of `√ε` on states no factor has yet informed).
     - `solver`: the window's solver: by default
         [`eqsmooth.solve.FixedStepGaussNewton`][] (a fixed number of steps
         per update, so every update costs the same); a converging solver
@@ -382,15 +490,14 @@ def fixed_lag_smoother(
             "fixed_lag_smoother: solver must be an eqsmooth graph solver such as "
             f"FixedStepGaussNewton or GaussNewton, got {type(solver).__name__}"
         )
-    for f in (transition, *measurements):
+    closures = _checked_closures(transition, closures, lag)
+    for f in (transition, *measurements, *closures):
         _check_finite_rows(f)
     d = tangent_dim(initial_mean)
     cov0 = checked_covariance("fixed_lag_smoother", initial_covariance, d)
     dtype = cov0.dtype
-    model = _model(transition, measurements, initial_mean, dtype)
-    L0 = jnp.linalg.cholesky(cov0)
-    R0 = jax.scipy.linalg.solve_triangular(L0, jnp.eye(d, dtype=dtype), lower=True)
-    prior = (initial_mean, R0, jnp.zeros((d,), dtype))
+    model = _model(transition, measurements, closures, initial_mean, dtype)
+    prior = _initial_prior(model.S, initial_mean, cov0)
     values = jax.tree_util.tree_map(
         lambda a: jnp.broadcast_to(a, (lag, *jnp.shape(a))), initial_mean
     )
@@ -400,6 +507,59 @@ def fixed_lag_smoother(
 
     _, (windows, start, priors) = lax.scan(step, (values, prior), jnp.arange(T))
     return _solution(windows, start, priors, lag, T)
+
+
+def _initial_prior(S: int, mean0, cov0):
+    """The belief on `x_0` as a prior on the window's first `S` slots (the
+    others at the information floor)."""
+    d = cov0.shape[0]
+    L0 = jnp.linalg.cholesky(cov0)
+    R0 = jax.scipy.linalg.solve_triangular(L0, jnp.eye(d, dtype=cov0.dtype), lower=True)
+    R = jnp.zeros((S * d, S * d), cov0.dtype).at[:d, :d].set(R0)
+    if S > 1:
+        floor = jnp.sqrt(jnp.diag(_jitter(R0.T @ R0)))[0]
+        R = R.at[d:, d:].set(floor * jnp.eye((S - 1) * d, dtype=cov0.dtype))
+    anchor = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (S, *a.shape)), mean0)
+    return anchor, R, jnp.zeros((S * d,), cov0.dtype)
+
+
+def _checked_closures(transition, closures, lag: int) -> tuple[AbstractFactor, ...]:
+    """The link stacks as a tuple, each checked against the chain and the lag."""
+    if isinstance(closures, AbstractFactor):
+        closures = (closures,)
+    closures = tuple(closures)
+    group, _ = _chain_order(transition)
+    T = transition.num_rows + 1
+    for f in closures:
+        if not isinstance(f, AbstractFactor):
+            raise TypeError(
+                "fixed_lag_smoother: closures must be AbstractFactor stacks, got "
+                f"{type(f).__name__}"
+            )
+        name = type(f).__name__
+        if len(f.variables) != 2 or any(v.group != group for v in f.variables):
+            raise ValueError(
+                f"fixed_lag_smoother: closure factor {name} must link two states of "
+                f"group {group!r}; it touches "
+                f"{[(v.group, len(v)) for v in f.variables]}"
+            )
+        ia, ib = (np.asarray(v.ids) for v in f.variables)
+        if ia.size == 0:
+            raise ValueError(f"fixed_lag_smoother: closure factor {name} has no rows")
+        span = np.abs(ib - ia)
+        bad = np.flatnonzero((span == 0) | (span >= lag) | (np.maximum(ia, ib) >= T))
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(
+                f"fixed_lag_smoother: closure factor {name} row {k} links times "
+                f"{int(ia[k])} and {int(ib[k])}: a link must join two different "
+                f"states at most lag - 1 = {lag - 1} steps apart (it would reach "
+                f"outside the window of {lag} states) and below T = {T} "
+                f"({bad.size} such rows)"
+            )
+        check_rows(f)
+        check_gaussian(f.noise, f"fixed_lag_smoother: closure factor {name}")
+    return closures
 
 
 def _check_finite_rows(factor: AbstractFactor) -> None:
@@ -423,8 +583,12 @@ def _check_finite_rows(factor: AbstractFactor) -> None:
 
 
 def _prior_moments(anchor, R, c):
-    """Mean and covariance of the prior `½‖R local(anchor, x) + c‖²`."""
-    return retract(anchor, -jnp.linalg.solve(R, c)), jnp.linalg.inv(R.T @ R)
+    """Mean and covariance of the first slot's marginal of the prior
+    `½‖R [local(anchorᵢ, xᵢ)]ᵢ + c‖²`."""
+    first = _slot(anchor, 0)
+    d = tangent_dim(first)
+    mean = retract(first, -jnp.linalg.solve(R, c)[:d])
+    return mean, jnp.linalg.inv(R.T @ R)[:d, :d]
 
 
 def _solution(windows, start, priors, lag: int, T: int) -> FixedLagSolution:
