@@ -63,7 +63,8 @@ class FixedLagSolution(eqx.Module):
     - `window_start`: the time of each window's first slot, `(T,)`.
     - `prior_mean`: the mean of the Gaussian prior on each window's first
         state (the marginal of everything that left the window, or the
-        initial belief), leading axis `T`.
+        initial belief), leading axis `T`. With `closures` the prior spans
+        the window's first `S` states; this is its marginal on the first.
     - `prior_covariance`: its covariance in the tangent coordinates of
         `prior_mean`, `(T, d, d)`.
     """
@@ -443,7 +444,8 @@ def fixed_lag_smoother(
     The factors are those of [`eqsmooth.filters.ekf`][]: `transition`, a
     stack whose rows link `x_t` to `x_{t+1}` with a residual that determines
     `x_{t+1}`, and measurement stacks touching one state each (several rows
-    per time step allowed), with Gaussian noise.
+    per time step allowed), with Gaussian noise; and `closures`, links
+    between two states inside the window (loop closures).
 
     **Arguments:**
 

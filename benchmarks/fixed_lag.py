@@ -1,0 +1,197 @@
+"""Fixed-lag smoothing of an SE(2) pose chain against GTSAM's fixed-lag smoothers.
+
+T poses, odometry between neighbours, a noisy pose fix on every pose and
+(`--closures`) a loop closure every 4th step to the pose `--span` steps back,
+inside every window. eqsmooth runs `eqs.filters.fixed_lag_smoother(lag=L)` as
+one jitted scan: per-update latency is the median run time / T after
+compilation, with the default `FixedStepGaussNewton(3)` ("eqsmooth") and with
+`GaussNewton()` and the implicit adjoint ("eqsmooth_gn", the converged
+answer). GTSAM runs `BatchFixedLagSmoother` and `IncrementalFixedLagSmoother`
+with smoother lag L - 2 (after each update's marginalisation they hold L - 1
+poses; during the update L, as eqsmooth's window), one `update` per step,
+timed around the call. `max_diff`: the largest tangent difference of the
+newest pose's estimate from eqsmooth_gn's, over all steps (`max_diff_before`:
+over the steps before the first marginalisation).
+
+    python benchmarks/fixed_lag.py --json benchmarks/results/fixed_lag.json
+    python benchmarks/fixed_lag.py --closures \
+        --json benchmarks/results/fixed_lag_closures.json
+"""
+
+import argparse
+import statistics
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from _common import machine, optional, time_host, write_json
+
+import eqsmooth as eqs
+
+
+jax.config.update("jax_enable_x64", True)
+ODO, FIX, LOOP = (np.array(s) for s in ([0.05, 0.05, 0.02], [0.5, 0.5, 0.1], [0.1] * 3))
+COV0 = 1e-4
+
+
+def problem(T: int, span: int, closures: bool, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    u = np.column_stack(
+        [np.ones(T - 1), np.zeros(T - 1), 0.1 * np.sin(np.arange(T - 1) / 7)]
+    )
+    truth = [eqs.SE2.identity(dtype=jnp.float64)]
+    for k in range(T - 1):
+        truth.append(truth[-1] @ eqs.SE2.exp(jnp.asarray(u[k])))
+    truth = eqs.SE2(jnp.stack([p.parameters() for p in truth]))
+    noisy = lambda x, s: (
+        x @ eqs.SE2.exp(jnp.asarray(s * rng.normal(size=(x.parameters().shape[0], 3))))
+    )  # noqa: E731
+    t = np.arange(T)
+    odo = noisy(truth[t[:-1]].inverse() @ truth[t[1:]], ODO)
+    fix = noisy(truth, FIX)
+    diag = lambda s: eqs.DiagonalNoise.from_sigmas(jnp.asarray(s))  # noqa: E731
+    data = dict(
+        trans=eqs.BetweenFactor(
+            eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]), odo, diag(ODO)
+        ),
+        fix=eqs.PriorFactor(eqs.Var("x", t), fix, diag(FIX)),
+        closures=(),
+        pairs=[],
+    )
+    if closures:
+        b = np.arange(span, T, 4)
+        a = b - span
+        rel = noisy(truth[a].inverse() @ truth[b], LOOP)
+        data["closures"] = eqs.BetweenFactor(
+            eqs.Var("x", a), eqs.Var("x", b), rel, diag(LOOP)
+        )
+        data["pairs"] = list(zip(a.tolist(), b.tolist(), np.asarray(rel.parameters())))
+    data["odo"], data["fixes"] = (
+        np.asarray(odo.parameters()),
+        np.asarray(fix.parameters()),
+    )
+    return data
+
+
+def ours(data, lag: int, solver, adjoint, repeats: int):
+    @eqx.filter_jit
+    def run(trans, fix, closures):
+        mean0 = eqs.SE2.identity(dtype=jnp.float64)
+        return eqs.filters.fixed_lag_smoother(
+            trans,
+            fix,
+            mean0,
+            COV0 * jnp.eye(3),
+            lag=lag,
+            closures=closures,
+            solver=solver,
+            adjoint=adjoint,
+        ).mean
+
+    args = (data["trans"], data["fix"], data["closures"])
+    first, times, mean = time_host(lambda: jax.block_until_ready(run(*args)), repeats)
+    return mean, first, statistics.median(times) / len(data["fixes"])
+
+
+def gtsam_run(gtsam, smoother, data):
+    pose = lambda r: gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))  # noqa: E731
+    diag = gtsam.noiseModel.Diagonal.Sigmas
+    closes = {}
+    for a, b, rel in data["pairs"]:
+        closes.setdefault(b, []).append((a, rel))
+    est, times = [], []
+    for t in range(len(data["fixes"])):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if t == 0:
+            cov = gtsam.noiseModel.Gaussian.Covariance(COV0 * np.eye(3))
+            graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), cov))
+            values.insert(0, gtsam.Pose2())
+        else:
+            odo = pose(data["odo"][t - 1])
+            graph.add(gtsam.BetweenFactorPose2(t - 1, t, odo, diag(ODO)))
+            values.insert(t, est[-1].compose(odo))
+        graph.add(gtsam.PriorFactorPose2(t, pose(data["fixes"][t]), diag(FIX)))
+        for a, rel in closes.get(t, []):
+            graph.add(gtsam.BetweenFactorPose2(a, t, pose(rel), diag(LOOP)))
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        stamps.insert((t, float(t)))
+        t0 = time.perf_counter()
+        smoother.update(graph, values, stamps)
+        times.append(time.perf_counter() - t0)
+        est.append(smoother.calculateEstimatePose2(t))
+    xyt = np.array([[e.x(), e.y(), e.theta()] for e in est])
+    return eqs.SE2.from_xy_theta(*xyt.T), statistics.median(times)
+
+
+def gtsam_smoothers(gtsam, lag: int):
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setRelativeErrorTol(1e-12)
+    lm.setAbsoluteErrorTol(1e-14)
+    lm.setMaxIterations(100)
+    return {
+        "BatchFixedLagSmoother": gtsam.BatchFixedLagSmoother(float(lag - 2), lm),
+        "IncrementalFixedLagSmoother": gtsam.IncrementalFixedLagSmoother(
+            float(lag - 2)
+        ),
+    }
+
+
+def tangent_diff(a, b) -> np.ndarray:
+    """Per step, the largest tangent coordinate of `local(a, b)`."""
+    return np.abs(np.asarray(eqs.local(a, b, batch_ndim=1))).max(axis=1)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--steps", type=int, default=500)
+    ap.add_argument("--lags", type=int, nargs="+", default=[10, 50, 200])
+    ap.add_argument("--closures", action="store_true")
+    ap.add_argument(
+        "--span", type=int, default=8, help="loop-closure span (< every lag)"
+    )
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json")
+    a = ap.parse_args()
+    gtsam = optional("gtsam", " (GTSAM's fixed-lag smoothers)")
+    data = problem(a.steps, a.span, a.closures)
+    records = []
+    for lag in a.lags:
+        rec = dict(
+            benchmark="fixed_lag", T=a.steps, lag=lag, closures=a.closures, span=a.span
+        )
+        fs = eqs.FixedStepGaussNewton(num_steps=3), eqs.solve.UnrolledAdjoint()
+        gn = eqs.GaussNewton(), eqs.solve.ImplicitAdjoint()
+        means = {}
+        for name, (solver, adjoint) in (("eqsmooth", fs), ("eqsmooth_gn", gn)):
+            means[name], first, per = ours(data, lag, solver, adjoint, a.repeats)
+            rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
+        ref = means["eqsmooth_gn"]
+        rec["eqsmooth"]["max_diff"] = float(tangent_diff(means["eqsmooth"], ref).max())
+        for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
+            est, median = gtsam_run(gtsam, smoother, data)
+            diff = tangent_diff(est, ref)
+            rec[name] = dict(
+                ms_per_update=1e3 * median,
+                max_diff=float(diff.max()),
+                max_diff_before=float(diff[: min(lag, a.steps)].max()),
+            )
+        print(rec, flush=True)
+        records.append(rec)
+    if a.json:
+        write_json(
+            a.json,
+            records,
+            dict(
+                machine=machine(),
+                command=" ".join(
+                    ["python benchmarks/fixed_lag.py"]
+                    + [f"--{k}={v}" for k, v in vars(a).items() if k != "json"]
+                ),
+            ),
+        )
+
+
+if __name__ == "__main__":
+    main()
