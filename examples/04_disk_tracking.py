@@ -66,6 +66,13 @@ def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
         "the committed sensors and evaluate once on a never-seen set (fold 10)",
     )
     p.add_argument(
+        "--sensor-from",
+        type=Path,
+        help="use the virtual sensors committed under this results folder "
+        "(sensor_foldK.eqx) instead of training them: new heads on the same "
+        "sensor as that folder's rows",
+    )
+    p.add_argument(
         "--docs", type=Path, help="also write the summary table into this page"
     )
     p.add_argument(
@@ -137,7 +144,11 @@ def main(argv=None):
                 "evaluated again, new ones trained"
             )
 
-        result = protocol.run_fold(cfg, k, a.work, a.work / "cache", log)
+        sensor = None
+        if a.sensor_from is not None:
+            sensor = fresh.committed_sensor(cfg, a.sensor_from, k)
+            log(f"sensor: {a.sensor_from / f'sensor_fold{k}.eqx'} (not trained)")
+        result = protocol.run_fold(cfg, k, a.work, a.work / "cache", log, sensor)
         path = protocol.write_fold(a.out, dataclasses.asdict(cfg), result)
         log(f"fold {k} finished in {result['timings']['total_s'] / 60:.1f} min: {path}")
         if not (a.out / "fig_uncertainty.png").exists():

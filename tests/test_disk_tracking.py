@@ -500,3 +500,49 @@ def test_damaged_fold_cache_is_reported_and_rebuilt(tmp_path):
         again = D.load_fold(**kw)
     np.testing.assert_array_equal(again.disk_positions, fresh.disk_positions)
     assert D.load_cache(path, ("radii",)) is not None  # rewritten whole
+
+
+def test_online_methods_run_the_fixed_lag_smoother():
+    # The online rows (issue 38): `online_<kind>_lag<L>` trains the heads
+    # through eqs.filters.fixed_lag_smoother and scores its online estimate.
+    # On the disk model (quadratic drag) with unit noise, the lag-1 window
+    # (an iterated EKF) stays within a fraction of a pixel of the EKF, and a
+    # longer window, which relinearises each state over more frames, does too.
+    import jax
+    import jax.numpy as jnp
+
+    from eqsmooth.experiments.disk_tracking import data as D, train as T
+
+    assert T.online_lag("online_hetero_lag10") == 10
+    with pytest.raises(ValueError, match="not an online method"):
+        T.online_lag("online_hetero_nll")
+    assert {"online_hetero_lag1", "online_hetero_lag5"} <= set(T.EXTRA_METHODS)
+    rng = np.random.default_rng(1)
+    states = []
+    for _ in range(4):
+        x = np.concatenate([rng.uniform(-30, 30, 2), rng.normal(0, 3, 2)])
+        seq = []
+        for _ in range(8):
+            seq.append(x)
+            p, v = D.dynamics_step(
+                x[:2], x[2:], rng.normal(0, 0.1, 2), rng.normal(0, 2, 2)
+            )
+            x = np.concatenate([p, v])
+        states.append(seq)
+    truth = np.asarray(states, np.float32)
+    meas = (truth[..., :2] + rng.normal(0, 1, truth[..., :2].shape)).astype("float32")
+    batch = jax.tree.map(
+        jnp.asarray,
+        dict(meas=meas, counts=np.full((4, 8), 100.0, "float32"), truth=truth),
+    )
+    model = T.make_smoother_model("const", 1.0, jax.random.key(0), "float32")
+    ekf = np.asarray(T.ekf_positions(model, batch))
+    for lag in (1, 4):
+        online = np.asarray(T.online_positions(model, batch, lag))
+        assert online.shape == (4, 8, 2) and np.isfinite(online).all()
+        np.testing.assert_allclose(online[:, 0], truth[:, 0, :2], atol=0.1)
+        assert np.abs(online - ekf).max() < 0.5
+    loss = T.online_mse_one(
+        model, batch["meas"][0], batch["counts"][0], batch["truth"][0], 2
+    )
+    assert np.isfinite(float(loss))

@@ -93,7 +93,7 @@ def _train_method(cfg, method, train, val, sensor, sigma, models, keys, fold_dir
         if start is None:
             start = T.make_smoother_model("hetero", sigma, k_noise, cfg.dtype)
         return T.train_finetune(cfg, train, val, sensor, start, fold_dir, method)
-    if parts[0] in ("smoother", "ekf"):
+    if parts[0] in ("smoother", "ekf", "online"):
         return T.train_factor_graph(cfg, method, train, val, sigma, k_noise, fold_dir)
     if parts[0] == "lstm":
         return T.train_lstm(cfg, parts[1] == "bi", train, val, k_lstm, fold_dir, method)
@@ -119,11 +119,36 @@ def predict(cfg: T.Config, method: str, model, split: T.Split):
         )
     if kind == "ekf":
         pred = T.predict_split(T.ekf_positions, model, split.sequences(cfg.dtype))
+    elif kind == "online":
+        lag = T.online_lag(method)
+        pred = T.predict_split(
+            lambda m, b: T.online_positions(m, b, lag),
+            model,
+            split.sequences(cfg.dtype),
+        )
     elif kind == "lstm":
         pred = T.predict_split(T.lstm_positions, model, T._lstm_data(split, cfg.dtype))
     else:
         raise ValueError(f"unknown method {method!r}")
     return pred, None
+
+
+def latency_ms_per_step(cfg: T.Config, method: str, model, split: T.Split) -> float:
+    """Median wall time of `method`'s inference on one sequence (a batch of
+    one, after compilation), in ms per frame: what an online user waits for
+    (the sensor's outputs are cached, so this is the estimator alone)."""
+    one = T.Split(
+        split.fold.subset(np.arange(1)),
+        split.images[:1],
+        None if split.sensor is None else split.sensor[:1],
+        None if split.features is None else split.features[:1],
+    )
+    times = []
+    for _ in range(6):  # the first call compiles
+        t0 = time.perf_counter()
+        jax.block_until_ready(predict(cfg, method, model, one)[0])
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times[1:])) / split.fold.num_frames
 
 
 def run_fold(
@@ -181,6 +206,9 @@ def run_fold(
         models[method] = res.best_model
         predictions[method] = pred
         records[method] = _record(res, pred, truth, timer.seconds[method])
+        records[method]["latency_ms_per_step"] = latency_ms_per_step(
+            cfg, method, res.best_model, test
+        )
         if outcomes is not None:
             records[method]["test_solves"] = {
                 name: int(np.sum(outcomes == i))

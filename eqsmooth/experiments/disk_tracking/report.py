@@ -25,6 +25,9 @@ PAPER = {
     "smoother_hetero_surrogate_k1": "—",
     "smoother_hetero_surrogate_k5": "—",
     "smoother_hetero_truncated": "—",
+    "online_hetero_lag1": "—",
+    "online_hetero_lag5": "—",
+    "online_hetero_lag10": "—",
     "smoother_const_surrogate": "8.104 ± 0.167",
     "smoother_const_nll": "8.182 ± 0.175",
     "ekf_hetero_mse": "3.083 ± 0.095",
@@ -55,6 +58,9 @@ LABELS = {
     "smoother_hetero_truncated": (
         "smoother, heteroscedastic, truncated adjoint (last step; ours)"
     ),
+    "online_hetero_lag1": "fixed-lag smoother, heteroscedastic, lag 1, online (ours)",
+    "online_hetero_lag5": "fixed-lag smoother, heteroscedastic, lag 5, online (ours)",
+    "online_hetero_lag10": "fixed-lag smoother, heteroscedastic, lag 10, online (ours)",
     "smoother_const_surrogate": "smoother, constant, surrogate loss (K=3)",
     "smoother_const_nll": "smoother, constant, joint NLL",
     "ekf_hetero_mse": "EKF, heteroscedastic, E2E MSE",

@@ -121,6 +121,11 @@ EXTRA_METHODS = (
     "smoother_hetero_surrogate_k1",
     "smoother_hetero_surrogate_k5",
     "smoother_hetero_truncated",
+    # Online (issue 38): the heteroscedastic heads trained through the
+    # fixed-lag smoother, scored on its online estimate x_t|0:t.
+    "online_hetero_lag1",
+    "online_hetero_lag5",
+    "online_hetero_lag10",
 )
 
 
@@ -254,6 +259,7 @@ _STAGES = {
     "sensor": ("sensor", "sensor_eval_every", 0),
     "smoother": ("fg", "eval_every", 1),
     "ekf": ("fg", "eval_every", 2),
+    "online": ("fg", "eval_every", 1),
     "lstm": ("lstm", "eval_every", 3),
     "finetune": ("finetune", "finetune_eval_every", 4),
 }
@@ -674,17 +680,66 @@ def ekf_positions(model, batch):
     return _ekf_batch(model, batch["meas"], batch["counts"], x0)[0][..., :2]
 
 
+# ---------------------------------------------------------------------------
+# Online: the fixed-lag smoother (issue 38)
+# ---------------------------------------------------------------------------
+
+
+def online_one(model: SmootherModel, meas, counts, x0, lag: int):
+    """[`eqsmooth.filters.fixed_lag_smoother`][] over one sequence, built from
+    the EKF's factors (fixed dynamics noise) and started, as the EKF is, at
+    the true first state with a tiny covariance; three Gauss-Newton steps
+    per window, unrolled."""
+    graph = _fixed_dynamics(model).graph(meas, counts)
+    dyn, obs = graph.factors[:2]
+    P0 = 1e-4 * jnp.eye(4, dtype=meas.dtype)
+    return eqs.filters.fixed_lag_smoother(dyn, obs, x0, P0, lag=lag)
+
+
+def online_mse_one(model, meas, counts, truth, lag: int):
+    xs = online_one(model, meas, counts, truth[0], lag).mean
+    err = (xs[:, :2] - truth[:, :2]) / D.POSITION_STD
+    return jnp.mean(err * err)
+
+
+@eqx.filter_jit
+def _online_batch(model, meas, counts, x0, lag: int):
+    return jax.vmap(lambda m, c, x: online_one(model, m, c, x, lag).mean)(
+        meas, counts, x0
+    )
+
+
+def online_positions(model, batch, lag: int):
+    """Online fixed-lag estimates `(B, T, 2)` from the true first state."""
+    x0 = batch["truth"][:, 0]
+    return _online_batch(model, batch["meas"], batch["counts"], x0, lag)[..., :2]
+
+
+def online_lag(method: str) -> int:
+    """The window length of an `online_<kind>_lag<L>` method."""
+    tail = method.split("_")[2]
+    if not (tail.startswith("lag") and tail[3:].isdigit()):
+        raise ValueError(f"not an online method: {method!r} (online_<kind>_lag<L>)")
+    return int(tail[3:])
+
+
 def train_factor_graph(
     cfg: Config, method: str, train: Split, val: Split, sigma: float, key, work: Path
 ):
-    """Train the smoother or EKF `method`, named `smoother_<kind>_<loss>[_flags]`
-    (flags `learndyn` and those of [`view_factor`][]) or `ekf_<kind>_<loss>`,
-    with checkpoints `work/<method>.ckpt`."""
+    """Train the smoother, EKF or fixed-lag smoother `method`, named
+    `smoother_<kind>_<loss>[_flags]` (flags `learndyn` and those of
+    [`view_factor`][]), `ekf_<kind>_<loss>` or `online_<kind>_lag<L>`, with
+    checkpoints `work/<method>.ckpt`."""
     family, kind, loss, *flags = method.split("_")
     if family == "ekf":
         loss_fn = _per_sequence({"mse": ekf_mse_one, "nll": ekf_nll_one}[loss])
         model = make_smoother_model(kind, sigma, key, cfg.dtype)
         valid_loss = _position_mse(ekf_positions)
+    elif family == "online":
+        lag = online_lag(method)
+        loss_fn = _per_sequence(online_mse_one, lag)
+        model = make_smoother_model(kind, sigma, key, cfg.dtype)
+        valid_loss = _position_mse(lambda m, b: online_positions(m, b, lag))
     elif family == "smoother":
         model = make_smoother_model(kind, sigma, key, cfg.dtype, view_factor(method))
         if "learndyn" in flags:
@@ -702,7 +757,7 @@ def train_factor_graph(
         steps = cfg.eval_solver_steps
         valid_loss = _position_mse(lambda m, b: smoothed_positions(m, b, steps))
     else:
-        raise ValueError(f"not a smoother or EKF method: {method!r}")
+        raise ValueError(f"not a smoother, EKF or online method: {method!r}")
     data, valid = train.sequences(cfg.dtype), val.sequences(cfg.dtype)
     return _train(cfg, family, work, method, model, loss_fn, data, valid, valid_loss)
 
