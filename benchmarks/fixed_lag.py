@@ -138,6 +138,41 @@ def gtsam_smoothers(gtsam, lag: int):
     }
 
 
+def first_marginal_window(gtsam, lag: int) -> dict:
+    """GTSAM's own factor-graph error, at the first update after a
+    marginalisation (a chain of `lag + 1` steps), of GTSAM's answer
+    (LevenbergMarquardtOptimizer on the smoother's graph after update
+    `lag - 1` plus update `lag`'s factors) and of eqsmooth's window (30
+    fixed Gauss-Newton steps)."""
+    data = problem(lag + 1, 1, False)
+    sol = eqs.filters.fixed_lag_smoother(
+        data["trans"],
+        data["fix"],
+        eqs.SE2.identity(dtype=jnp.float64),
+        COV0 * jnp.eye(3),
+        lag=lag,
+        solver=eqs.FixedStepGaussNewton(num_steps=30),
+    )
+    ours = np.asarray(sol.windows[lag].parameters())
+    lm = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"].params()
+    head = dict(data, fixes=data["fixes"][:lag], odo=data["odo"][: lag - 1], pairs=[])
+    smoother = gtsam.BatchFixedLagSmoother(float(lag - 2), lm)
+    gtsam_run(gtsam, smoother, head)
+    graph = gtsam.NonlinearFactorGraph(smoother.getFactors())
+    init = gtsam.Values(smoother.calculateEstimate())
+    pose = lambda r: gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))  # noqa: E731
+    odo = pose(data["odo"][lag - 1])
+    sig = gtsam.noiseModel.Diagonal.Sigmas
+    graph.add(gtsam.BetweenFactorPose2(lag - 1, lag, odo, sig(ODO)))
+    graph.add(gtsam.PriorFactorPose2(lag, pose(data["fixes"][lag]), sig(FIX)))
+    init.insert(lag, init.atPose2(lag - 1).compose(odo))
+    theirs = gtsam.LevenbergMarquardtOptimizer(graph, init, lm).optimize()
+    mine = gtsam.Values()
+    for i, r in enumerate(ours):
+        mine.insert(i + 1, pose(r))
+    return dict(gtsam_error=graph.error(theirs), eqsmooth_error=graph.error(mine))
+
+
 def tangent_diff(a, b) -> np.ndarray:
     """Per step, the largest tangent coordinate of `local(a, b)`."""
     return np.abs(np.asarray(eqs.local(a, b, batch_ndim=1))).max(axis=1)
@@ -177,6 +212,8 @@ def main():
                 max_diff=float(diff.max()),
                 max_diff_before=float(diff[: min(lag, a.steps)].max()),
             )
+        if gtsam and not a.closures:
+            rec["first_marginal_window"] = first_marginal_window(gtsam, lag)
         print(rec, flush=True)
         records.append(rec)
     if a.json:
