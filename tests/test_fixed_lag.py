@@ -12,7 +12,9 @@ from test_filters import (
     _linear_problem,
     _numpy_kalman,
     _se2_initial,
+    _se2_meas,
     _se2_problem,
+    _se2_trans,
     F_MAT,
     M0,
     P0,
@@ -319,3 +321,90 @@ def test_closures_hostile_input():
     bad = eqx.tree_at(lambda f: f.data, link, link.data.at[0].set(jnp.nan))
     with raises(ValueError, "non-finite", "rows [0]"):
         run(trans, meas, m0, p0, lag=4, closures=bad)
+
+
+# --- one update at a time ------------------------------------------------------
+
+
+def _se2_steps(meas_scale):
+    """The SE(2) problem's factors split into per-step stacks with fixed ids."""
+    trans, meas, truth = _se2_problem(meas_scale, 1.0)
+    one = (eqs.Var("s", [0]), eqs.Var("s", [1]))
+    step_trans = eqs.FunctionFactor(_se2_trans, one, trans.noise)
+    step_meas = [
+        eqs.FunctionFactor(
+            _se2_meas,
+            one[:1],
+            eqs.IsotropicNoise(sqrt_precision=meas.noise.sqrt_precision[t : t + 1]),
+            data=meas.data[t : t + 1],
+        )
+        for t in range(T)
+    ]
+    return (trans, meas, truth), step_trans, step_meas
+
+
+def _updates(smoother, step_trans, step_meas, mean0, cov0):
+    state, first = smoother.init(mean0, cov0, step_trans, step_meas[0])
+    update = eqx.filter_jit(smoother.update)
+    out = [first]
+    starts = [int(state.window_start)]
+    for t in range(1, T):
+        state, x = update(state, step_trans, step_meas[t])
+        out.append(x)
+        starts.append(int(state.window_start))
+    stack = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *out)
+    return stack, state, starts
+
+
+@pytest.mark.parametrize("lag", [1, 3])
+def test_updates_equal_the_scan(lag):
+    (trans, meas, truth), step_trans, step_meas = _se2_steps(1.0)
+    mean0, cov0 = _se2_initial(truth)
+    smoother = eqs.filters.FixedLagSmoother(lag=lag)
+    online, state, starts = _updates(smoother, step_trans, step_meas, mean0, cov0)
+    sol = _run(trans, meas, mean0, cov0, lag, _GN, _UNROLLED)
+    np.testing.assert_allclose(eqs.local(online, sol.mean, batch_ndim=1), 0, atol=1e-10)
+    last = jax.tree_util.tree_map(lambda a: a[-1], sol.windows)
+    np.testing.assert_allclose(
+        eqs.local(state.window, last, batch_ndim=1), 0, atol=1e-10
+    )
+    assert starts == np.asarray(sol.window_start).tolist()
+    assert int(state.t) == T - 1
+
+
+def test_updates_gradient_matches_central_differences():
+    def loss(scale):
+        (_, _, truth), step_trans, step_meas = _se2_steps(scale)
+        mean0, cov0 = _se2_initial(truth)
+        online, _, _ = _updates(
+            eqs.filters.FixedLagSmoother(lag=2), step_trans, step_meas, mean0, cov0
+        )
+        err = online["pose"].translation() - truth["pose"].translation()
+        return jnp.sum(err**2)
+
+    s, h = 1.3, 1e-5
+    g = jax.grad(loss)(s)
+    fd = (loss(s + h) - loss(s - h)) / (2 * h)
+    assert abs(float(g)) > 1e-3
+    np.testing.assert_allclose(float(g), float(fd), rtol=1e-7)
+
+
+def test_updates_hostile_input():
+    (_, meas, truth), step_trans, step_meas = _se2_steps(1.0)
+    mean0, cov0 = _se2_initial(truth)
+    with raises(ValueError, "lag must be an int >= 1", "0"):
+        eqs.filters.FixedLagSmoother(lag=0)
+    smoother = eqs.filters.FixedLagSmoother(lag=2)
+    with raises(ValueError, "FixedLagSmoother.init", "at least one measurement"):
+        smoother.init(mean0, cov0, step_trans, ())
+    with raises(ValueError, "the transition FunctionFactor must be one row", "2 rows"):
+        two = eqs.FunctionFactor(
+            _se2_trans, (eqs.Var("s", [0, 1]), eqs.Var("s", [1, 2])), step_trans.noise
+        )
+        smoother.init(mean0, cov0, two, step_meas[0])
+    state, _ = smoother.init(mean0, cov0, step_trans, step_meas[0])
+    with raises(ValueError, "differ in kind or row count"):
+        smoother.update(state, step_trans, (step_meas[1], step_meas[2]))
+    bad = eqx.tree_at(lambda f: f.data, step_meas[1], step_meas[1].data * jnp.nan)
+    with raises(eqx.EquinoxRuntimeError, "non-finite factor data"):
+        smoother.update(state, step_trans, bad)

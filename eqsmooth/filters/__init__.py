@@ -10,6 +10,10 @@ from ._fixed_lag import (
     fixed_lag_smoother as fixed_lag_smoother,
     FixedLagSolution as FixedLagSolution,
 )
+from ._fixed_lag_update import (
+    FixedLagSmoother as FixedLagSmoother,
+    FixedLagState as FixedLagState,
+)
 from ._losses import (
     ekf_innovation_nll as ekf_innovation_nll,
     ekf_marginal_nll as ekf_marginal_nll,

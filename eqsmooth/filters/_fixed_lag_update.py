@@ -1,0 +1,269 @@
+"""The fixed-lag smoother one step at a time: `init`, then `update` per new
+state, for a robot that receives its measurements as they come.
+
+The state keeps the window's estimates, the prior on its first state, and
+the rows (data and square-root information) of the factors of the window
+and of the state about to leave it. Each update builds the window's chain
+over those `lag + 1` slots and runs the same step as
+[`eqsmooth.filters.fixed_lag_smoother`][], so a run of updates gives the
+same estimates as the scan.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int, PyTree
+
+from ..factors import AbstractFactor, per_row_fields
+from ..manifold import tangent_dim
+from ..solve import (
+    AbstractAdjoint,
+    AbstractGraphSolver,
+    FixedStepGaussNewton,
+    UnrolledAdjoint,
+)
+from ._ekf import _row_dim, checked_covariance
+from ._fixed_lag import _initial_prior, _Model, _step
+from ._rows import check_gaussian, check_rows, row_whitening
+
+
+class FixedLagState(eqx.Module):
+    """The state of a [`eqsmooth.filters.FixedLagSmoother`][].
+
+    **Fields:**
+
+    - `t`: the time of the newest state.
+    - `window`: the window's estimates, leading axis `lag`; slot `i` holds
+        the state of time `window_start + i` (slots past `t` are unused
+        before the window fills).
+    - `window_start`: the time of the window's first slot.
+    - `prior`: the Gaussian prior on the window's first state (anchor,
+        square-root information, offset), as the scan keeps it.
+    - `rows`: the factor rows of the last `lag + 1` time steps.
+    """
+
+    t: Int[Array, ""]
+    window: PyTree
+    window_start: Int[Array, ""]
+    prior: tuple
+    rows: tuple
+
+
+def _step_rows(transition, measurements, mean0, dtype):
+    """One time step's rows: (transition rows, R), then per stack (rows, R)."""
+    d = tangent_dim(mean0)
+    trans_R, _ = row_whitening(transition, d, dtype)
+    out = [(per_row_fields(transition), trans_R)]
+    for f in measurements:
+        R, _ = row_whitening(f, _row_dim(f, per_row_fields(f), mean0), dtype)
+        out.append((per_row_fields(f), R))
+    return tuple(out)
+
+
+def _write(buffers, new, slot, shift):
+    """Shift every buffer by one time step (when `shift`) and write `new` at
+    time `slot` (a buffer holds `k` rows per time step)."""
+
+    def one(buf, rows):
+        k = rows.shape[0]
+        moved = jnp.where(shift, jnp.roll(buf, -k, axis=0), buf)
+        return jax.lax.dynamic_update_slice_in_dim(moved, rows, slot * k, axis=0)
+
+    return jax.tree_util.tree_map(one, buffers, new)
+
+
+def _check_step(who, transition, measurements, group: str | None):
+    """The step's factor stacks: a one-row transition and measurement stacks
+    touching one state, all of one group, with Gaussian noise."""
+    if not isinstance(transition, AbstractFactor):
+        raise TypeError(
+            f"{who}: transition must be an AbstractFactor, got "
+            f"{type(transition).__name__}"
+        )
+    if isinstance(measurements, AbstractFactor):
+        measurements = (measurements,)
+    measurements = tuple(measurements)
+    if not measurements:
+        raise ValueError(f"{who}: give at least one measurement stack")
+    name = type(transition).__name__
+    if len(transition.variables) != 2 or transition.num_rows != 1:
+        raise ValueError(
+            f"{who}: the transition {name} must be one row linking two states "
+            f"(x_t, x_t+1); it has {transition.num_rows} rows on "
+            f"{len(transition.variables)} variables"
+        )
+    group = group or transition.variables[0].group
+    for f in (transition, *measurements):
+        if not isinstance(f, AbstractFactor):
+            raise TypeError(
+                f"{who}: measurements must be AbstractFactor stacks, got "
+                f"{type(f).__name__}"
+            )
+        if f is not transition and len(f.variables) != 1:
+            raise ValueError(
+                f"{who}: measurement factor {type(f).__name__} must touch one "
+                f"variable (x_t); it touches {len(f.variables)}"
+            )
+        if any(v.group != group for v in f.variables):
+            raise ValueError(
+                f"{who}: factor {type(f).__name__} touches group "
+                f"{[v.group for v in f.variables]}, not the chain's {group!r}"
+            )
+        check_rows(f)
+        check_gaussian(f.noise, f"{who}: factor {type(f).__name__}")
+    return transition, measurements, group
+
+
+def _finite(rows, t, who):
+    """Stop on a non-finite value in the new rows (traced data: a runtime
+    error naming the step, instead of NaN estimates)."""
+    bad = jnp.array(False)
+    for leaf in jax.tree_util.tree_leaves(rows):
+        if eqx.is_inexact_array(leaf):
+            bad = bad | ~jnp.all(jnp.isfinite(leaf))
+    return eqx.error_if(
+        t, bad, f"{who}: non-finite factor data or noise in this step's rows"
+    )
+
+
+class FixedLagSmoother(eqx.Module):
+    """The fixed-lag smoother as `init` and `update`, one new state at a
+    time (what a robot calls as measurements arrive).
+
+    Each step takes the new state's factors: a one-row `transition` linking
+    the previous state to the new one, and measurement stacks touching the
+    new state, with the same structure every step (the number of rows per
+    stack fixed; mask a missing one with [`eqsmooth.factors.MaskedNoise`][]).
+    The factors' variable indices are not read (build them with fixed ids,
+    e.g. `Var("x", [0])` and `Var("x", [1])`, so that every step is the same
+    compiled program); only their group, data and noise are. A run of
+    updates gives the estimates of [`eqsmooth.filters.fixed_lag_smoother`][]
+    on the same factors (tested to 1e-10), and every update is a pure
+    function: `jax.jit`, `jax.grad` through a sequence of updates, and
+    `jax.vmap` over robots apply. Loop closures are not taken here (use
+    the scan's `closures`).
+
+    **Arguments:**
+
+    - `lag`, `solver`, `adjoint`, `prediction_steps`: as for
+        [`eqsmooth.filters.fixed_lag_smoother`][].
+    """
+
+    lag: int = eqx.field(static=True)
+    solver: AbstractGraphSolver = FixedStepGaussNewton(num_steps=3)
+    adjoint: AbstractAdjoint = UnrolledAdjoint()
+    prediction_steps: int = eqx.field(static=True, default=1)
+
+    def __check_init__(self):
+        lag = self.lag
+        if isinstance(lag, bool) or not isinstance(lag, int) or lag < 1:
+            raise ValueError(f"FixedLagSmoother: lag must be an int >= 1, got {lag!r}")
+
+    def init(
+        self,
+        initial_mean: PyTree,
+        initial_covariance: Float[ArrayLike, "d d"],
+        transition: AbstractFactor,
+        measurements: AbstractFactor | tuple[AbstractFactor, ...],
+    ) -> tuple[FixedLagState, PyTree]:
+        """The state after the first time step.
+
+        **Arguments:**
+
+        - `initial_mean`, `initial_covariance`: the Gaussian belief on `x_0`.
+        - `transition`: a one-row transition of the kind every update will
+            give (its data is not used: `x_0` has no predecessor).
+        - `measurements`: the measurement stacks of `x_0`.
+
+        **Returns:** `(state, estimate of x_0)`.
+        """
+        who = "FixedLagSmoother.init"
+        transition, measurements, _ = _check_step(who, transition, measurements, None)
+        d = tangent_dim(initial_mean)
+        cov0 = checked_covariance(who, initial_covariance, d)
+        step = _step_rows(transition, measurements, initial_mean, cov0.dtype)
+        n = self.lag + 1  # time steps kept: the window and the state leaving it
+        rows = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * n, axis=0), step)
+        window = jax.tree_util.tree_map(
+            lambda a: jnp.broadcast_to(a, (self.lag, *jnp.shape(a))), initial_mean
+        )
+        state = FixedLagState(
+            jnp.array(-1),
+            window,
+            jnp.array(0),
+            _initial_prior(1, initial_mean, cov0),
+            rows,
+        )
+        return self._advance(state, transition, measurements, step, who)
+
+    def update(
+        self,
+        state: FixedLagState,
+        transition: AbstractFactor,
+        measurements: AbstractFactor | tuple[AbstractFactor, ...],
+    ) -> tuple[FixedLagState, PyTree]:
+        """Add the next state: its transition from the newest state and its
+        measurements; solve the window.
+
+        **Returns:** `(state, estimate of the new state given everything so
+        far)`; `state.window` holds the whole window's estimates.
+        """
+        who = "FixedLagSmoother.update"
+        if not isinstance(state, FixedLagState):
+            raise TypeError(
+                f"{who}: state must be a FixedLagState, got {type(state).__name__}"
+            )
+        transition, measurements, _ = _check_step(who, transition, measurements, None)
+        mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
+        step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
+        if jax.tree_util.tree_structure(step) != jax.tree_util.tree_structure(
+            state.rows
+        ) or any(
+            a.shape[1:] != b.shape[1:] or b.shape[0] % a.shape[0]
+            for a, b in zip(
+                jax.tree_util.tree_leaves(step), jax.tree_util.tree_leaves(state.rows)
+            )
+        ):
+            raise ValueError(
+                f"{who}: this step's factors differ in kind or row count from "
+                "those the state was built with (init); every step must have the "
+                "same structure"
+            )
+        return self._advance(state, transition, measurements, step, who)
+
+    def _advance(self, state, transition, measurements, step, who):
+        lag = self.lag
+        t = _finite(step, state.t + 1, who)
+        vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
+        rows = _write(state.rows, step, vt, t > lag)
+        (trans_rows, trans_R), *meas = rows
+        k = [R.shape[0] // (lag + 1) for _, R in meas]
+        # Kept step v holds the transition into v; the model's row v is the
+        # transition v -> v + 1.
+        model = _Model(
+            transition,
+            jax.tree_util.tree_map(lambda a: a[1:], trans_rows),
+            trans_R[1:],
+            measurements,
+            tuple(r for r, _ in meas),
+            tuple(R for _, R in meas),
+            tuple(np.arange((lag + 1) * kj).reshape(lag + 1, kj) for kj in k),
+            tuple(np.ones((lag + 1, kj), bool) for kj in k),
+            (),
+            transition.variables[0].group,
+            lag + 1,
+            1,
+        )
+        carry, (window, start, prior) = _step(
+            model,
+            lag,
+            self.solver,
+            self.adjoint,
+            self.prediction_steps,
+            (state.window, state.prior),
+            vt,
+        )
+        newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
+        new = FixedLagState(t, window, t - vt + start, prior, rows)
+        return new, newest
