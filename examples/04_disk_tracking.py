@@ -26,7 +26,7 @@ import json
 from pathlib import Path
 
 from eqsmooth.experiments._cli import experiment_parser
-from eqsmooth.experiments.disk_tracking import fresh, protocol, report, train
+from eqsmooth.experiments.disk_tracking import fresh, online, protocol, report, train
 
 
 _INT = ("sequences_per_fold", "sensor_steps", "sensor_batch", "fg_steps", "fg_batch")
@@ -158,6 +158,9 @@ def main(argv=None):
         report.update_docs(a.docs, table)
     if (a.out / "fresh").is_dir():
         table += "\n" + fresh.summarise(a.out)[1]
+        (a.out / "summary.md").write_text(table)
+    if any(m.startswith("online_") for m in cfg.methods):
+        table += "\n" + online.summarise(a.out)[1]
         (a.out / "summary.md").write_text(table)
     print("\n" + table + f"\nresults in {a.out}")
 

@@ -546,3 +546,37 @@ def test_online_methods_run_the_fixed_lag_smoother():
         model, batch["meas"][0], batch["counts"][0], batch["truth"][0], 2
     )
     assert np.isfinite(float(loss))
+
+
+def test_online_summary_pairs_folds(tmp_path):
+    import json
+
+    from eqsmooth.experiments.disk_tracking import online
+
+    rmse = {  # per fold: EKF, batch smoother, lag 1, lag 10
+        0: (3.0, 1.9, 3.1, 2.5),
+        1: (3.2, 2.0, 3.1, 2.6),
+    }
+    for k, (e, s, l1, l10) in rmse.items():
+        rec = lambda v, ms: dict(test_rmse=v, latency_ms_per_step=ms, seconds=60.0)  # noqa: E731
+        records = dict(
+            ekf_hetero_mse=rec(e, 0.1),
+            smoother_hetero_surrogate=rec(s, 0.4),
+            online_hetero_lag1=rec(l1, 0.2),
+            online_hetero_lag10=rec(l10, 2.0),
+        )
+        fold = dict(fold=k, quick=False, git_hash="abc", records=records)
+        (tmp_path / f"fold_{k}.json").write_text(json.dumps(fold))
+    record, table = online.summarise(tmp_path)
+    d = record["paired"]["online_hetero_lag10 - ekf_hetero_mse"]
+    np.testing.assert_allclose(d["folds"], [-0.5, -0.6])
+    assert d["better_folds"] == 2
+    d = record["paired"]["online_hetero_lag1 - ekf_hetero_mse"]
+    assert d["better_folds"] == 1
+    assert record["rows"]["online_hetero_lag10"]["latency_ms_per_step"] == 2.0
+    assert "lag 10, online" in table and (tmp_path / "online.json").exists()
+    # lag order: 1 before 10 (not string order)
+    keys = list(record["paired"])
+    assert keys.index("online_hetero_lag1 - ekf_hetero_mse") < keys.index(
+        "online_hetero_lag10 - ekf_hetero_mse"
+    )

@@ -1,0 +1,98 @@
+"""The online rows (issue 38): fixed-lag smoothers beside the EKF and the
+batch smoother on the same folds, sensors and test sets, with latency.
+
+Run by the protocol with `--methods ... online_hetero_lag<L> ...
+--sensor-from results/disk` (the committed sensors, so the rows share the
+sensor of the ten-fold table). `summarise` pools the folds of such a run:
+test RMSE (mean ± sample std/√n over folds), inference latency (one
+sequence, compiled, ms per frame; median over folds), training minutes, and
+paired differences per fold.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+import eqsmooth as eqs
+
+from . import report
+
+
+FILTER, BATCH = "ekf_hetero_mse", "smoother_hetero_surrogate"
+
+
+def _online_methods(folds: list[dict]) -> list[str]:
+    names = {m for f in folds for m in f["records"] if m.startswith("online_")}
+    return sorted(names, key=lambda m: int(m.rsplit("lag", 1)[1]))
+
+
+def summarise(out: Path) -> tuple[dict, str]:
+    """`online.json` and its markdown table from every `fold_K.json` under
+    `out` (a run with online methods)."""
+    folds = report.load_folds(out)
+    online = _online_methods(folds)
+    if not folds or not online:
+        raise FileNotFoundError(f"no fold_K.json with online methods under {out}")
+    methods = [
+        m
+        for m in report.LABELS
+        if m != "virtual_sensor" and all(m in f["records"] for f in folds)
+    ]
+    rows, lines = {}, []
+    for m in methods:
+        recs = [f["records"][m] for f in folds]
+        s = report.mean_se([r["test_rmse"] for r in recs])
+        lat = [r["latency_ms_per_step"] for r in recs if "latency_ms_per_step" in r]
+        rows[m] = dict(
+            test_rmse=s,
+            latency_ms_per_step=float(np.median(lat)) if lat else None,
+            train_minutes=float(np.median([r["seconds"] for r in recs]) / 60),
+        )
+        se = "" if s["stderr"] is None else f" ± {s['stderr']:.3f}"
+        latency = "—" if not lat else f"{np.median(lat):.3f}"
+        lines.append(
+            f"| {report.LABELS[m]} | {s['mean']:.3f}{se} | {latency} | "
+            f"{rows[m]['train_minutes']:.1f} |"
+        )
+    paired, plines = {}, []
+    pairs = [(m, FILTER) for m in online] + [(BATCH, m) for m in online]
+    for a, b in pairs:
+        if a not in rows or b not in rows:
+            continue
+        d = np.array(rows[a]["test_rmse"]["folds"]) - np.array(
+            rows[b]["test_rmse"]["folds"]
+        )
+        s = report.mean_se(d)
+        s["better_folds"] = int(np.sum(d < 0))
+        paired[f"{a} - {b}"] = s
+        se = "" if s["stderr"] is None else f" ± {s['stderr']:.3f}"
+        plines.append(
+            f"| {report.LABELS[a]} − {report.LABELS[b]} | {s['mean']:+.3f}{se} | "
+            f"{s['better_folds']}/{len(d)} |"
+        )
+    record = dict(
+        benchmark="disk_tracking_online",
+        folds=[f["fold"] for f in folds],
+        git_hashes=sorted({f["git_hash"] for f in folds}),
+        rows=rows,
+        paired=paired,
+    )
+    table = (
+        f"Online rows: test folds {record['folds']}, the committed sensors, "
+        "checkpoints selected on validation; per-coordinate test RMSE in pixels "
+        "(mean ± sample std/√n over folds), inference latency of one sequence "
+        "after compilation in ms per frame (sensor outputs cached; median over "
+        "folds), training minutes (median). The EKF and the fixed-lag smoothers "
+        "answer at each frame; the batch smoother only after the whole "
+        "sequence.\n\n"
+        "| method | test RMSE | ms per frame | training min |\n|---|---|---|---|\n"
+        + "\n".join(lines)
+        + "\n\nPaired over folds (negative: the first is better):\n\n"
+        "| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
+        + "\n".join(plines)
+        + "\n"
+    )
+    text = json.dumps(record, indent=1)
+    eqs.learn.atomic_write(out / "online.json", lambda f: f.write(text.encode()))
+    return record, table
