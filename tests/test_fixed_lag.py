@@ -131,6 +131,29 @@ def test_hostile_input():
         run(trans, (bad, meas[1]), m0, p0, lag=2)
 
 
+def test_max_steps_reaches_the_window_solves():
+    # A converging solver stopped after one iteration fails its window solve
+    # (the limit is passed through, not least_squares' default of 100).
+    trans, meas, truth = _se2_problem(1.0, 1.0)
+    mean0, cov0 = _se2_initial(truth)
+
+    @eqx.filter_jit
+    def run(max_steps):
+        return eqs.filters.fixed_lag_smoother(
+            trans,
+            meas,
+            mean0,
+            cov0,
+            lag=3,
+            solver=eqs.GaussNewton(),
+            adjoint=_UNROLLED,
+            max_steps=max_steps,
+        ).mean
+
+    with raises(eqx.EquinoxRuntimeError, "maximum number of steps"):
+        run(1)
+
+
 def test_vmap_over_sequences():
     trans, (meas1, meas2), _ = _linear_problem()
     m0, p0 = jnp.asarray(M0), jnp.asarray(P0)

@@ -383,7 +383,7 @@ def _window_graph(model: _Model, values, prior, start, t, lag: int):
     return FactorGraph(stacks)
 
 
-def _step(model, lag, solver, adjoint, prediction_steps, carry, t):
+def _step(model, lag, solver, adjoint, prediction_steps, carry, t, max_steps=100):
     values, prior = carry
     last = jnp.minimum(t - 1, lag - 1)
     x_prev = jax.tree_util.tree_map(lambda a: a[jnp.maximum(last, 0)], values)
@@ -409,7 +409,9 @@ def _step(model, lag, solver, adjoint, prediction_steps, carry, t):
     values, prior = lax.cond(t >= lag, slide, grow)
     start = jnp.maximum(t - lag + 1, 0)
     graph = _window_graph(model, values, prior, start, t, lag)
-    sol = least_squares(graph, {model.group: values}, solver, adjoint=adjoint)
+    sol = least_squares(
+        graph, {model.group: values}, solver, adjoint=adjoint, max_steps=max_steps
+    )
     values = sol.value[model.group]
     return (values, prior), (values, start, prior)
 
@@ -425,6 +427,7 @@ def fixed_lag_smoother(
     solver: AbstractGraphSolver = FixedStepGaussNewton(num_steps=3),
     adjoint: AbstractAdjoint = UnrolledAdjoint(),
     prediction_steps: int = 1,
+    max_steps: int = 100,
 ) -> FixedLagSolution:
     """Fixed-lag smoothing of a chain `x_0 → … → x_{T−1}`, one step at a time.
 
@@ -468,6 +471,12 @@ def fixed_lag_smoother(
         `ImplicitAdjoint()` needs a converging `solver`.
     - `prediction_steps`: Newton steps that predict a new state from the
         transition.
+    - `max_steps`: the iteration limit of each window solve (a converging
+        `solver`; `FixedStepGaussNewton` runs its `num_steps`). Under
+        `UnrolledAdjoint` every window runs all `max_steps` iterations
+        (masked once converged): a warm-started window converges in a few,
+        so keep it small there (a 50-state chain solve: 1.7 ms with 100,
+        0.21 ms with 5).
 
     **Returns:** a [`eqsmooth.filters.FixedLagSolution`][].
     """
@@ -505,7 +514,7 @@ def fixed_lag_smoother(
     )
 
     def step(carry, t):
-        return _step(model, lag, solver, adjoint, prediction_steps, carry, t)
+        return _step(model, lag, solver, adjoint, prediction_steps, carry, t, max_steps)
 
     _, (windows, start, priors) = lax.scan(step, (values, prior), jnp.arange(T))
     return _solution(windows, start, priors, lag, T)

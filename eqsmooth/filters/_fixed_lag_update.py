@@ -146,7 +146,7 @@ class FixedLagSmoother(eqx.Module):
 
     **Arguments:**
 
-    - `lag`, `solver`, `adjoint`, `prediction_steps`: as for
+    - `lag`, `solver`, `adjoint`, `prediction_steps`, `max_steps`: as for
         [`eqsmooth.filters.fixed_lag_smoother`][].
     """
 
@@ -154,6 +154,7 @@ class FixedLagSmoother(eqx.Module):
     solver: AbstractGraphSolver = FixedStepGaussNewton(num_steps=3)
     adjoint: AbstractAdjoint = UnrolledAdjoint()
     prediction_steps: int = eqx.field(static=True, default=1)
+    max_steps: int = eqx.field(static=True, default=100)
 
     def __check_init__(self):
         lag = self.lag
@@ -263,6 +264,7 @@ class FixedLagSmoother(eqx.Module):
             self.prediction_steps,
             (state.window, state.prior),
             vt,
+            self.max_steps,
         )
         newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
         new = FixedLagState(t, window, t - vt + start, prior, rows)
