@@ -542,6 +542,12 @@ def test_online_methods_run_the_fixed_lag_smoother():
         assert online.shape == (4, 8, 2) and np.isfinite(online).all()
         np.testing.assert_allclose(online[:, 0], truth[:, 0, :2], atol=0.1)
         assert np.abs(online - ekf).max() < 0.5
+        lagged = np.asarray(T.lagged_positions(model, batch, lag))
+        if lag == 1:  # a one-state window: the delayed estimate is the online one
+            np.testing.assert_allclose(lagged, online, atol=1e-5)
+        else:  # the newest frame's delayed estimate is the last window's
+            np.testing.assert_allclose(lagged[:, -1], online[:, -1], atol=1e-5)
+            assert np.abs(lagged[:, :-1] - online[:, :-1]).max() > 1e-3
     loss = T.online_mse_one(
         model, batch["meas"][0], batch["counts"][0], batch["truth"][0], 2
     )

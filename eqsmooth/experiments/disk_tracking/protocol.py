@@ -209,6 +209,14 @@ def run_fold(
         records[method]["latency_ms_per_step"] = latency_ms_per_step(
             cfg, method, res.best_model, test
         )
+        if method.startswith("online_"):  # the same run's delayed estimates
+            lag = T.online_lag(method)
+            lagged = T.predict_split(
+                lambda m, b: T.lagged_positions(m, b, lag),
+                res.best_model,
+                test.sequences(cfg.dtype),
+            )
+            records[method]["lagged_test_rmse"] = T.rmse(lagged, truth)
         if outcomes is not None:
             records[method]["test_solves"] = {
                 name: int(np.sum(outcomes == i))

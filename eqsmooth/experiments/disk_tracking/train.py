@@ -704,15 +704,24 @@ def online_mse_one(model, meas, counts, truth, lag: int):
 
 @eqx.filter_jit
 def _online_batch(model, meas, counts, x0, lag: int):
-    return jax.vmap(lambda m, c, x: online_one(model, m, c, x, lag).mean)(
-        meas, counts, x0
-    )
+    def one(m, c, x):
+        sol = online_one(model, m, c, x, lag)
+        return sol.mean, sol.lagged_mean
+
+    return jax.vmap(one)(meas, counts, x0)
 
 
 def online_positions(model, batch, lag: int):
     """Online fixed-lag estimates `(B, T, 2)` from the true first state."""
     x0 = batch["truth"][:, 0]
-    return _online_batch(model, batch["meas"], batch["counts"], x0, lag)[..., :2]
+    return _online_batch(model, batch["meas"], batch["counts"], x0, lag)[0][..., :2]
+
+
+def lagged_positions(model, batch, lag: int):
+    """The fixed-lag smoother's estimates of each frame when it leaves the
+    window, `lag - 1` frames later: `x_t | 0:t+lag-1`, `(B, T, 2)`."""
+    x0 = batch["truth"][:, 0]
+    return _online_batch(model, batch["meas"], batch["counts"], x0, lag)[1][..., :2]
 
 
 def online_lag(method: str) -> int:
