@@ -192,7 +192,7 @@ def _linear_links(pairs):
     return link, [(ai, bi, P, cov, zi) for ai, bi, zi in zip(a, b, z)]
 
 
-def _numpy_posterior_means(updates, links, upto):
+def _numpy_posterior_means(updates, links, upto, p0=P0):
     """The exact posterior mean of x_0..x_upto given every factor on those
     states (dense information form)."""
     n = 2 * (upto + 1)
@@ -204,7 +204,7 @@ def _numpy_posterior_means(updates, links, upto):
         H[np.ix_(idx, idx)] += J.T @ W @ J
         g[idx] -= J.T @ W @ r0
 
-    add([0], np.eye(2), -M0, P0)
+    add([0], np.eye(2), -M0, p0)
     for k in range(upto):
         add([k, k + 1], np.hstack([-F_MAT, np.eye(2)]), np.zeros(2), Q_COV)
     for k in range(upto + 1):
@@ -217,20 +217,28 @@ def _numpy_posterior_means(updates, links, upto):
 
 
 @pytest.mark.parametrize(
-    "lag, pairs", [(3, [(0, 2), (2, 4), (5, 3)]), (4, [(0, 2), (1, 4), (5, 3)])]
+    "lag, pairs, p0_scale",
+    [
+        (3, [(0, 2), (2, 4), (5, 3)], 1.0),
+        (4, [(0, 2), (1, 4), (5, 3)], 1.0),
+        # x_0 nearly known: the information floor of the states the prior
+        # spans must not scale with it (it would pin x_1 to x_0's mean)
+        (3, [(0, 2), (2, 4), (5, 3)], 1e-10),
+    ],
 )
-def test_closures_marginalise_exactly_on_a_linear_chain(lag, pairs):
+def test_closures_marginalise_exactly_on_a_linear_chain(lag, pairs, p0_scale):
     trans, meas, updates = _linear_problem()
     link, links = _linear_links(pairs)
+    p0 = p0_scale * P0
     sol = eqs.filters.fixed_lag_smoother(
-        trans, meas, jnp.asarray(M0), jnp.asarray(P0), lag=lag, closures=link
+        trans, meas, jnp.asarray(M0), jnp.asarray(p0), lag=lag, closures=link
     )
     for t in range(T):
-        exact = _numpy_posterior_means(updates, links, t)
+        exact = _numpy_posterior_means(updates, links, t, p0)
         # online: x_t given everything up to t; lagged: x_t when it leaves
         np.testing.assert_allclose(sol.mean[t], exact[t], rtol=0, atol=1e-6)
         end = min(t + lag - 1, T - 1)
-        lagged = _numpy_posterior_means(updates, links, end)[t]
+        lagged = _numpy_posterior_means(updates, links, end, p0)[t]
         np.testing.assert_allclose(sol.lagged_mean[t], lagged, rtol=0, atol=1e-6)
 
 
@@ -334,8 +342,11 @@ def test_closures_hostile_input():
     ):
         run(trans, meas, m0, p0, lag=3, closures=link)
     same, _ = _linear_links([(2, 2)])
-    with raises(ValueError, "row 0 links times 2 and 2"):
+    with raises(ValueError, "row 0 links times 2 and 2", "two different states"):
         run(trans, meas, m0, p0, lag=3, closures=same)
+    late, _ = _linear_links([(4, 6)])
+    with raises(ValueError, "times 4 and 6", "only T = 6 states"):
+        run(trans, meas, m0, p0, lag=3, closures=late)
     other = eqx.tree_at(
         lambda f: f.variables, link, (eqs.Var("y", [0, 1]), eqs.Var("x", [2, 3]))
     )
@@ -350,10 +361,23 @@ def test_closures_hostile_input():
 
 
 def _se2_steps(meas_scale):
-    """The SE(2) problem's factors split into per-step stacks with fixed ids."""
+    """The SE(2) problem's factors split into per-step stacks with fixed ids;
+    the transition's noise differs per step (so that a transition row read
+    at the wrong step changes the answer)."""
     trans, meas, truth = _se2_problem(meas_scale, 1.0)
+    per_step = (1.0 + 0.3 * jnp.arange(T - 1.0))[:, None] * trans.noise.sqrt_precision[
+        None
+    ]
+    trans = eqx.tree_at(
+        lambda f: f.noise, trans, eqs.DiagonalNoise(sqrt_precision=per_step)
+    )
     one = (eqs.Var("s", [0]), eqs.Var("s", [1]))
-    step_trans = eqs.FunctionFactor(_se2_trans, one, trans.noise)
+    step_trans = [
+        eqs.FunctionFactor(
+            _se2_trans, one, eqs.DiagonalNoise(sqrt_precision=per_step[t : t + 1])
+        )
+        for t in range(T - 1)
+    ]
     step_meas = [
         eqs.FunctionFactor(
             _se2_meas,
@@ -367,12 +391,12 @@ def _se2_steps(meas_scale):
 
 
 def _updates(smoother, step_trans, step_meas, mean0, cov0):
-    state, first = smoother.init(mean0, cov0, step_trans, step_meas[0])
+    state, first = smoother.init(mean0, cov0, step_trans[0], step_meas[0])
     update = eqx.filter_jit(smoother.update)
     out = [first]
     starts = [int(state.window_start)]
     for t in range(1, T):
-        state, x = update(state, step_trans, step_meas[t])
+        state, x = update(state, step_trans[t - 1], step_meas[t])
         out.append(x)
         starts.append(int(state.window_start))
     stack = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *out)
@@ -418,16 +442,29 @@ def test_updates_hostile_input():
     with raises(ValueError, "lag must be an int >= 1", "0"):
         eqs.filters.FixedLagSmoother(lag=0)
     smoother = eqs.filters.FixedLagSmoother(lag=2)
+    trans0 = step_trans[0]
     with raises(ValueError, "FixedLagSmoother.init", "at least one measurement"):
-        smoother.init(mean0, cov0, step_trans, ())
+        smoother.init(mean0, cov0, trans0, ())
     with raises(ValueError, "the transition FunctionFactor must be one row", "2 rows"):
         two = eqs.FunctionFactor(
-            _se2_trans, (eqs.Var("s", [0, 1]), eqs.Var("s", [1, 2])), step_trans.noise
+            _se2_trans,
+            (eqs.Var("s", [0, 1]), eqs.Var("s", [1, 2])),
+            meas.noise.__class__(sqrt_precision=jnp.asarray(1.0)),
         )
         smoother.init(mean0, cov0, two, step_meas[0])
-    state, _ = smoother.init(mean0, cov0, step_trans, step_meas[0])
+    state, _ = smoother.init(mean0, cov0, trans0, step_meas[0])
     with raises(ValueError, "differ in kind or row count"):
-        smoother.update(state, step_trans, (step_meas[1], step_meas[2]))
+        smoother.update(state, trans0, (step_meas[1], step_meas[2]))
+    # two rows where the state holds one per step (the buffer length is a
+    # multiple of two: a divisibility check would let it through)
+    rows2 = eqs.FunctionFactor(
+        _se2_meas,
+        (eqs.Var("s", [0, 0]),),
+        eqs.IsotropicNoise(sqrt_precision=jnp.ones(2)),
+        data=jnp.zeros((2, 2)),
+    )
+    with raises(ValueError, "differ in kind or row count"):
+        smoother.update(state, trans0, rows2)
     bad = eqx.tree_at(lambda f: f.data, step_meas[1], step_meas[1].data * jnp.nan)
     with raises(eqx.EquinoxRuntimeError, "non-finite factor data"):
-        smoother.update(state, step_trans, bad)
+        smoother.update(state, trans0, bad)

@@ -279,13 +279,16 @@ def _marginal_residuals(model: _Model, prior, xs, tau):
     return residuals, (S + 1) * d
 
 
-def _jitter(H):
-    """A relative floor on a prior's information (slots a link may reach but
-    no factor has yet informed keep a factorisable prior)."""
-    n = H.shape[0]
-    return (
-        jnp.sqrt(jnp.finfo(H.dtype).eps) * jnp.trace(H) / n * jnp.eye(n, dtype=H.dtype)
-    )
+def _floor(model: _Model, tau) -> Float[Array, " Sd"]:
+    """A floor on the information of each of the prior's `S` slots: `√ε`
+    times the diagonal of the transition `tau -> tau+1`'s information, per
+    tangent coordinate. Slots a link may reach but no factor has informed
+    yet then keep a factorisable prior; the floor is scaled by the process
+    noise, not by the belief on `x_0` (a tight initial covariance must not
+    pin the later states)."""
+    R = model.trans_R[jnp.clip(tau, 0, model.T - 2)]
+    info = jnp.sum(R * R, axis=0)
+    return jnp.sqrt(jnp.finfo(R.dtype).eps) * jnp.tile(info, model.S)
 
 
 def _marginalise(model: _Model, prior, xs, tau):
@@ -302,7 +305,7 @@ def _marginalise(model: _Model, prior, xs, tau):
     S = H11 - H01.T @ K[:, :-1]
     S = 0.5 * (S + S.T)
     if model.S > 1:
-        S = S + _jitter(S)
+        S = S + jnp.diag(_floor(model, tau + 1))
     g = b[d:] - H01.T @ K[:, -1]
     L = jnp.linalg.cholesky(S)
     c = jax.scipy.linalg.solve_triangular(L, g, lower=True)
@@ -460,8 +463,9 @@ def fixed_lag_smoother(
         most `lag − 1` steps apart (loop closures, skip links). A row enters
         the window with its later state and is marginalised with its
         earlier one, so the prior then spans the states up to the longest
-        link ahead (a dense Gaussian on those `S` states, with a relative
-        information floor of `√ε` on states no factor has yet informed).
+        link ahead (a dense Gaussian on those `S` states, every state with
+        an information floor of `√ε` times the transition's information,
+        so that states no factor has informed yet keep it factorisable).
     - `solver`: the window's solver: by default
         [`eqsmooth.solve.FixedStepGaussNewton`][] (a fixed number of steps
         per update, so every update costs the same); a converging solver
@@ -508,7 +512,7 @@ def fixed_lag_smoother(
     cov0 = checked_covariance("fixed_lag_smoother", initial_covariance, d)
     dtype = cov0.dtype
     model = _model(transition, measurements, closures, initial_mean, dtype)
-    prior = _initial_prior(model.S, initial_mean, cov0)
+    prior = _initial_prior(model.S, initial_mean, cov0, _floor(model, 0))
     values = jax.tree_util.tree_map(
         lambda a: jnp.broadcast_to(a, (lag, *jnp.shape(a))), initial_mean
     )
@@ -520,16 +524,15 @@ def fixed_lag_smoother(
     return _solution(windows, start, priors, lag, T)
 
 
-def _initial_prior(S: int, mean0, cov0):
+def _initial_prior(S: int, mean0, cov0, floor=None):
     """The belief on `x_0` as a prior on the window's first `S` slots (the
-    others at the information floor)."""
+    others at the information `floor`, a vector over the `S` slots)."""
     d = cov0.shape[0]
     L0 = jnp.linalg.cholesky(cov0)
     R0 = jax.scipy.linalg.solve_triangular(L0, jnp.eye(d, dtype=cov0.dtype), lower=True)
     R = jnp.zeros((S * d, S * d), cov0.dtype).at[:d, :d].set(R0)
     if S > 1:
-        floor = jnp.sqrt(jnp.diag(_jitter(R0.T @ R0)))[0]
-        R = R.at[d:, d:].set(floor * jnp.eye((S - 1) * d, dtype=cov0.dtype))
+        R = R.at[d:, d:].set(jnp.diag(jnp.sqrt(floor[d:])))
     anchor = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (S, *a.shape)), mean0)
     return anchor, R, jnp.zeros((S * d,), cov0.dtype)
 
@@ -558,16 +561,22 @@ def _checked_closures(transition, closures, lag: int) -> tuple[AbstractFactor, .
         if ia.size == 0:
             raise ValueError(f"fixed_lag_smoother: closure factor {name} has no rows")
         span = np.abs(ib - ia)
-        bad = np.flatnonzero((span == 0) | (span >= lag) | (np.maximum(ia, ib) >= T))
-        if bad.size:
-            k = int(bad[0])
-            raise ValueError(
-                f"fixed_lag_smoother: closure factor {name} row {k} links times "
-                f"{int(ia[k])} and {int(ib[k])}: a link must join two different "
-                f"states at most lag - 1 = {lag - 1} steps apart (it would reach "
-                f"outside the window of {lag} states) and below T = {T} "
-                f"({bad.size} such rows)"
-            )
+        for bad, why in (
+            (span == 0, "a link must join two different states"),
+            (
+                span >= lag,
+                f"a link must join states at most lag - 1 = {lag - 1} steps "
+                f"apart: it would reach outside the window of {lag} states",
+            ),
+            (np.maximum(ia, ib) >= T, f"the chain has only T = {T} states"),
+        ):
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise ValueError(
+                    f"fixed_lag_smoother: closure factor {name} row {k} links times "
+                    f"{int(ia[k])} and {int(ib[k])}: {why} ({int(bad.sum())} such "
+                    "rows)"
+                )
         check_rows(f)
         check_gaussian(f.noise, f"fixed_lag_smoother: closure factor {name}")
     return closures

@@ -218,10 +218,11 @@ class FixedLagSmoother(eqx.Module):
         transition, measurements, _ = _check_step(who, transition, measurements, None)
         mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
         step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
+        n = self.lag + 1
         if jax.tree_util.tree_structure(step) != jax.tree_util.tree_structure(
             state.rows
         ) or any(
-            a.shape[1:] != b.shape[1:] or b.shape[0] % a.shape[0]
+            a.shape[1:] != b.shape[1:] or b.shape[0] != n * a.shape[0]
             for a, b in zip(
                 jax.tree_util.tree_leaves(step), jax.tree_util.tree_leaves(state.rows)
             )

@@ -134,9 +134,11 @@ def predict(cfg: T.Config, method: str, model, split: T.Split):
 
 
 def latency_ms_per_step(cfg: T.Config, method: str, model, split: T.Split) -> float:
-    """Median wall time of `method`'s inference on one sequence (a batch of
-    one, after compilation), in ms per frame: what an online user waits for
-    (the sensor's outputs are cached, so this is the estimator alone)."""
+    """Median wall time of `method`'s inference on one test sequence after
+    compilation, in ms per frame (the sensor's outputs are cached, so this
+    is the estimator alone). The evaluation pads every batch to its batch
+    shape, so the sequence runs as a batch of 32 copies: a time per frame
+    of 32 sequences in parallel, not the latency of a single one."""
     one = T.Split(
         split.fold.subset(np.arange(1)),
         split.images[:1],
