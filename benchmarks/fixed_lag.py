@@ -16,6 +16,8 @@ over the steps before the first marginalisation).
     python benchmarks/fixed_lag.py --json benchmarks/results/fixed_lag.json
     python benchmarks/fixed_lag.py --closures \
         --json benchmarks/results/fixed_lag_closures.json
+    python benchmarks/fixed_lag.py --first-window-only --lags 4 10 50 \
+        --json benchmarks/results/fixed_lag_first_window.json
 """
 
 import argparse
@@ -187,9 +189,20 @@ def main():
         "--span", type=int, default=8, help="loop-closure span (< every lag)"
     )
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument(
+        "--first-window-only",
+        action="store_true",
+        help="only the GTSAM-error check at the first marginalisation (no timing)",
+    )
     ap.add_argument("--json")
     a = ap.parse_args()
     gtsam = optional("gtsam", " (GTSAM's fixed-lag smoothers)")
+    if a.first_window_only:
+        records = [dict(lag=lag, **first_marginal_window(gtsam, lag)) for lag in a.lags]
+        print(records)
+        if a.json:
+            write_json(a.json, records, dict(command="--first-window-only"))
+        return
     data = problem(a.steps, a.span, a.closures)
     records = []
     for lag in a.lags:
