@@ -251,6 +251,25 @@ def test_out_of_view_factor():
     np.testing.assert_allclose(extra, 0.5 * 2 * k**2 * s / (k**2 + s), rtol=1e-4)
 
 
+def _simulate(rng, n: int, frames: int, spread: float) -> np.ndarray:
+    """`n` disk trajectories `(n, frames, 4)` from the generator's dynamics,
+    started uniformly within `±spread` px."""
+    from eqsmooth.experiments.disk_tracking import data as D
+
+    states = []
+    for _ in range(n):
+        x = np.concatenate([rng.uniform(-spread, spread, 2), rng.normal(0, 3, 2)])
+        seq = []
+        for _ in range(frames):
+            seq.append(x)
+            p, v = D.dynamics_step(
+                x[:2], x[2:], rng.normal(0, 0.1, 2), rng.normal(0, 2, 2)
+            )
+            x = np.concatenate([p, v])
+        states.append(seq)
+    return np.asarray(states, np.float32)
+
+
 def test_out_of_view_smoother_starts_from_the_gaussian_map():
     # Hidden frames report the sensor's "not visible" position (here the image
     # centre). Solved from there in one stage, the hinge pushed some targets
@@ -260,25 +279,14 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
     import jax.numpy as jnp
 
     import eqsmooth as eqs
-    from eqsmooth.experiments.disk_tracking import data as D, models as M, train as T
+    from eqsmooth.experiments.disk_tracking import models as M, train as T
 
     class Gate(eqs.learn.AbstractNoiseHead):
         def __call__(self, features):
             return jnp.where(features[..., 0] > 0, 1.0, 0.01)
 
     rng = np.random.default_rng(0)
-    states = []
-    for _ in range(300):
-        x = np.concatenate([rng.uniform(-60, 60, 2), rng.normal(0, 3, 2)])
-        seq = []
-        for _ in range(20):
-            seq.append(x)
-            p, v = D.dynamics_step(
-                x[:2], x[2:], rng.normal(0, 0.1, 2), rng.normal(0, 2, 2)
-            )
-            x = np.concatenate([p, v])
-        states.append(seq)
-    truth = np.asarray(states, np.float32)
+    truth = _simulate(rng, 300, 20, 60)
     hidden = (np.abs(truth[..., :2]) > M.VIEW_HALF_WIDTH).any(-1)
     noise = rng.normal(0, 1, truth[..., :2].shape)
     meas = np.where(hidden[..., None], 0.0, truth[..., :2] + noise).astype("float32")
@@ -511,25 +519,14 @@ def test_online_methods_run_the_fixed_lag_smoother():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.disk_tracking import data as D, train as T
+    from eqsmooth.experiments.disk_tracking import train as T
 
     assert T.online_lag("online_hetero_lag10") == 10
     with pytest.raises(ValueError, match="not an online method"):
         T.online_lag("online_hetero_nll")
     assert {"online_hetero_lag1", "online_hetero_lag5"} <= set(T.EXTRA_METHODS)
     rng = np.random.default_rng(1)
-    states = []
-    for _ in range(4):
-        x = np.concatenate([rng.uniform(-30, 30, 2), rng.normal(0, 3, 2)])
-        seq = []
-        for _ in range(8):
-            seq.append(x)
-            p, v = D.dynamics_step(
-                x[:2], x[2:], rng.normal(0, 0.1, 2), rng.normal(0, 2, 2)
-            )
-            x = np.concatenate([p, v])
-        states.append(seq)
-    truth = np.asarray(states, np.float32)
+    truth = _simulate(rng, 4, 8, 30)
     meas = (truth[..., :2] + rng.normal(0, 1, truth[..., :2].shape)).astype("float32")
     batch = jax.tree.map(
         jnp.asarray,

@@ -261,6 +261,16 @@ def _se2_closures(truth, pairs):
 _SE2_PAIRS = [(0, 3), (4, 1), (2, 5)]
 
 
+def _se2_links_run(scale, lag, num_steps):
+    """The SE(2) problem with the links `_SE2_PAIRS`, run at `lag`."""
+    trans, meas, truth = _se2_problem(scale, 1.0)
+    links = _se2_closures(truth, _SE2_PAIRS)
+    mean0, cov0 = _se2_initial(truth)
+    solver = eqs.FixedStepGaussNewton(num_steps=num_steps)
+    sol = _run_links(trans, meas, links, mean0, cov0, lag, solver, _UNROLLED)
+    return sol, (trans, meas, links, truth, mean0, cov0)
+
+
 @eqx.filter_jit
 def _run_links(trans, meas, links, mean0, cov0, lag, solver, adjoint):
     return eqs.filters.fixed_lag_smoother(
@@ -276,19 +286,7 @@ def _run_links(trans, meas, links, mean0, cov0, lag, solver, adjoint):
 
 
 def test_closures_lag_T_is_the_batch_smoother():
-    trans, meas, truth = _se2_problem(1.0, 1.0)
-    links = _se2_closures(truth, _SE2_PAIRS)
-    mean0, cov0 = _se2_initial(truth)
-    sol = _run_links(
-        trans,
-        meas,
-        links,
-        mean0,
-        cov0,
-        T,
-        eqs.FixedStepGaussNewton(num_steps=6),
-        _UNROLLED,
-    )
+    sol, (trans, meas, links, _, mean0, cov0) = _se2_links_run(1.0, T, 6)
     prior = eqs.PriorFactor(
         eqs.Var("s", [0]),
         jax.tree_util.tree_map(lambda a: a[None], mean0),
@@ -303,19 +301,7 @@ def test_closures_lag_T_is_the_batch_smoother():
 
 
 def _links_loss(scale, lag=4):
-    trans, meas, truth = _se2_problem(scale, 1.0)
-    links = _se2_closures(truth, _SE2_PAIRS)
-    mean0, cov0 = _se2_initial(truth)
-    sol = _run_links(
-        trans,
-        meas,
-        links,
-        mean0,
-        cov0,
-        lag,
-        eqs.FixedStepGaussNewton(num_steps=4),
-        _UNROLLED,
-    )
+    sol, (*_, truth, _, _) = _se2_links_run(scale, lag, 4)
     err = sol.mean["pose"].translation() - truth["pose"].translation()
     return jnp.sum(err**2) + jnp.sum(sol.prior_covariance)
 

@@ -152,15 +152,13 @@ def summarise(out: Path) -> tuple[dict, str]:
     for a, b in PAIRS:
         if a not in rows or b not in rows:
             continue
-        d = np.array(rows[a]["fresh"]["folds"]) - np.array(rows[b]["fresh"]["folds"])
-        s = report.mean_se(d)
-        s["better_folds"] = int(np.sum(d < 0))
-        paired[f"{a} - {b}"] = s
-        se = "" if s["stderr"] is None else f" ± {s['stderr']:.3f}"
-        plines.append(
-            f"| {report.LABELS[a]} − {report.LABELS[b]} | {s['mean']:+.3f}{se} | "
-            f"{s['better_folds']}/{len(d)} |"
+        paired[f"{a} - {b}"], line = report.paired(
+            report.LABELS[a],
+            report.LABELS[b],
+            rows[a]["fresh"]["folds"],
+            rows[b]["fresh"]["folds"],
         )
+        plines.append(line)
     record = dict(
         benchmark="disk_tracking_fresh",
         fresh_fold=FRESH_FOLD,

@@ -73,16 +73,14 @@ def summarise(out: Path) -> tuple[dict, str]:
     for a, ca, b, cb in pairs:
         if ca not in rows.get(a, {}) or cb not in rows.get(b, {}):
             continue
-        d = np.array(rows[a][ca]["folds"]) - np.array(rows[b][cb]["folds"])
-        s = report.mean_se(d)
-        s["better_folds"] = int(np.sum(d < 0))
         delayed = " (delayed)" if ca == "lagged_test_rmse" else ""
-        paired[f"{a}{delayed} - {b}"] = s
-        se = "" if s["stderr"] is None else f" ± {s['stderr']:.3f}"
-        plines.append(
-            f"| {report.LABELS[a]}{delayed} − {report.LABELS[b]} | "
-            f"{s['mean']:+.3f}{se} | {s['better_folds']}/{len(d)} |"
+        paired[f"{a}{delayed} - {b}"], line = report.paired(
+            report.LABELS[a] + delayed,
+            report.LABELS[b],
+            rows[a][ca]["folds"],
+            rows[b][cb]["folds"],
         )
+        plines.append(line)
     record = dict(
         benchmark="disk_tracking_online",
         folds=[f["fold"] for f in folds],

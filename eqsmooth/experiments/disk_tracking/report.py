@@ -115,6 +115,20 @@ def mean_se(values) -> dict:
     return dict(mean=float(v.mean()), stderr=se, folds=v.tolist())
 
 
+def paired(first: str, second: str, a, b) -> tuple[dict, str]:
+    """Per-fold differences `a − b` of methods labelled `first` and `second`:
+    mean ± standard error, the folds where `first` is lower, and its
+    markdown row."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    s = mean_se(d)
+    s["better_folds"] = int(np.sum(d < 0))
+    se = "" if s["stderr"] is None else f" ± {s['stderr']:.3f}"
+    row = (
+        f"| {first} − {second} | {s['mean']:+.3f}{se} | {s['better_folds']}/{len(d)} |"
+    )
+    return s, row
+
+
 def load_folds(out: Path) -> list[dict]:
     """Every `fold_K.json` under `out`, in fold order."""
     paths = sorted(out.glob("fold_*.json"), key=lambda p: int(p.stem.split("_")[1]))
