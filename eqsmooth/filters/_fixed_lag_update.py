@@ -20,8 +20,8 @@ from ..manifold import tangent_dim
 from ..solve import (
     AbstractAdjoint,
     AbstractGraphSolver,
-    FixedStepGaussNewton,
-    UnrolledAdjoint,
+    ImplicitAdjoint,
+    LevenbergMarquardt,
 )
 from ._ekf import _row_dim, checked_covariance
 from ._fixed_lag import _initial_prior, _Model, _step
@@ -151,8 +151,8 @@ class FixedLagSmoother(eqx.Module):
     """
 
     lag: int = eqx.field(static=True)
-    solver: AbstractGraphSolver = FixedStepGaussNewton(num_steps=3)
-    adjoint: AbstractAdjoint = UnrolledAdjoint()
+    solver: AbstractGraphSolver = LevenbergMarquardt()
+    adjoint: AbstractAdjoint = ImplicitAdjoint()
     prediction_steps: int = eqx.field(static=True, default=1)
     max_steps: int = eqx.field(static=True, default=100)
 

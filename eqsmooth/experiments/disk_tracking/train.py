@@ -689,11 +689,19 @@ def online_one(model: SmootherModel, meas, counts, x0, lag: int):
     """[`eqsmooth.filters.fixed_lag_smoother`][] over one sequence, built from
     the EKF's factors (fixed dynamics noise) and started, as the EKF is, at
     the true first state with a tiny covariance; three Gauss-Newton steps
-    per window, unrolled."""
+    per window, unrolled (the surrogate loss's solver)."""
     graph = _fixed_dynamics(model).graph(meas, counts)
     dyn, obs = graph.factors[:2]
     P0 = 1e-4 * jnp.eye(4, dtype=meas.dtype)
-    return eqs.filters.fixed_lag_smoother(dyn, obs, x0, P0, lag=lag)
+    return eqs.filters.fixed_lag_smoother(
+        dyn,
+        obs,
+        x0,
+        P0,
+        lag=lag,
+        solver=eqs.FixedStepGaussNewton(num_steps=3),
+        adjoint=eqs.UnrolledAdjoint(),
+    )
 
 
 def online_mse_one(model, meas, counts, truth, lag: int):
