@@ -4,20 +4,27 @@ T poses, odometry between neighbours, a noisy pose fix on every pose and
 (`--closures`) a loop closure every 4th step to the pose `--span` steps back,
 inside every window. eqsmooth runs `eqs.filters.fixed_lag_smoother(lag=L)` as
 one jitted scan: per-update latency is the median run time / T after
-compilation, with the default `FixedStepGaussNewton(3)` ("eqsmooth") and with
-`GaussNewton()` and the implicit adjoint ("eqsmooth_gn", the converged
-answer). GTSAM runs `BatchFixedLagSmoother` and `IncrementalFixedLagSmoother`
-with smoother lag L - 2 (after each update's marginalisation they hold L - 1
+compilation, with the default `LevenbergMarquardt()` ("eqsmooth_lm", the
+reference answer), `GaussNewton()` (both with the implicit adjoint) and
+`FixedStepGaussNewton(3)` with the unrolled adjoint ("eqsmooth_fixed3").
+GTSAM runs `BatchFixedLagSmoother` and `IncrementalFixedLagSmoother` with
+smoother lag L - 2 (after each update's marginalisation they hold L - 1
 poses; during the update L, as eqsmooth's window), one `update` per step,
 timed around the call. `max_diff`: the largest tangent difference of the
-newest pose's estimate from eqsmooth_gn's, over all steps (`max_diff_before`:
-over the steps before the first marginalisation).
+newest pose's estimate from eqsmooth_lm's, over all steps
+(`max_diff_before`: over the steps before the first marginalisation).
+`--se2vel`: the SE(2) + velocity chain instead (GTSAM through Python
+CustomFactors with numeric Jacobians: its values compare, its time does
+not). `--first-window-only`: GTSAM's own graph error at the first
+marginalisation, for GTSAM's answer and eqsmooth's.
 
     python benchmarks/fixed_lag.py --json benchmarks/results/fixed_lag.json
     python benchmarks/fixed_lag.py --closures \
         --json benchmarks/results/fixed_lag_closures.json
     python benchmarks/fixed_lag.py --first-window-only --lags 4 10 50 \
         --json benchmarks/results/fixed_lag_first_window.json
+    python benchmarks/fixed_lag.py --se2vel --steps 100 --lags 10 50 \
+        --json benchmarks/results/fixed_lag_se2vel.json
 """
 
 import argparse
@@ -175,6 +182,183 @@ def first_marginal_window(gtsam, lag: int) -> dict:
     return dict(gtsam_error=graph.error(theirs), eqsmooth_error=graph.error(mine))
 
 
+# --- the SE(2) + velocity chain (GTSAM: Pose2 and Vector3 keys, CustomFactors)
+
+DT, VEL0 = 0.1, np.array([0.8, 0.1, 0.6])
+TRANS_SIG, GPS_SIG = np.array([0.02, 0.02, 0.03, 0.05, 0.05, 0.05]), 0.1
+
+
+def _car_trans(a, b, data, params):
+    pred = {"pose": a["pose"] @ eqs.SE2.exp(DT * a["vel"]), "vel": a["vel"]}
+    return eqs.local(pred, b)
+
+
+def _car_gps(x, data, params):
+    return x["pose"].translation() - data
+
+
+def se2vel_problem(T: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    vel = [VEL0]
+    poses = [eqs.SE2.identity(dtype=jnp.float64)]
+    for _ in range(T - 1):
+        poses.append(poses[-1] @ eqs.SE2.exp(jnp.asarray(DT * vel[-1])))
+        vel.append(vel[-1] + 0.05 * rng.normal(size=3))
+    pos = np.stack([np.asarray(p.translation()) for p in poses])
+    gps = pos + GPS_SIG * rng.normal(size=pos.shape)
+    t = np.arange(T)
+    trans = eqs.FunctionFactor(
+        _car_trans,
+        (eqs.Var("s", t[:-1]), eqs.Var("s", t[1:])),
+        eqs.DiagonalNoise.from_sigmas(jnp.asarray(TRANS_SIG)),
+    )
+    meas = eqs.FunctionFactor(
+        _car_gps,
+        (eqs.Var("s", t),),
+        eqs.IsotropicNoise.from_sigma(jnp.asarray(GPS_SIG)),
+        data=jnp.asarray(gps),
+    )
+    mean0 = {"pose": eqs.SE2.identity(dtype=jnp.float64), "vel": jnp.asarray(VEL0)}
+    return trans, meas, mean0, gps
+
+
+def _numeric_jacobians(gtsam, error, values, keys, jacobians, h=1e-6):
+    """Central-difference Jacobians of `error(values)` in GTSAM's tangent
+    coordinates of each key (Pose2 or 3-vector)."""
+    for j, k in enumerate(keys):
+        cols = []
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = h
+            out = []
+            for step in (e, -e):
+                v = gtsam.Values(values)
+                if values.exists(k) and k % 2 == 0:
+                    v.update(k, values.atPose2(k).retract(step))
+                else:
+                    v.update(k, values.atVector(k) + step)
+                out.append(error(v))
+            cols.append((out[0] - out[1]) / (2 * h))
+        jacobians[j] = np.column_stack(cols)
+
+
+def gtsam_se2vel(gtsam, smoother, gps, T: int):
+    """GTSAM's smoother on the same chain: pose keys 2t, velocity keys 2t+1."""
+    P, V = (lambda t: 2 * t), (lambda t: 2 * t + 1)  # noqa: E731
+
+    def trans_error(keys, values):
+        pa, va = values.atPose2(keys[0]), values.atVector(keys[1])
+        pb, vb = values.atPose2(keys[2]), values.atVector(keys[3])
+        pred = pa.compose(gtsam.Pose2.Expmap(DT * va))
+        return np.concatenate([gtsam.Pose2.Logmap(pred.between(pb)), vb - va])
+
+    def trans_factor(t):
+        keys = [P(t - 1), V(t - 1), P(t), V(t)]
+
+        def f(this, values, jacobians):
+            err = lambda v: trans_error(keys, v)  # noqa: E731
+            if jacobians is not None:
+                _numeric_jacobians(gtsam, err, values, keys, jacobians)
+            return err(values)
+
+        return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(TRANS_SIG), keys, f)
+
+    def gps_factor(t):
+        z = gps[t]
+
+        def f(this, values, jacobians):
+            err = lambda v: v.atPose2(P(t)).translation() - z  # noqa: E731
+            if jacobians is not None:
+                _numeric_jacobians(gtsam, err, values, [P(t)], jacobians)
+            return err(values)
+
+        return gtsam.CustomFactor(
+            gtsam.noiseModel.Isotropic.Sigma(2, GPS_SIG), [P(t)], f
+        )
+
+    est, times = [], []
+    for t in range(T):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        if t == 0:
+            sig = np.sqrt(COV0) * np.ones(3)
+            graph.add(
+                gtsam.PriorFactorPose2(
+                    P(0), gtsam.Pose2(), gtsam.noiseModel.Diagonal.Sigmas(sig)
+                )
+            )
+            graph.add(
+                gtsam.PriorFactorVector(
+                    V(0), VEL0, gtsam.noiseModel.Diagonal.Sigmas(sig)
+                )
+            )
+            values.insert(P(0), gtsam.Pose2())
+            values.insert(V(0), VEL0)
+        else:
+            pa, va = est[-1]
+            values.insert(P(t), pa.compose(gtsam.Pose2.Expmap(DT * va)))
+            values.insert(V(t), va)
+            graph.add(trans_factor(t))
+        graph.add(gps_factor(t))
+        stamps.insert((P(t), float(t)))
+        stamps.insert((V(t), float(t)))
+        t0 = time.perf_counter()
+        smoother.update(graph, values, stamps)
+        times.append(time.perf_counter() - t0)
+        e = smoother.calculateEstimate()
+        est.append((e.atPose2(P(t)), e.atVector(V(t))))
+    xyt = np.array([[p.x(), p.y(), p.theta()] for p, _ in est])
+    vel = np.array([v for _, v in est])
+    return {"pose": eqs.SE2.from_xy_theta(*xyt.T), "vel": jnp.asarray(vel)}, times
+
+
+def se2vel_record(gtsam, T: int, lag: int, repeats: int) -> dict:
+    trans, meas, mean0, gps = se2vel_problem(T)
+    rec = dict(benchmark="fixed_lag_se2vel", T=T, lag=lag)
+
+    def run(solver, adjoint):
+        f = eqx.filter_jit(
+            lambda tr, me: (
+                eqs.filters.fixed_lag_smoother(
+                    tr,
+                    me,
+                    mean0,
+                    COV0 * jnp.eye(6),
+                    lag=lag,
+                    solver=solver,
+                    adjoint=adjoint,
+                ).mean
+            )
+        )
+        first, times, mean = time_host(
+            lambda: jax.block_until_ready(f(trans, meas)), repeats
+        )
+        return mean, first, statistics.median(times) / T
+
+    fs = eqs.FixedStepGaussNewton(num_steps=3), eqs.solve.UnrolledAdjoint()
+    # undamped Gauss-Newton does not converge in every window of this chain
+    lm = eqs.LevenbergMarquardt(), eqs.solve.ImplicitAdjoint()
+    means = {}
+    for name, (solver, adjoint) in (("eqsmooth_fixed3", fs), ("eqsmooth_lm", lm)):
+        means[name], first, per = run(solver, adjoint)
+        rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
+    ref = means["eqsmooth_lm"]
+    diff = lambda a: np.abs(np.asarray(eqs.local(a, ref, batch_ndim=1))).max(axis=1)  # noqa: E731
+    rec["eqsmooth_fixed3"]["max_diff"] = float(diff(means["eqsmooth_fixed3"]).max())
+    if gtsam:
+        lm = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"].params()
+        est, times = gtsam_se2vel(
+            gtsam, gtsam.BatchFixedLagSmoother(float(lag - 2), lm), np.asarray(gps), T
+        )
+        d = diff(est)
+        rec["BatchFixedLagSmoother"] = dict(
+            ms_per_update_python_factors=1e3 * statistics.median(times),
+            max_diff=float(d.max()),
+            max_diff_before=float(d[: min(lag, T)].max()),
+        )
+    return rec
+
+
 def tangent_diff(a, b) -> np.ndarray:
     """Per step, the largest tangent coordinate of `local(a, b)`."""
     return np.abs(np.asarray(eqs.local(a, b, batch_ndim=1))).max(axis=1)
@@ -194,9 +378,22 @@ def main():
         action="store_true",
         help="only the GTSAM-error check at the first marginalisation (no timing)",
     )
+    ap.add_argument(
+        "--se2vel",
+        action="store_true",
+        help="the SE(2) + velocity chain (GTSAM through Python CustomFactors: its "
+        "values are comparable, its time per update is not)",
+    )
     ap.add_argument("--json")
     a = ap.parse_args()
     gtsam = optional("gtsam", " (GTSAM's fixed-lag smoothers)")
+    if a.se2vel:
+        records = [se2vel_record(gtsam, a.steps, lag, a.repeats) for lag in a.lags]
+        for r in records:
+            print(r, flush=True)
+        if a.json:
+            write_json(a.json, records, dict(command="--se2vel"))
+        return
     if a.first_window_only:
         records = [dict(lag=lag, **first_marginal_window(gtsam, lag)) for lag in a.lags]
         print(records)
@@ -209,14 +406,22 @@ def main():
         rec = dict(
             benchmark="fixed_lag", T=a.steps, lag=lag, closures=a.closures, span=a.span
         )
-        fs = eqs.FixedStepGaussNewton(num_steps=3), eqs.solve.UnrolledAdjoint()
-        gn = eqs.GaussNewton(), eqs.solve.ImplicitAdjoint()
+        implicit = eqs.solve.ImplicitAdjoint()
+        solvers = dict(
+            eqsmooth_lm=(eqs.LevenbergMarquardt(), implicit),  # the default
+            eqsmooth_gn=(eqs.GaussNewton(), implicit),
+            eqsmooth_fixed3=(
+                eqs.FixedStepGaussNewton(num_steps=3),
+                eqs.solve.UnrolledAdjoint(),
+            ),
+        )
         means = {}
-        for name, (solver, adjoint) in (("eqsmooth", fs), ("eqsmooth_gn", gn)):
+        for name, (solver, adjoint) in solvers.items():
             means[name], first, per = ours(data, lag, solver, adjoint, a.repeats)
             rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
-        ref = means["eqsmooth_gn"]
-        rec["eqsmooth"]["max_diff"] = float(tangent_diff(means["eqsmooth"], ref).max())
+        ref = means["eqsmooth_lm"]
+        for name in ("eqsmooth_gn", "eqsmooth_fixed3"):
+            rec[name]["max_diff"] = float(tangent_diff(means[name], ref).max())
         for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
             est, median = gtsam_run(gtsam, smoother, data)
             diff = tangent_diff(est, ref)
