@@ -490,6 +490,29 @@ def fixed_lag_smoother(
 
     **Returns:** a [`eqsmooth.filters.FixedLagSolution`][].
     """
+    measurements, closures = _checked_arguments(
+        transition, measurements, closures, lag, solver
+    )
+    T = transition.num_rows + 1
+    d = tangent_dim(initial_mean)
+    cov0 = checked_covariance("fixed_lag_smoother", initial_covariance, d)
+    dtype = cov0.dtype
+    model = _model(transition, measurements, closures, initial_mean, dtype)
+    prior = _initial_prior(model.S, initial_mean, cov0, _floor(model, 0))
+    values = jax.tree_util.tree_map(
+        lambda a: jnp.broadcast_to(a, (lag, *jnp.shape(a))), initial_mean
+    )
+
+    def step(carry, t):
+        return _step(model, lag, solver, adjoint, prediction_steps, carry, t, max_steps)
+
+    _, (windows, start, priors) = lax.scan(step, (values, prior), jnp.arange(T))
+    return _solution(windows, start, priors, lag, T)
+
+
+def _checked_arguments(transition, measurements, closures, lag, solver):
+    """`fixed_lag_smoother`'s checks: the measurement and closure stacks as
+    tuples, or an error naming the argument."""
     if isinstance(lag, bool) or not isinstance(lag, int) or lag < 1:
         raise ValueError(f"fixed_lag_smoother: lag must be an int >= 1, got {lag!r}")
     if not isinstance(transition, AbstractFactor):
@@ -509,25 +532,12 @@ def fixed_lag_smoother(
     if not isinstance(solver, AbstractGraphSolver):
         raise TypeError(
             "fixed_lag_smoother: solver must be an eqsmooth graph solver such as "
-            f"FixedStepGaussNewton or GaussNewton, got {type(solver).__name__}"
+            f"LevenbergMarquardt or FixedStepGaussNewton, got {type(solver).__name__}"
         )
     closures = _checked_closures(transition, closures, lag)
     for f in (transition, *measurements, *closures):
         _check_finite_rows(f)
-    d = tangent_dim(initial_mean)
-    cov0 = checked_covariance("fixed_lag_smoother", initial_covariance, d)
-    dtype = cov0.dtype
-    model = _model(transition, measurements, closures, initial_mean, dtype)
-    prior = _initial_prior(model.S, initial_mean, cov0, _floor(model, 0))
-    values = jax.tree_util.tree_map(
-        lambda a: jnp.broadcast_to(a, (lag, *jnp.shape(a))), initial_mean
-    )
-
-    def step(carry, t):
-        return _step(model, lag, solver, adjoint, prediction_steps, carry, t, max_steps)
-
-    _, (windows, start, priors) = lax.scan(step, (values, prior), jnp.arange(T))
-    return _solution(windows, start, priors, lag, T)
+    return measurements, closures
 
 
 def _initial_prior(S: int, mean0, cov0, floor=None):
