@@ -52,7 +52,17 @@ def values_layout(values: Values) -> tuple[GroupLayout, ...]:
 
 
 def gather(group: PyTree, var: Var) -> PyTree:
-    """Select the rows `var.ids` of a stacked group (a static slice if contiguous)."""
+    """Select the rows `var.ids` of a stacked group (a static slice if contiguous).
+
+    Dynamic indices ([`eqsmooth.factors.Var.dynamic`][]) out of range gather
+    NaN (JAX would otherwise clamp them to the last variable, silently), so a
+    solve reports non-finite residuals instead of a wrong answer; concrete
+    ones are checked earlier, by `FactorGraph.validate`."""
+    if var.is_dynamic:
+        ids = var.index
+        return jax.tree_util.tree_map(
+            lambda a: jnp.take(a, ids, axis=0, mode="fill"), group
+        )
     ids = var.ids
     n = ids.shape[0]
     if n and np.array_equal(ids, np.arange(ids[0], ids[0] + n)):
@@ -103,8 +113,11 @@ class FactorGraph(eqx.Module):
                         f"{name}: variable {k} refers to group {var.group!r}, which "
                         f"is not in the values (groups: {sorted(counts)})"
                     )
-                if len(var) and var.ids.max() >= counts[var.group]:
-                    bad = var.ids[var.ids >= counts[var.group]]
+                if var.is_dynamic and isinstance(var.index, jax.core.Tracer):
+                    continue  # traced: out of range gathers NaN (see gather)
+                ids = np.asarray(var.index)
+                if len(ids) and (ids.max() >= counts[var.group] or ids.min() < 0):
+                    bad = ids[(ids >= counts[var.group]) | (ids < 0)]
                     raise ValueError(
                         f"{name}: variable {k} (group {var.group!r}) has indices "
                         f"{bad[:5].tolist()} out of range for {counts[var.group]} "

@@ -65,6 +65,11 @@ from ._nonlinear._tangent import (
     tangent_least_squares as tangent_least_squares,
     TangentResiduals as TangentResiduals,
 )
+from ._padding import (
+    pad_graph as pad_graph,
+    PaddedGraph as PaddedGraph,
+    power_of_two as power_of_two,
+)
 from ._posterior._joint_marginals import (
     joint_marginal_covariance as joint_marginal_covariance,
 )

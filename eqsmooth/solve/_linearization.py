@@ -161,7 +161,7 @@ def apply_jacobian(lin: Linearization, delta: Tangent) -> tuple[Array, ...]:
     for fl in lin.factors:
         acc = jnp.zeros_like(fl.residual)
         for j, var in zip(fl.jacobians, fl.variables):
-            acc = acc + jnp.einsum("nmd,nd->nm", j, delta[var.group][var.ids])
+            acc = acc + jnp.einsum("nmd,nd->nm", j, delta[var.group][var.index])
         out.append(acc)
     return tuple(out)
 
@@ -172,7 +172,7 @@ def apply_transpose(lin: Linearization, rows: tuple[Array, ...]) -> Tangent:
     for fl, y in zip(lin.factors, rows):
         for j, var in zip(fl.jacobians, fl.variables):
             contrib = jnp.einsum("nmd,nm->nd", j, y)
-            out[var.group] = out[var.group].at[var.ids].add(contrib)
+            out[var.group] = out[var.group].at[var.index].add(contrib)
     return out
 
 
@@ -192,7 +192,7 @@ def block_diagonal(lin: Linearization) -> dict[str, Float[Array, "_N _d _d"]]:
     for fl in lin.factors:
         for j, var in zip(fl.jacobians, fl.variables):
             out[var.group] = (
-                out[var.group].at[var.ids].add(jnp.einsum("nmd,nme->nde", j, j))
+                out[var.group].at[var.index].add(jnp.einsum("nmd,nme->nde", j, j))
             )
     return out
 
@@ -240,8 +240,7 @@ def dense_jacobian(
         n, m = fl.residual.shape
         rows = jnp.zeros((n, m, lin.num_tangent), lin.dtype)
         for j, var in zip(fl.jacobians, fl.variables):
-            d = dims[var.group]
-            cols = offsets[var.group] + var.ids[:, None] * d + np.arange(d)[None]
+            cols = _columns(var, offsets, dims)
             rows = _scatter_cols(rows, j, cols)
         blocks.append(rows.reshape(n * m, lin.num_tangent))
         rs.append(fl.residual.reshape(-1))
@@ -267,26 +266,32 @@ def dense_normal_matrix(
         n = fl.residual.shape[0]
         if n == 0:
             continue
-        cols = np.concatenate(
-            [
-                offsets[v.group]
-                + np.asarray(v.ids)[:, None] * dims[v.group]
-                + np.arange(dims[v.group])[None]
-                for v in fl.variables
-            ],
-            axis=1,
+        dynamic = any(v.is_dynamic for v in fl.variables)
+        xnp = jnp if dynamic else np
+        cols = xnp.concatenate(
+            [_columns(v, offsets, dims) for v in fl.variables], axis=1
         )  # (n, K) absolute coordinates touched by each row
         jac = jnp.concatenate(fl.jacobians, axis=2)  # (n, m, K)
         values.append(jnp.einsum("nmi,nmj->nij", jac, jac).reshape(-1))
         indices.append((cols[:, :, None] * N + cols[:, None, :]).reshape(-1))
     flat = jnp.zeros((N * N,), lin.dtype)
     if values:
-        flat = flat.at[np.concatenate(indices)].add(jnp.concatenate(values))
+        # Static indices are one constant; dynamic ones ride in the program.
+        xnp = np if all(isinstance(i, np.ndarray) for i in indices) else jnp
+        flat = flat.at[xnp.concatenate(indices)].add(jnp.concatenate(values))
     H = flat.reshape(N, N)
     if damping is not None:
         d = flatten_tangent(lin, {k: v.astype(lin.dtype) for k, v in damping.items()})
         H = H + jnp.diag(d)
     return H
+
+
+def _columns(var: Var, offsets: dict[str, int], dims: dict[str, int]):
+    """`(n, d)` absolute coordinates of each row's variable: numpy for static
+    indices, JAX for dynamic ones ([`eqsmooth.factors.Var.dynamic`][])."""
+    d = dims[var.group]
+    xnp = jnp if var.is_dynamic else np
+    return offsets[var.group] + var.index[:, None] * d + xnp.arange(d)[None]
 
 
 def _scatter_cols(rows, j, cols):

@@ -148,6 +148,13 @@ def chain_violation(
     [`eqsmooth.solve.BlockTridiagonal`][] solves (a static query, from the
     variable indices).
     """
+    dynamic = [n for n, vs in zip(names, variables) if any(v.is_dynamic for v in vs)]
+    if dynamic:
+        return (
+            f"BlockTridiagonal needs static variable indices (its plan is built at "
+            f"trace time), but {dynamic[0]} has Var.dynamic indices. Use "
+            "DenseCholesky() or a lineax solver for graphs with dynamic indices."
+        )
     counts = {g.name: g.count for g in layout}
     if len(set(counts.values())) != 1:
         return (

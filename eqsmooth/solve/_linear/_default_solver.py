@@ -27,8 +27,13 @@ def default_linear_solver(
     `DENSE_LIMIT` tangent coordinates and beyond that
     [`eqsmooth.solve.SparsaxCholesky`][] when the optional `sparsax` package
     is installed and JAX runs in 64-bit mode, else
-    [`eqsmooth.solve.SparseLU`][].
+    [`eqsmooth.solve.SparseLU`][]. A graph with dynamic indices
+    ([`eqsmooth.factors.Var.dynamic`][], as [`eqsmooth.solve.pad_graph`][]
+    builds) gets `DenseCholesky()` at any size: the structured solvers read
+    the indices at trace time.
     """
+    if any(v.is_dynamic for vs in variables for v in vs):
+        return DenseCholesky()
     names = tuple(f"factor stack {i}" for i in range(len(variables)))
     if chain_violation(layout, variables, names) is None:
         return BlockTridiagonal()

@@ -1,0 +1,258 @@
+"""Structure as data: graphs padded to bucket sizes share one compiled solve."""
+
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, PyTree
+
+from ..factors import (
+    AbstractFactor,
+    AbstractNoiseModel,
+    AbstractRobustNoise,
+    DiagonalNoise,
+    FactorGraph,
+    IsotropicNoise,
+    MaskedNoise,
+    per_row_fields,
+    PriorFactor,
+    SqrtInformationNoise,
+    Var,
+    with_rows,
+)
+from ..factors._graph import values_layout
+
+
+Values = dict[str, PyTree]
+
+
+def power_of_two(n: int) -> int:
+    """The default bucket: the next power of two, at least 8."""
+    return max(8, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+
+
+class _PaddingNoise(AbstractNoiseModel):
+    """Unit noise on the rows of the padding prior that hold a padding
+    variable (`active`), nothing on the others. Its normaliser is zero, so
+    the padded graph's negative log-likelihood equals the original's."""
+
+    active: Bool[Array, " n"]
+
+    def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
+        keep = self.active.reshape(self.active.shape + (1,) * (r.ndim - 1))
+        return jnp.where(keep, r, jnp.zeros((), r.dtype))
+
+    def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
+        return jnp.zeros(())
+
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        return jnp.zeros(())
+
+    def rho(self, s):
+        return s, jnp.ones_like(s)
+
+    def check_shapes(self, factor_name: str, n: int, m: int) -> None:
+        if self.active.shape != (n,):
+            raise ValueError(
+                f"{factor_name}: padding mask of shape {self.active.shape}, "
+                f"expected ({n},)"
+            )
+
+
+class PaddedGraph(eqx.Module):
+    """A graph and its values padded to bucket sizes, from
+    [`eqsmooth.solve.pad_graph`][].
+
+    `graph` and `values` go to any solve that takes a graph with dynamic
+    indices ([`eqsmooth.solve.least_squares`][] with its default or a dense
+    or lineax linear solver); `unpad` returns the real variables of a result.
+
+    **Fields:**
+
+    - `graph`: the padded [`eqsmooth.factors.FactorGraph`][]: every factor
+        stack with [`eqsmooth.factors.Var.dynamic`][] indices and its padding
+        rows masked, then one padding prior per variable group.
+    - `values`: the padded values (padding variables copy variable 0).
+    - `counts`: `{group: number of real variables}` (static).
+    """
+
+    graph: FactorGraph
+    values: Values
+    counts: tuple[tuple[str, int], ...] = eqx.field(static=True)
+
+    def unpad(self, tree: dict[str, PyTree]) -> dict[str, PyTree]:
+        """The real variables of a dict keyed by group whose leaves have the
+        padded leading axis (solved values, tangents, marginal covariances)."""
+        counts = dict(self.counts)
+        unknown = set(tree) - set(counts)
+        if unknown:
+            raise ValueError(
+                f"PaddedGraph.unpad: groups {sorted(unknown)} are not in the padded "
+                f"graph (groups: {sorted(counts)})"
+            )
+        return {
+            name: _pad_rows(group, np.arange(counts[name]))
+            for name, group in tree.items()
+        }
+
+
+def pad_graph(
+    graph: FactorGraph,
+    values: Values,
+    bucket: Callable[[int], int] = power_of_two,
+) -> PaddedGraph:
+    """Pad a graph so that graphs of another size or connectivity reuse its
+    compiled solve.
+
+    A solve is compiled once per graph *structure*: factor types, stack
+    sizes, variable counts and the static variable indices. `pad_graph`
+    turns the last three into data: each factor stack is padded to
+    `bucket(n)` rows (copies of row 0, masked out of the cost), each
+    variable group to `bucket(N)` variables (copies of variable 0, held by a
+    unit prior so the system stays non-singular), and the indices become
+    [`eqsmooth.factors.Var.dynamic`][]. Two graphs with the same factor
+    stacks (types and order) and the same noise model types, whose sizes
+    fall in the same buckets, then share one compiled program; with
+    `bucket=lambda n: 64` every graph up to 64 rows and variables per stack
+    and group does.
+
+    The padded graph has the original's cost and negative log-likelihood at
+    the padded values, and the solve's real variables equal the original
+    solve's (the padding adds decoupled identity blocks to the normal
+    matrix). The default linear solver for it is
+    [`eqsmooth.solve.DenseCholesky`][]: `O(N³)` in the padded size, so this
+    pays for small graphs (hundreds of coordinates); large graphs keep their
+    static structure and the structured solvers. Gradients flow through the
+    padding to the factors' data and parameters.
+
+    **Arguments:**
+
+    - `graph`: the graph (static indices; every stack needs at least one row).
+    - `values`: its values `{group: stacked states}`.
+    - `bucket`: the padded size for a real size `n` (at least `n`); by
+        default the next power of two, at least 8.
+
+    **Returns:** a [`eqsmooth.solve.PaddedGraph`][].
+    """
+    layout = graph.validate(values)
+    counts = {g.name: g.count for g in layout}
+    sizes = {
+        name: _bucket(bucket, n, f"variable group {name!r}")
+        for name, n in counts.items()
+    }
+    factors = []
+    for k, f in enumerate(graph.factors):
+        where = f"{type(f).__name__} (factor stack {k})"
+        n = f.num_rows
+        if n == 0:
+            raise ValueError(f"pad_graph: {where} has no rows")
+        if any(v.is_dynamic for v in f.variables):
+            raise ValueError(f"pad_graph: {where} already has dynamic indices")
+        size = _bucket(bucket, n, where)
+        factors.append(_pad_factor(f, size, where))
+    padded = {
+        name: _pad_rows(group, _first_then_zeros(counts[name], sizes[name]))
+        for name, group in values.items()
+    }
+    for name in sorted(padded):
+        active = np.arange(sizes[name]) >= counts[name]
+        factors.append(
+            PriorFactor(
+                Var(name, np.arange(sizes[name])),
+                padded[name],
+                _PaddingNoise(jax.device_put(active)),
+            )
+        )
+    return PaddedGraph(
+        FactorGraph(factors), padded, tuple(sorted(counts.items()))
+    )
+
+
+def _bucket(bucket: Callable[[int], int], n: int, where: str) -> int:
+    size = int(bucket(n))
+    if size < n:
+        raise ValueError(
+            f"pad_graph: bucket({n}) = {size} for {where}; a bucket must be at "
+            "least the real size"
+        )
+    return size
+
+
+def _first_then_zeros(n: int, size: int) -> np.ndarray:
+    """`0, 1, …, n−1` then zeros up to `size`: real rows, then copies of row 0."""
+    return np.concatenate([np.arange(n), np.zeros(size - n, dtype=np.int64)])
+
+
+def _pad_rows(tree: PyTree, index: np.ndarray) -> PyTree:
+    return jax.tree_util.tree_map(lambda a: _take(a, index), tree)
+
+
+def _take(a, index) -> Array:
+    """`a[index]`, on the host for concrete arrays: eager JAX indexing would
+    compile a small program for every new shape, which is what padding is
+    there to avoid."""
+    if isinstance(a, jax.core.Tracer):
+        return jnp.asarray(a)[index]
+    return jax.device_put(np.asarray(a)[index])
+
+
+def _pad_factor(f: AbstractFactor, size: int, where: str) -> AbstractFactor:
+    n = f.num_rows
+    index = _first_then_zeros(n, size)
+    active = np.arange(size) < n
+    new = with_rows(f, {k: _pad_rows(v, index) for k, v in per_row_fields(f).items()})
+    variables = tuple(Var.dynamic(v.group, v.ids[index]) for v in f.variables)
+    object.__setattr__(new, "variables", variables)
+    object.__setattr__(new, "noise", _mask_noise(f.noise, index, n, active, where))
+    return new
+
+
+# Per-row noise fields and the number of dimensions they have when per row.
+_PER_ROW = {
+    IsotropicNoise: ("sqrt_precision", 1),
+    DiagonalNoise: ("sqrt_precision", 2),
+    SqrtInformationNoise: ("sqrt_information", 3),
+}
+
+
+def _mask_noise(
+    noise: AbstractNoiseModel, index: np.ndarray, n: int, active: np.ndarray, where: str
+) -> AbstractNoiseModel:
+    """`noise` for the padded rows, with the padding rows switched off."""
+    if isinstance(noise, AbstractRobustNoise):
+        base = _mask_noise(noise.base, index, n, active, where)
+        out = eqx.tree_at(lambda m: m.base, noise, base)
+        if noise.scale.shape == (n,):
+            out = eqx.tree_at(lambda m: m.scale, out, _take(noise.scale, index))
+        return out
+    if isinstance(noise, MaskedNoise):
+        base = _gaussian_rows(noise.base, index, n, where)
+        kept = _take(noise.active, index)
+        both = kept & active if isinstance(kept, jax.core.Tracer) else None
+        if both is None:
+            both = jax.device_put(np.asarray(kept) & active)
+        return MaskedNoise(base, both)
+    return MaskedNoise(
+        _gaussian_rows(noise, index, n, where), jax.device_put(active)
+    )
+
+
+def _gaussian_rows(
+    noise: AbstractNoiseModel, index: np.ndarray, n: int, where: str
+) -> AbstractNoiseModel:
+    kind = type(noise)
+    if kind not in _PER_ROW:
+        raise TypeError(
+            f"pad_graph: {where} has noise {kind.__name__}, which padding does "
+            "not know how to extend by rows (it pads IsotropicNoise, "
+            "DiagonalNoise, SqrtInformationNoise, MaskedNoise and the robust "
+            "kernels over them)"
+        )
+    field, per_row_ndim = _PER_ROW[kind]
+    value = getattr(noise, field)
+    if value.ndim == per_row_ndim:
+        return eqx.tree_at(lambda m: getattr(m, field), noise, _take(value, index))
+    return noise
