@@ -19,6 +19,19 @@ solver, num_steps=N))` (N = `--solve-steps`) and reports
     python benchmarks/chain.py                 # T = 1e2 .. 1e5
     python benchmarks/chain.py --quick         # T = 1e2, 1e3
     python benchmarks/chain.py --json benchmarks/results/chain.json
+
+`--stages` splits one BlockTridiagonal iteration into its parts, each jitted
+on its own through the public API: `linearize` (`eqs.linearize`),
+`factorize` (assembling and factorising the block-tridiagonal normal matrix,
+`eqs.solve.factorize`), `solve` (the factorisation's back substitution,
+`BlockTridiagonal().compute`), `retract` and `cost` (`graph.cost`). Per part:
+the median time, XLA's flop and byte counts (its cost analysis of the
+compiled part) and the rates they imply; beside them, the rate this core
+reaches on a large matrix product (`peak_gflops`, the compute limit) and
+on copying a large array (`copy_GBps`, the memory limit).
+
+    python benchmarks/chain.py --stages --problems se2vel --sizes 10000 100000 \\
+        --json benchmarks/results/chain_stages.json
 """
 
 import argparse
@@ -191,6 +204,82 @@ def scaling(records) -> None:
         print(line + " (BlockTridiagonal)")
 
 
+def _cost(fn, *args) -> dict:
+    c = fn.lower(*args).compile().cost_analysis()
+    c = c[0] if isinstance(c, list) else c
+    return {"flops": c.get("flops", 0.0), "bytes": c.get("bytes accessed", 0.0)}
+
+
+def machine_limits() -> dict:
+    """The compute and memory rates one core reaches on easy work."""
+    a = jnp.ones((1024, 1024))
+    mm = jax.jit(lambda x: x @ x)
+    _, t_mm, _ = time_fn(mm, a)
+    big = jnp.ones((2**24,))  # 128 MiB
+    copy = jax.jit(lambda x: x * 2.0)
+    _, t_copy, _ = time_fn(copy, big)
+    return {
+        "peak_gflops": 2 * 1024**3 / t_mm / 1e9,
+        "copy_GBps": 2 * big.nbytes / t_copy / 1e9,
+    }
+
+
+def stages(problem, T, graph, values, limits) -> list[dict]:
+    ls = eqs.BlockTridiagonal()
+    lin = eqs.linearize(graph, values)
+    factorize = jax.jit(lambda lin: eqs.solve.factorize(lin, ls))
+    fac = factorize(lin)
+    rhs = jax.tree_util.tree_map(
+        jnp.ones_like,
+        eqs.solve.NormalOperator(lin).mv(
+            {g.name: jnp.zeros((g.count, g.dim)) for g in lin.layout}
+        ),
+    )
+    back = jax.jit(lambda fac, b: ls.compute(fac, b, {})[0])
+    delta = back(fac, rhs)
+    retract = jax.jit(lambda v, d: {k: eqs.retract(v[k], 1e-3 * d[k]) for k in v})
+    cost = jax.jit(lambda g, v: g.cost(v))
+    parts = {
+        "linearize": (jax.jit(eqs.solve.linearize), graph, values),
+        "factorize": (factorize, lin),
+        "solve": (back, fac, rhs),
+        "retract": (retract, values, delta),
+        "cost": (cost, graph, values),
+        "iteration": (make_iteration(ls), graph, values),
+    }
+    records = []
+    for stage, (fn, *args) in parts.items():
+        _, median, _ = time_fn(fn, *args, repeats=7 if T < 1e5 else 5)
+        work = _cost(fn, *args)
+        rec = {
+            "benchmark": "chain_stages",
+            "config": {"problem": problem, "T": T, "stage": stage},
+            "problem": problem,
+            "T": T,
+            "stage": stage,
+            "median_s": median,
+            "median_ms": median * 1e3,
+            "us_per_step": median / T * 1e6,
+            "mflops": work["flops"] / 1e6,
+            "MiB_accessed": work["bytes"] / 2**20,
+            "gflops": work["flops"] / median / 1e9,
+            "GBps": work["bytes"] / median / 1e9,
+        } | limits
+        print(
+            f"{problem} T={T} {stage:10s} {median * 1e3:8.2f} ms "
+            f"{rec['us_per_step']:6.3f} us/step {rec['mflops']:8.1f} MFLOP "
+            f"{rec['MiB_accessed']:8.1f} MiB {rec['gflops']:6.2f} GFLOP/s "
+            f"{rec['GBps']:6.2f} GB/s",
+            flush=True,
+        )
+        records.append(rec)
+    return records
+
+
+STAGE_COLUMNS = ["problem", "T", "stage", "median_ms", "us_per_step", "mflops"]
+STAGE_COLUMNS += ["MiB_accessed", "gflops", "GBps"]
+
+
 COLUMNS = ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]
 COLUMNS += ["page_faults", "sys_ms", "solve_ms_per_step", "solve_compile_s"]
 
@@ -212,9 +301,22 @@ def main(argv=None):
     parser.add_argument(
         "--tail-size", type=int, default=None, help="BlockTridiagonal(tail_size=...)"
     )
+    parser.add_argument("--stages", action="store_true", help="the parts of a step")
     args = parser.parse_args(argv)
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
     builders = {"disk": disk_problem, "se2vel": se2vel_problem}
+    if args.stages:
+        limits = machine_limits()
+        print(limits)
+        records = []
+        for problem in args.problems:
+            for T in sizes:
+                graph, values = builders[problem](T)
+                records += stages(problem, T, graph, values, limits)
+        print(markdown_table(records, STAGE_COLUMNS))
+        if args.json:
+            write_json(args.json, records)
+        return
     tail = {} if args.tail_size is None else {"tail_size": args.tail_size}
     solvers = {
         "BlockTridiagonal": eqs.BlockTridiagonal(**tail),

@@ -13,9 +13,20 @@ one `eqs.least_squares_batch` call (its first call reported apart) against a
 Python loop of GTSAM's optimizer; the largest difference of the solutions is
 printed. Each timing is the median of `--repeats` batches.
 
+`--other-graphs K`: after the 5-pose loop, K more SE(2) loops of 5 to 8 poses
+with 1 to 3 loop closures each (one factor stack per type, so the factor
+types are the same; sizes and connectivity differ), each solved once as a
+user would: `static` (`eqs.least_squares` on the graph as built) and
+`padded` (`eqs.solve.pad_graph`, the solve, `unpad`), in one process; per
+graph, the time to the answer and the XLA programs compiled (JAX's compile
+events), and the largest pose difference between the two answers. Then the
+later-solve medians of both forms of the 5-pose loop, beside GTSAM's.
+
     python benchmarks/small_graph.py --json benchmarks/results/small_graph.json
     python benchmarks/small_graph.py --batch 1000 --repeats 5 \\
         --json benchmarks/results/small_graph_batch.json
+    python benchmarks/small_graph.py --other-graphs 12 \\
+        --json benchmarks/results/small_graph_structure.json
 """
 
 import argparse
@@ -53,7 +64,7 @@ def gtsam_case(gtsam, graph, values):
         m = pose(between.measurement, i)
         g.add(gtsam.BetweenFactorPose2(int(ia), int(ib), m, sigmas(between)))
     init = gtsam.Values()
-    for i in range(5):
+    for i in range(len(values["x"].x())):
         init.insert(i, pose(values["x"], i))
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-8)
@@ -191,10 +202,128 @@ def batch(gtsam, num_graphs: int, repeats: int) -> list[dict]:
     return rows
 
 
+def random_loop(rng, n: int, closures: int):
+    """`n` SE(2) poses on a noisy walk, a prior on pose 0, odometry and
+    `closures` loop closures to earlier poses (one BetweenFactor stack)."""
+    steps = rng.normal(0, [1.0, 0.3, 0.4], (n, 3))
+    truth = np.cumsum(steps, axis=0)
+    pairs = [(i, i + 1) for i in range(n - 1)]
+    pairs += [(n - 1 - k, int(rng.integers(0, n - 2 - k))) for k in range(closures)]
+    a, b = (np.array(c) for c in zip(*pairs))
+
+    def poses(xyt):
+        return eqs.SE2.from_xy_theta(*(jnp.asarray(c) for c in np.asarray(xyt).T))
+
+    true = poses(truth)
+    meas = (
+        true[a].inverse()
+        @ true[b]
+        @ eqs.SE2.exp(jnp.asarray(rng.normal(0, 0.02, (len(a), 3))))
+    )
+    sigmas = jnp.array([0.2, 0.2, 0.1])
+    graph = eqs.FactorGraph(
+        [
+            eqs.PriorFactor(
+                eqs.Var("x", [0]),
+                true[np.array([0])],
+                eqs.DiagonalNoise.from_sigmas(sigmas),
+            ),
+            eqs.BetweenFactor(
+                eqs.Var("x", a),
+                eqs.Var("x", b),
+                meas,
+                eqs.DiagonalNoise.from_sigmas(sigmas),
+            ),
+        ]
+    )
+    return graph, {"x": poses(truth + rng.normal(0, 0.1, truth.shape))}
+
+
+def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
+    from jax import monitoring
+
+    compiled = []
+    monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: (
+            compiled.append(kw.get("fun_name"))
+            if event.endswith("backend_compile_duration")
+            else None
+        )
+    )
+    solver = eqs.LevenbergMarquardt()
+
+    def static(graph, values):
+        return jax.block_until_ready(eqs.least_squares(graph, values, solver).value)
+
+    def padded(graph, values):
+        p = eqs.solve.pad_graph(graph, values)
+        sol = eqs.least_squares(p.graph, p.values, solver)
+        return jax.block_until_ready(p.unpad(sol.value))
+
+    rng = np.random.default_rng(0)
+    problems = [pose2_problem()]
+    problems += [
+        random_loop(rng, int(rng.integers(5, 9)), int(rng.integers(1, 4)))
+        for _ in range(count)
+    ]
+    rows = []
+    for k, (graph, values) in enumerate(problems):
+        row = {
+            "graph": k,
+            "poses": len(values["x"].x()),
+            "factors": sum(f.num_rows for f in graph.factors),
+        }
+        answers = {}
+        for name, fn in (("static", static), ("padded", padded)):
+            start = len(compiled)
+            t0 = time.perf_counter()
+            answers[name] = fn(graph, values)["x"]
+            row[f"{name}_s"] = time.perf_counter() - t0
+            row[f"{name}_programs"] = len(compiled) - start
+        diff = (answers["static"].inverse() @ answers["padded"]).log()
+        row["max_difference"] = float(jnp.max(jnp.abs(diff)))
+        rows.append(row)
+    columns = list(rows[0])
+    print(markdown_table(rows, columns))
+    later = rows[1:]
+    summary = {
+        name: {
+            "median_s_after_first": statistics.median(r[f"{name}_s"] for r in later),
+            "max_s_after_first": max(r[f"{name}_s"] for r in later),
+            "programs_after_first": sum(r[f"{name}_programs"] for r in later),
+        }
+        for name in ("static", "padded")
+    }
+    graph, values = problems[0]
+    steady = {
+        "static": _times(lambda: static(graph, values), repeats)[0],
+        "padded": _times(lambda: padded(graph, values), repeats)[0],
+    }
+    if gtsam is not None:
+        steady["gtsam"] = _times(gtsam_case(gtsam, graph, values)[0], repeats)[0]
+    print("after the first graph:", summary)
+    print("later solves of the 5-pose loop (median s):", steady)
+    print("load average", machine()["load_average"])
+    return [
+        {
+            "benchmark": "small_graph_structure",
+            "config": {"graphs": count + 1, "solver": "LevenbergMarquardt"},
+            "median_s": steady["padded"],
+            "compile_s": rows[0]["padded_s"] - steady["padded"],
+            "graphs": rows,
+            "after_first": summary,
+            "later_solve_median_s": steady,
+        }
+    ]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=None, help="200; 5 batches")
     parser.add_argument("--batch", type=int, default=0, metavar="N", help="N graphs")
+    parser.add_argument(
+        "--other-graphs", type=int, default=0, metavar="K", help="K more graphs"
+    )
     parser.add_argument("--quick", action="store_true", help="20 repeats; N <= 20")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
@@ -202,7 +331,11 @@ def main(argv=None):
     repeats = args.repeats or (5 if args.batch else 200)
     if args.quick:
         repeats, args.batch = min(repeats, 20), min(args.batch, 20)
-    if args.batch:
+    if args.other_graphs:
+        records = other_graphs(
+            gtsam, min(args.other_graphs, 3 if args.quick else 10**6), repeats
+        )
+    elif args.batch:
         records = batch(gtsam, args.batch, repeats)
     else:
         records = single(gtsam, repeats)
