@@ -90,7 +90,9 @@ def test_padded_gradient_matches_central_differences():
         )
         shift = eqs.SE2.exp(jnp.zeros((5, 3)).at[1, 0].set(theta[1]))
         f = eqx.tree_at(
-            lambda b: (b.noise, b.measurement), between, (noise, between.measurement @ shift)
+            lambda b: (b.noise, b.measurement),
+            between,
+            (noise, between.measurement @ shift),
         )
         g = eqs.FactorGraph((f,) + graph.factors[1:])
         padded = eqs.solve.pad_graph(g, values)
@@ -124,7 +126,9 @@ def test_padded_graphs_of_different_connectivity_batch_in_one_call():
 def test_dynamic_indices_refuse_what_needs_structure():
     graph, values, _ = se2_loop(7, N=5)
     padded = eqs.solve.pad_graph(graph, values)
-    with raises(ValueError, "BlockTridiagonal needs static variable indices", "BetweenFactor"):
+    with raises(
+        ValueError, "BlockTridiagonal needs static variable indices", "BetweenFactor"
+    ):
         eqs.least_squares(
             padded.graph, padded.values, eqs.GaussNewton(eqs.BlockTridiagonal())
         )

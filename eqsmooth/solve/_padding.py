@@ -23,7 +23,6 @@ from ..factors import (
     Var,
     with_rows,
 )
-from ..factors._graph import values_layout
 
 
 Values = dict[str, PyTree]
@@ -166,9 +165,7 @@ def pad_graph(
                 _PaddingNoise(jax.device_put(active)),
             )
         )
-    return PaddedGraph(
-        FactorGraph(factors), padded, tuple(sorted(counts.items()))
-    )
+    return PaddedGraph(FactorGraph(factors), padded, tuple(sorted(counts.items())))
 
 
 def _bucket(bucket: Callable[[int], int], n: int, where: str) -> int:
@@ -235,9 +232,7 @@ def _mask_noise(
         if both is None:
             both = jax.device_put(np.asarray(kept) & active)
         return MaskedNoise(base, both)
-    return MaskedNoise(
-        _gaussian_rows(noise, index, n, where), jax.device_put(active)
-    )
+    return MaskedNoise(_gaussian_rows(noise, index, n, where), jax.device_put(active))
 
 
 def _gaussian_rows(
