@@ -132,6 +132,16 @@ def test_dynamic_indices_refuse_what_needs_structure():
         eqs.least_squares(
             padded.graph, padded.values, eqs.GaussNewton(eqs.BlockTridiagonal())
         )
+    with raises(TypeError, "Var.dynamic('pose', ...)", "needs static variable"):
+        eqs.least_squares(
+            padded.graph, padded.values, eqs.GaussNewton(eqs.solve.SparseLU())
+        )
+    # Matrix-free CG with block-Jacobi takes any connectivity.
+    cg = eqs.least_squares(
+        padded.graph, padded.values, eqs.LevenbergMarquardt(eqs.PCG())
+    )
+    ref = eqs.least_squares(graph, values, SOLVER)
+    assert _pose_error(padded.unpad(cg.value)["pose"], ref.value["pose"]) < 1e-6
     var = padded.graph.factors[0].variables[0]
     assert var.is_dynamic
     with raises(TypeError, "needs static variable indices", "'pose'"):

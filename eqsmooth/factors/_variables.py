@@ -85,10 +85,11 @@ class Var:
         program), so two graphs that differ only in their connectivity share
         a compiled solve. Only what works for any connectivity accepts them:
         the residuals, the linearisation, the matrix-free normal operator
-        (any lineax solver) and [`eqsmooth.solve.DenseCholesky`][], which the
+        (any lineax solver), `PCG` with its default block-Jacobi
+        preconditioner and [`eqsmooth.solve.DenseCholesky`][], which the
         default solver picks for them; the structure-exploiting solvers
-        (`BlockTridiagonal`, the sparse ones, `PCG`'s preconditioner), the
-        filters and the file writers need static indices and say so.
+        (`BlockTridiagonal`, the sparse ones, `PCG(ChainPreconditioner())`),
+        the filters and the file writers need static indices and say so.
         Indices out of range raise when the solve runs (`eqx.error_if`).
 
         **Arguments:**
