@@ -90,6 +90,8 @@ def _loss(scale, solver, adjoint, lag=3):
         (eqs.FixedStepGaussNewton(num_steps=6), eqs.solve.UnrolledAdjoint(), 1e-7),
         # Exact at a stationary point: what is left is GaussNewton's tolerance.
         (eqs.GaussNewton(), eqs.solve.ImplicitAdjoint(), 1e-4),
+        # The default: Levenberg-Marquardt, differentiated implicitly.
+        (eqs.LevenbergMarquardt(), eqs.solve.ImplicitAdjoint(), 1e-4),
     ],
 )
 def test_gradient_matches_central_differences(solver, adjoint, rtol):

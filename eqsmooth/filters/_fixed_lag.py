@@ -485,8 +485,7 @@ def fixed_lag_smoother(
         `solver`; `FixedStepGaussNewton` runs its `num_steps`). Under
         `UnrolledAdjoint` every window runs all `max_steps` iterations
         (masked once converged): a warm-started window converges in a few,
-        so keep it small there (a 50-state chain solve: 1.7 ms with 100,
-        0.21 ms with 5).
+        so keep it small there.
 
     **Returns:** a [`eqsmooth.filters.FixedLagSolution`][].
     """
