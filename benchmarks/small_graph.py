@@ -11,7 +11,10 @@ factors, relative error tolerance 1e-8), when gtsam is importable;
 `--batch N`: N copies with perturbed odometry and initial values, solved by
 one `eqs.least_squares_batch` call (its first call reported apart) against a
 Python loop of GTSAM's optimizer; the largest difference of the solutions is
-printed. Each timing is the median of `--repeats` batches.
+printed. Each timing is the median of `--repeats` batches. `--mixed`: the N
+graphs are SE(2) loops of 5 to 8 poses with 1 to 3 closures (other sizes
+and connectivity), padded to one bucket (`_mixed_bucket`: 12 poses and 12
+rows per stack, the prior's one row kept) so that one call solves them all.
 
 `--other-graphs K`: after the 5-pose loop, K more SE(2) loops of 5 to 8 poses
 with 1 to 3 loop closures each (one factor stack per type, so the factor
@@ -26,6 +29,8 @@ and unpad each time) and `padded_solve_only` (padded once), beside GTSAM's.
     python benchmarks/small_graph.py --json benchmarks/results/small_graph.json
     python benchmarks/small_graph.py --batch 1000 --repeats 5 \\
         --json benchmarks/results/small_graph_batch.json
+    python benchmarks/small_graph.py --batch 1000 --mixed --repeats 5 \\
+        --json benchmarks/results/small_graph_batch_mixed.json
     python benchmarks/small_graph.py --other-graphs 12 \\
         --json benchmarks/results/small_graph_structure.json
 """
@@ -148,12 +153,27 @@ def _perturbed(graph, values, rng):
     return eqs.FactorGraph([prior, between]), {"x": init}
 
 
-def batch(gtsam, num_graphs: int, repeats: int) -> list[dict]:
+def _mixed_bucket(n: int) -> int:
+    """One bucket for every `--mixed` graph: the one-row prior stays one row;
+    up to 8 poses and up to 10 odometry and closure rows pad to 12."""
+    return 1 if n == 1 else 12
+
+
+def batch(gtsam, num_graphs: int, repeats: int, mixed: bool = False) -> list[dict]:
     graph, values = pose2_problem()
     rng = np.random.default_rng(0)
-    cases = [_perturbed(graph, values, rng) for _ in range(num_graphs)]
-    graphs = eqs.learn.stack_trees([g for g, _ in cases])
-    inits = eqs.learn.stack_trees([v for _, v in cases])
+    if mixed:  # other sizes and connectivity, padded to one bucket
+        cases = [
+            random_loop(rng, int(rng.integers(5, 9)), int(rng.integers(1, 4)))
+            for _ in range(num_graphs)
+        ]
+        padded = [eqs.solve.pad_graph(g, v, bucket=_mixed_bucket) for g, v in cases]
+        problems = [(p.graph, p.values) for p in padded]
+    else:
+        cases = [_perturbed(graph, values, rng) for _ in range(num_graphs)]
+        problems = cases
+    graphs = eqs.learn.stack_trees([g for g, _ in problems])
+    inits = eqs.learn.stack_trees([v for _, v in problems])
     solver = eqs.LevenbergMarquardt()
 
     def run():
@@ -166,7 +186,8 @@ def batch(gtsam, num_graphs: int, repeats: int) -> list[dict]:
     batch_s = _times(run, repeats, warm_up=False)[0]
     rows = [
         {
-            "method": "eqsmooth least_squares_batch",
+            "method": "eqsmooth least_squares_batch"
+            + (" (padded, mixed structures)" if mixed else ""),
             "num_graphs": num_graphs,
             "median_s": batch_s,
             "per_graph_us": batch_s / num_graphs * 1e6,
@@ -181,10 +202,11 @@ def batch(gtsam, num_graphs: int, repeats: int) -> list[dict]:
             results[:] = [s() for s in solves]
 
         gtsam_s = _times(loop, repeats, warm_up=False)[0]
+        xs = np.asarray(ours["x"].x())
         diff = max(
-            abs(float(r.atPose2(i).x()) - float(ours["x"].x()[k, i]))
-            for k, r in enumerate(results)
-            for i in range(5)
+            abs(float(r.atPose2(i).x()) - float(xs[k, i]))
+            for k, (r, (_, v)) in enumerate(zip(results, cases))
+            for i in range(len(v["x"].x()))
         )
         rows.append(
             {
@@ -327,6 +349,9 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=None, help="200; 5 batches")
     parser.add_argument("--batch", type=int, default=0, metavar="N", help="N graphs")
     parser.add_argument(
+        "--mixed", action="store_true", help="--batch: graphs of other structures"
+    )
+    parser.add_argument(
         "--other-graphs", type=int, default=0, metavar="K", help="K more graphs"
     )
     parser.add_argument("--quick", action="store_true", help="20 repeats; N <= 20")
@@ -341,7 +366,7 @@ def main(argv=None):
             gtsam, min(args.other_graphs, 3 if args.quick else 10**6), repeats
         )
     elif args.batch:
-        records = batch(gtsam, args.batch, repeats)
+        records = batch(gtsam, args.batch, repeats, args.mixed)
     else:
         records = single(gtsam, repeats)
     if args.json:
