@@ -178,11 +178,13 @@ def batch(gtsam, num_graphs: int, repeats: int, mixed: bool = False) -> list[dic
 
     def run():
         sol = eqs.least_squares_batch(graphs, inits, solver)
-        return jax.block_until_ready(sol.value)
+        return jax.block_until_ready(sol)
 
     t0 = time.perf_counter()
-    ours = run()
+    sol = run()
     first_s = time.perf_counter() - t0
+    ours = sol.value
+    steps = np.bincount(np.asarray(sol.stats["num_steps"])).tolist()
     batch_s = _times(run, repeats, warm_up=False)[0]
     rows = [
         {
@@ -192,6 +194,7 @@ def batch(gtsam, num_graphs: int, repeats: int, mixed: bool = False) -> list[dic
             "median_s": batch_s,
             "per_graph_us": batch_s / num_graphs * 1e6,
             "first_call_s": first_s,
+            "graphs_by_num_steps": steps,
         }
     ]
     if gtsam is not None:
