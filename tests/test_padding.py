@@ -186,3 +186,16 @@ def test_padding_refuses_noise_it_cannot_extend():
 @pytest.mark.parametrize("n", [1, 8, 9])
 def test_power_of_two(n):
     assert eqs.solve.power_of_two(n) == {1: 8, 8: 8, 9: 16}[n]
+
+
+def test_a_failed_padded_solve_names_its_rows():
+    graph, values, _ = se2_loop(9, N=5)
+    f = graph.factors[0]
+    bad = eqx.tree_at(
+        lambda b: b.measurement,
+        f,
+        eqs.SE2(f.measurement.unit_complex_xy.at[2, 2].set(jnp.nan)),
+    )
+    padded = eqs.solve.pad_graph(eqs.FactorGraph((bad,) + graph.factors[1:]), values)
+    with raises(eqx.EquinoxRuntimeError, "BetweenFactor (factor stack 0)", "rows [2]"):
+        eqs.least_squares(padded.graph, padded.values, SOLVER)

@@ -46,7 +46,7 @@ def nonfinite_rows(graph: FactorGraph, values: dict[str, PyTree]) -> str:
         for what, bad in (("residual", residual), ("Jacobian", jacobian)):
             if bad.any():
                 variables = ", ".join(
-                    f"{v.group}[{int(v.ids[np.flatnonzero(bad)[0]])}]"
+                    f"{v.group}[{int(np.asarray(v.index)[np.flatnonzero(bad)[0]])}]"
                     for v in f.variables
                 )
                 hint = f.nonfinite_hint
