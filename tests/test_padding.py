@@ -199,3 +199,61 @@ def test_a_failed_padded_solve_names_its_rows():
     padded = eqs.solve.pad_graph(eqs.FactorGraph((bad,) + graph.factors[1:]), values)
     with raises(eqx.EquinoxRuntimeError, "BetweenFactor (factor stack 0)", "rows [2]"):
         eqs.least_squares(padded.graph, padded.values, SOLVER)
+
+
+def test_other_values_padded_alike_keep_cost_nll_and_evidence():
+    from eqsmooth.discover._laplace import laplace_at_map
+
+    graph, values, truth = se2_loop(10, N=5)
+    padded = eqs.solve.pad_graph(graph, values)
+    at_truth = padded.pad({"pose": truth})
+    np.testing.assert_allclose(
+        padded.graph.cost(at_truth), graph.cost({"pose": truth}), rtol=1e-12
+    )
+    # joint_nll's mean counts the real variables only.
+    np.testing.assert_allclose(
+        eqs.learn.joint_nll(padded.graph, at_truth),
+        eqs.learn.joint_nll(graph, {"pose": truth}),
+        rtol=1e-12,
+    )
+    # The Laplace evidence leaves the padding coordinates out of its 2π term.
+    ref = eqs.least_squares(graph, values, SOLVER)
+    sol = eqs.least_squares(padded.graph, padded.values, SOLVER)
+    np.testing.assert_allclose(
+        laplace_at_map(padded.graph, sol.value),
+        laplace_at_map(graph, ref.value),
+        rtol=1e-9,
+    )
+    with raises(ValueError, "PaddedGraph.pad", "'pose' has 4 variables", "5"):
+        padded.pad({"pose": truth[np.arange(4)]})
+
+
+def test_dynamic_var_edge_cases():
+    # Filtered out of a pytree, a dynamic Var still prints.
+    var = eqs.Var.dynamic("x", np.array([0, 1]))
+    assert "<no index>" in repr(eqx.filter([var], eqx.is_inexact_array))
+    # A traced negative index does not wrap around to the last variable.
+    graph = eqs.FactorGraph(
+        [
+            eqs.PriorFactor(
+                eqs.Var.dynamic("x", np.array([0, 1])),
+                jnp.ones((2, 2)),
+                eqs.IsotropicNoise(sqrt_precision=1.0),
+            )
+        ]
+    )
+
+    @jax.jit
+    def result(graph, ids):
+        f = eqx.tree_at(
+            lambda g: g.factors[0].variables, graph, (eqs.Var.dynamic("x", ids),)
+        )
+        sol = eqs.least_squares(
+            f, {"x": jnp.zeros((2, 2))}, eqs.GaussNewton(), throw=False
+        )
+        return sol.result
+
+    assert result(graph, jnp.array([0, 1])) == eqs.RESULTS.successful
+    assert result(graph, jnp.array([0, -1])) != eqs.RESULTS.successful
+    with raises(ValueError, "pad_graph", "group 'y' has no variables"):
+        eqs.solve.pad_graph(graph, {"x": jnp.ones((2, 2)), "y": jnp.zeros((0, 2))})

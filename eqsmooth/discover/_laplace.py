@@ -20,6 +20,7 @@ from ..solve import (
 )
 from ..solve._linear._default_solver import linear_solver_for
 from ..solve._linearization import gradient, linearize_graph, retract_values
+from ..solve._padding import padding_size
 
 
 Values = dict[str, PyTree]
@@ -137,7 +138,8 @@ def laplace_at_map(
     lin_t = linearize_graph(_fisher_curvature(graph), x_tilde)
     log_det = normal_log_det(lin_t, linear_solver)
     nll = graph_negative_log_likelihood(graph, x_tilde)
-    N = lin_t.num_tangent
+    # Padding variables (pad_graph) have no 2π factor in the NLL either.
+    N = jnp.asarray(lin_t.num_tangent - padding_size(graph)[1], lin_t.dtype)
     log_ml = -nll + 0.5 * N * math.log(2 * math.pi) - 0.5 * log_det
     return jnp.asarray(log_ml)
 

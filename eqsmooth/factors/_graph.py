@@ -59,7 +59,8 @@ def gather(group: PyTree, var: Var) -> PyTree:
     solve reports non-finite residuals instead of a wrong answer; concrete
     ones are checked earlier, by `FactorGraph.validate`."""
     if var.is_dynamic:
-        ids = var.index
+        # Negative indices would wrap around: send them past the end too.
+        ids = jnp.where(var.index < 0, group_count(var.group, group), var.index)
         return jax.tree_util.tree_map(
             lambda a: jnp.take(a, ids, axis=0, mode="fill"), group
         )

@@ -90,7 +90,9 @@ class Var:
         default solver picks for them; the structure-exploiting solvers
         (`BlockTridiagonal`, the sparse ones, `PCG(ChainPreconditioner())`),
         the filters and the file writers need static indices and say so.
-        Indices out of range raise when the solve runs (`eqx.error_if`).
+        Indices out of range are named by `FactorGraph.validate` when they
+        are concrete; traced ones gather NaN, so a solve reports non-finite
+        residuals rather than a wrong answer.
 
         **Arguments:**
 
@@ -128,8 +130,8 @@ class Var:
             raise TypeError(
                 f"Var.dynamic({self.group!r}, ...): this operation needs static "
                 "variable indices (the graph's structure at trace time), and these "
-                "are data; build the graph with Var(group, ids) for it, or use a "
-                "solver that takes any connectivity (DenseCholesky, a lineax solver)"
+                "are data; build the graph with Var(group, ids) for it (for a "
+                "solve: DenseCholesky, PCG and lineax solvers take dynamic indices)"
             )
         return self._ids.array
 
@@ -140,7 +142,10 @@ class Var:
         return self._ids if self.is_dynamic else self._ids.array
 
     def __len__(self) -> int:
-        return int(self.index.shape[0])
+        shape = getattr(self.index, "shape", None)  # None: a filtered-out leaf
+        if shape is None:
+            raise TypeError(f"Var.dynamic({self.group!r}) holds no index array")
+        return int(shape[0])
 
     def __hash__(self) -> int:
         if self.is_dynamic:
@@ -156,7 +161,9 @@ class Var:
 
     def __repr__(self) -> str:
         if self.is_dynamic:
-            return f"Var.dynamic({self.group!r}, {len(self)} rows)"
+            shape = getattr(self._ids, "shape", None)
+            rows = "<no index>" if shape is None else f"{shape[0]} rows"
+            return f"Var.dynamic({self.group!r}, {rows})"
         ids = self.ids
         body = (
             str(ids.tolist())

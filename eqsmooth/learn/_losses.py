@@ -1,5 +1,6 @@
 """Training losses: the surrogate loss, the joint NLL and a manifold MSE."""
 
+import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
@@ -13,6 +14,7 @@ from ..solve import (
     least_squares,
     UnrolledAdjoint,
 )
+from ..solve._padding import padding_size
 
 
 Values = dict[str, PyTree]
@@ -115,4 +117,6 @@ def joint_nll(
     total = graph_negative_log_likelihood(graph, truth)
     if reduction == "sum":
         return total
-    return total / sum(g.count for g in layout)
+    # A padded graph (pad_graph) divides by its real variables only.
+    count = sum(g.count for g in layout) - padding_size(graph)[0]
+    return total / jnp.asarray(count, total.dtype)

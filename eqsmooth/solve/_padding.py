@@ -23,6 +23,8 @@ from ..factors import (
     Var,
     with_rows,
 )
+from ..factors._graph import group_count
+from ..manifold import tangent_dim
 
 
 Values = dict[str, PyTree]
@@ -45,10 +47,10 @@ class _PaddingNoise(AbstractNoiseModel):
         return jnp.where(keep, r, jnp.zeros((), r.dtype))
 
     def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
-        return jnp.zeros(())
+        return jnp.asarray(0.0)  # weakly typed: keeps a float32 graph float32
 
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
-        return jnp.zeros(())
+        return jnp.asarray(0.0)
 
     def rho(self, s):
         return s, jnp.ones_like(s)
@@ -82,6 +84,32 @@ class PaddedGraph(eqx.Module):
     values: Values
     counts: tuple[tuple[str, int], ...] = eqx.field(static=True)
 
+    def pad(self, values: Values) -> Values:
+        """Other values of the real variables (ground truth, another initial
+        guess), padded as `values` is: the padding variables get the padding
+        prior's means, so the padded graph's cost and negative log-likelihood
+        at the result equal the original graph's at `values`."""
+        counts = dict(self.counts)
+        if sorted(values) != sorted(counts):
+            raise ValueError(
+                f"PaddedGraph.pad: values have groups {sorted(values)}, the graph "
+                f"has {sorted(counts)}"
+            )
+        out = {}
+        for name, group in values.items():
+            n = group_count(name, group)
+            if n != counts[name]:
+                raise ValueError(
+                    f"PaddedGraph.pad: group {name!r} has {n} variables, the padded "
+                    f"graph was built for {counts[name]}"
+                )
+            out[name] = jax.tree_util.tree_map(
+                lambda a, held: jnp.concatenate([jnp.asarray(a), held[n:]]),
+                group,
+                self.values[name],
+            )
+        return out
+
     def unpad(self, tree: dict[str, PyTree]) -> dict[str, PyTree]:
         """The real variables of a dict keyed by group whose leaves have the
         padded leading axis (solved values, tangents, marginal covariances)."""
@@ -112,16 +140,18 @@ def pad_graph(
     `bucket(n)` rows (copies of row 0, masked out of the cost), each
     variable group to `bucket(N)` variables (copies of variable 0, held by a
     unit prior so the system stays non-singular), and the indices become
-    [`eqsmooth.factors.Var.dynamic`][]. Two graphs with the same factor
-    stacks (types and order) and the same noise model types, whose sizes
-    fall in the same buckets, then share one compiled program; with
+    [`eqsmooth.factors.Var.dynamic`][]. Two graphs whose sizes fall in the
+    same buckets then share one compiled program if everything else that is
+    structure agrees: the factor stacks (types and order), the noise models
+    (types, shared or per-row parameters, a `MaskedNoise` or not, the kernel
+    class), the dtypes and the groups of the values; with
     `bucket=lambda n: 64` every graph up to 64 rows and variables per stack
     and group does.
 
     The padded graph has the original's cost and negative log-likelihood at
-    the padded values, and the solve's real variables equal the original
-    solve's (the padding adds decoupled identity blocks to the normal
-    matrix). The default linear solver for it is
+    the padded values (and at any values padded by `PaddedGraph.pad`), and
+    the solve's real variables equal the original solve's (the padding adds
+    decoupled identity blocks to the normal matrix). The default linear solver for it is
     [`eqsmooth.solve.DenseCholesky`][]: `O(N³)` in the padded size, so this
     pays for small graphs (hundreds of coordinates); large graphs keep their
     static structure and the structured solvers. Gradients flow through the
@@ -138,6 +168,9 @@ def pad_graph(
     """
     layout = graph.validate(values)
     counts = {g.name: g.count for g in layout}
+    empty = [name for name, n in counts.items() if n == 0]
+    if empty:
+        raise ValueError(f"pad_graph: variable group {empty[0]!r} has no variables")
     sizes = {
         name: _bucket(bucket, n, f"variable group {name!r}")
         for name, n in counts.items()
@@ -251,3 +284,16 @@ def _gaussian_rows(
     if value.ndim == per_row_ndim:
         return eqx.tree_at(lambda m: getattr(m, field), noise, _take(value, index))
     return noise
+
+
+def padding_size(graph: FactorGraph) -> tuple[Array | int, Array | int]:
+    """`(variables, tangent coordinates)` of the padding variables of a graph
+    from [`eqsmooth.solve.pad_graph`][] (zeros for any other graph): what
+    counts of variables or coordinates leave out."""
+    variables, coordinates = 0, 0
+    for f in graph.factors:
+        if isinstance(f.noise, _PaddingNoise):
+            k = jnp.sum(f.noise.active)
+            variables = variables + k
+            coordinates = coordinates + k * tangent_dim(f.value, batch_ndim=1)
+    return variables, coordinates

@@ -135,7 +135,6 @@ def chain_plan(lin: Linearization) -> ChainPlan:
     return _chain_plan(lin.layout, variables, names)
 
 
-@ft.lru_cache(maxsize=64)
 def chain_violation(
     layout: tuple[GroupLayout, ...],
     variables: tuple[tuple[Var, ...], ...],
@@ -149,12 +148,21 @@ def chain_violation(
     variable indices).
     """
     dynamic = [n for n, vs in zip(names, variables) if any(v.is_dynamic for v in vs)]
-    if dynamic:
+    if dynamic:  # checked before the cache, whose keys would hold the arrays
         return (
             f"BlockTridiagonal needs static variable indices (its plan is built at "
             f"trace time), but {dynamic[0]} has Var.dynamic indices. Use "
             "DenseCholesky() or a lineax solver for graphs with dynamic indices."
         )
+    return _static_chain_violation(layout, variables, names)
+
+
+@ft.lru_cache(maxsize=64)
+def _static_chain_violation(
+    layout: tuple[GroupLayout, ...],
+    variables: tuple[tuple[Var, ...], ...],
+    names: tuple[str, ...],
+) -> str | None:
     counts = {g.name: g.count for g in layout}
     if len(set(counts.values())) != 1:
         return (
