@@ -583,3 +583,19 @@ def test_online_summary_pairs_folds(tmp_path):
     assert keys.index("online_hetero_lag1 - ekf_hetero_mse") < keys.index(
         "online_hetero_lag10 - ekf_hetero_mse"
     )
+
+
+def test_ablation_pairs_are_reported():
+    from eqsmooth.experiments.disk_tracking import report
+
+    summary = {
+        "smoother_hetero_surrogate": report.mean_se([2.0, 2.2]),
+        "smoother_hetero_surrogate_k1": report.mean_se([2.1, 2.0]),
+    }
+    paired, table = report.paired_table(summary, report.ABLATION_PAIRS)
+    (key,) = paired
+    assert key == "smoother_hetero_surrogate_k1 - smoother_hetero_surrogate"
+    assert paired[key]["mean"] == pytest.approx(-0.05)
+    assert paired[key]["better_folds"] == 1
+    assert "surrogate loss (K=1) − " in table and "1/2" in table
+    assert report.paired_table({}, report.ABLATION_PAIRS) == ({}, "")

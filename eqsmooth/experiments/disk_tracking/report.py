@@ -165,13 +165,44 @@ def markdown_table(summary: dict[str, dict], folds: list[dict], num_folds: int) 
     )
 
 
+# The opt-in rows against the protocol's smoother (same sensor, same run).
+ABLATION_PAIRS = (
+    ("smoother_hetero_surrogate_k1", "smoother_hetero_surrogate"),
+    ("smoother_hetero_surrogate_k5", "smoother_hetero_surrogate"),
+    ("smoother_hetero_truncated", "smoother_hetero_surrogate"),
+)
+
+
+def paired_table(summary: dict[str, dict], pairs) -> tuple[dict, str]:
+    """Paired per-fold differences of the `pairs` present in `summary`, and
+    their markdown table (empty when none is present)."""
+    paired, lines = {}, []
+    for a, b in pairs:
+        if a in summary and b in summary:
+            paired[f"{a} - {b}"], line = paired_of(a, b, summary)
+            lines.append(line)
+    if not lines:
+        return paired, ""
+    head = (
+        "\nPaired over folds (negative: the first is better):\n\n"
+        "| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
+    )
+    return paired, head + "\n".join(lines) + "\n"
+
+
+def paired_of(a: str, b: str, summary: dict[str, dict]) -> tuple[dict, str]:
+    return paired(LABELS[a], LABELS[b], summary[a]["folds"], summary[b]["folds"])
+
+
 def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
-    """`summary.json` and `summary.md` from every `fold_K.json` under `out`."""
+    """`summary.json` and `summary.md` from every `fold_K.json` under `out`
+    (with paired differences of the `ABLATION_PAIRS` it holds)."""
     folds = load_folds(out)
     if not folds:
         raise FileNotFoundError(f"no fold_K.json under {out}")
     summary = summarise(folds)
-    table = markdown_table(summary, folds, num_folds)
+    ablation, ablation_table = paired_table(summary, ABLATION_PAIRS)
+    table = markdown_table(summary, folds, num_folds) + ablation_table
     record = dict(
         benchmark="disk_tracking",
         folds=[f["fold"] for f in folds],
@@ -179,6 +210,7 @@ def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
         summary=summary,
         paper=PAPER,
         minutes_per_fold=[f["timings"]["total_s"] / 60 for f in folds],
+        paired=ablation,
     )
     (out / "summary.json").write_text(json.dumps(record, indent=1))
     (out / "summary.md").write_text(table)
