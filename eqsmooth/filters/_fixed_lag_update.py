@@ -244,18 +244,20 @@ class FixedLagSmoother(eqx.Module):
         # Kept step v holds the transition into v; the model's row v is the
         # transition v -> v + 1.
         model = _Model(
-            transition,
-            jax.tree_util.tree_map(lambda a: a[1:], trans_rows),
-            trans_R[1:],
-            measurements,
-            tuple(r for r, _ in meas),
-            tuple(R for _, R in meas),
-            tuple(np.arange((lag + 1) * kj).reshape(lag + 1, kj) for kj in k),
-            tuple(np.ones((lag + 1, kj), bool) for kj in k),
-            (),
-            transition.variables[0].group,
-            lag + 1,
-            1,
+            transition=transition,
+            trans_rows=jax.tree_util.tree_map(lambda a: a[1:], trans_rows),
+            trans_R=trans_R[1:],
+            measurements=measurements,
+            meas_rows=tuple(r for r, _ in meas),
+            meas_R=tuple(R for _, R in meas),
+            meas_table=tuple(
+                np.arange((lag + 1) * kj).reshape(lag + 1, kj) for kj in k
+            ),
+            meas_mask=tuple(np.ones((lag + 1, kj), bool) for kj in k),
+            links=(),
+            group=transition.variables[0].group,
+            T=lag + 1,
+            S=1,
         )
         carry, (window, start, prior) = _step(
             model,
