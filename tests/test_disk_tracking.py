@@ -430,6 +430,11 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     )(learned)
     assert np.any(np.asarray(g.log_dynamics_sqrt_precision) != 0)
     het = dataclasses.replace(learned, learn_dynamics=False)
+    # The paper's graph (no first-state prior) solves from the measurements.
+    seqs = {k: jax.numpy.asarray(v) for k, v in test.sequences("float32").items()}
+    free = train.smoothed_without_first_state(het, seqs, 5)
+    assert free.shape == seqs["truth"].shape[:2] + (2,)
+    assert np.all(np.isfinite(np.asarray(free)))
     for loss in (
         lambda m: train.surrogate_loss_one(m, meas, counts, truth, 3),
         lambda m: train.joint_nll_one(m, meas, counts, truth),
@@ -599,3 +604,12 @@ def test_ablation_pairs_are_reported():
     assert paired[key]["better_folds"] == 1
     assert "surrogate loss (K=1) − " in table and "1/2" in table
     assert report.paired_table({}, report.ABLATION_PAIRS) == ({}, "")
+    # A row scored without the first-state prior, against itself with it.
+    folds = [
+        {"records": {"smoother_hetero_surrogate": {report.FREE_START: v}}}
+        for v in (2.5, 2.1)
+    ]
+    paired, table = report.paired_table(summary, (), folds)
+    (key,) = paired
+    assert paired[key]["mean"] == pytest.approx(0.2)
+    assert "no first-state prior (the paper's graph)" in table

@@ -173,21 +173,38 @@ ABLATION_PAIRS = (
 )
 
 
-def paired_table(summary: dict[str, dict], pairs) -> tuple[dict, str]:
-    """Paired per-fold differences of the `pairs` present in `summary`, and
-    their markdown table (empty when none is present)."""
-    paired, lines = {}, []
+FREE_START = "no_first_state_test_rmse"  # the record field protocol.py writes
+
+
+def paired_table(
+    summary: dict[str, dict], pairs, folds: list[dict] = ()
+) -> tuple[dict, str]:
+    """Paired per-fold differences of the `pairs` present in `summary` (and,
+    where every fold of `folds` has it, of a row scored without the
+    first-state prior against the same row with it), and their markdown
+    table (empty when none is present)."""
+    out, lines = {}, []
     for a, b in pairs:
         if a in summary and b in summary:
-            paired[f"{a} - {b}"], line = paired_of(a, b, summary)
+            out[f"{a} - {b}"], line = paired_of(a, b, summary)
+            lines.append(line)
+    for m in summary:
+        free = [f["records"].get(m, {}).get(FREE_START) for f in folds]
+        if folds and all(v is not None for v in free):
+            out[f"{m} without first-state prior - {m}"], line = paired(
+                f"{LABELS[m]}, no first-state prior (the paper's graph)",
+                LABELS[m],
+                free,
+                summary[m]["folds"],
+            )
             lines.append(line)
     if not lines:
-        return paired, ""
+        return out, ""
     head = (
         "\nPaired over folds (negative: the first is better):\n\n"
         "| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
     )
-    return paired, head + "\n".join(lines) + "\n"
+    return out, head + "\n".join(lines) + "\n"
 
 
 def paired_of(a: str, b: str, summary: dict[str, dict]) -> tuple[dict, str]:
@@ -201,7 +218,7 @@ def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
     if not folds:
         raise FileNotFoundError(f"no fold_K.json under {out}")
     summary = summarise(folds)
-    ablation, ablation_table = paired_table(summary, ABLATION_PAIRS)
+    ablation, ablation_table = paired_table(summary, ABLATION_PAIRS, folds)
     table = markdown_table(summary, folds, num_folds) + ablation_table
     record = dict(
         benchmark="disk_tracking",

@@ -603,6 +603,21 @@ def smoothed(model, batch, max_steps: int):
     return xs[..., :2], outcome
 
 
+@eqx.filter_jit
+def _smooth_batch_free(model, meas, counts, max_steps: int):
+    return jax.vmap(smooth_one, in_axes=(None, 0, 0, None, None))(
+        model, meas, counts, None, max_steps
+    )
+
+
+def smoothed_without_first_state(model, batch, max_steps: int):
+    """`smoothed`'s positions without the prior on the true first state: the
+    paper's own graph, which starts from the measurements alone."""
+    return _smooth_batch_free(model, batch["meas"], batch["counts"], max_steps)[0][
+        ..., :2
+    ]
+
+
 def smoothed_positions(model, batch, max_steps: int):
     """MAP positions `(B, T, 2)` of a batch of sequences."""
     return smoothed(model, batch, max_steps)[0]
