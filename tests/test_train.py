@@ -397,7 +397,11 @@ _SCRIPT = textwrap.dedent(
 
 def _run(tmp_path, name, sleep, kill_in_write_at=None):
     script = tmp_path / "train_script.py"
-    script.write_text(_SCRIPT)
+    if not script.exists():
+        # Written once: rewriting it while an earlier child is still reading
+        # it at start-up gave that child an empty or partial script, which
+        # exited 0 having done nothing (a flaky failure under load).
+        script.write_text(_SCRIPT)
     d = tmp_path / name
     d.mkdir(exist_ok=True)
     args = [
