@@ -261,10 +261,9 @@ def _mask_noise(
     if isinstance(noise, MaskedNoise):
         base = _gaussian_rows(noise.base, index, n, where)
         kept = _take(noise.active, index)
-        both = kept & active if isinstance(kept, jax.core.Tracer) else None
-        if both is None:
-            both = jax.device_put(np.asarray(kept) & active)
-        return MaskedNoise(base, both)
+        if isinstance(kept, jax.core.Tracer):
+            return MaskedNoise(base, kept & active)
+        return MaskedNoise(base, jax.device_put(np.asarray(kept) & active))
     return MaskedNoise(_gaussian_rows(noise, index, n, where), jax.device_put(active))
 
 

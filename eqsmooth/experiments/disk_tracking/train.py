@@ -578,7 +578,8 @@ def smooth_one(model: SmootherModel, meas, counts, x0, max_steps: int):
 
 @eqx.filter_jit
 def _smooth_batch(model, meas, counts, x0, max_steps: int):
-    return jax.vmap(smooth_one, in_axes=(None, 0, 0, 0, None))(
+    x0_axis = None if x0 is None else 0  # None: no first-state prior
+    return jax.vmap(smooth_one, in_axes=(None, 0, 0, x0_axis, None))(
         model, meas, counts, x0, max_steps
     )
 
@@ -603,19 +604,11 @@ def smoothed(model, batch, max_steps: int):
     return xs[..., :2], outcome
 
 
-@eqx.filter_jit
-def _smooth_batch_free(model, meas, counts, max_steps: int):
-    return jax.vmap(smooth_one, in_axes=(None, 0, 0, None, None))(
-        model, meas, counts, None, max_steps
-    )
-
-
 def smoothed_without_first_state(model, batch, max_steps: int):
     """`smoothed`'s positions without the prior on the true first state: the
     paper's own graph, which starts from the measurements alone."""
-    return _smooth_batch_free(model, batch["meas"], batch["counts"], max_steps)[0][
-        ..., :2
-    ]
+    xs, _ = _smooth_batch(model, batch["meas"], batch["counts"], None, max_steps)
+    return xs[..., :2]
 
 
 def smoothed_positions(model, batch, max_steps: int):
