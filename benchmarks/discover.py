@@ -209,6 +209,7 @@ def run_workflow(data: dc.Sequences, model: dc.ChainModel = MODEL) -> dict:
         "flags": list(found["flags"]) + list(named["flags"]) + list(added["flags"]),
         "alarms": dict(named["alarms"]),
         "tentative": bool(named["tentative"]),
+        "partial": bool(named["alarms"].get("partial", False)),
         "detected": bool(found["detected"]),
         "p_value": float(found["score_test"]["p_value"]),
         "df": int(found["score_test"]["df"]),
@@ -351,7 +352,9 @@ def effect_cell(
         c["detected"] += out["detected"]
         c["unnamed"] += out["unnamed"]
         c["tentative"] += out["tentative"]
-        c["confident"] += bool(out["named"]) and not out["tentative"]
+        c["confident"] += bool(out["named"]) and not (
+            out["tentative"] or out["partial"]
+        )
         cls = classify(out, truth)
         c[cls] += 1
         if cls == "exact":
@@ -374,8 +377,8 @@ def effect_cell(
     config |= {"snr_target": level, "coefficient": coef}
     return _head(config, n, c, sequences_per_set) | {
         "tentative": rate(c["tentative"], n),
-        # A name not marked tentative (for an effect outside the library every
-        # such name is a wrong, confident one).
+        # A name marked neither tentative nor partial (for an effect outside
+        # the library every such name is a wrong, confident one).
         "named_confidently": rate(c["confident"], n),
         "leftover_after_truth_alone": rate(c["leftover_after_truth"], c["exact"]),
         "snr_realised_median": float(np.median([snr for _, _, snr in data])),
@@ -394,7 +397,13 @@ def effect_cell(
     }
 
 
-ALARMS = ("detected", "unnamed_structure", "ambiguous", "leftover_structure")
+ALARMS = (
+    "detected",
+    "unnamed_structure",
+    "ambiguous",
+    "leftover_structure",
+    "partial",
+)
 
 
 def null_cell(num, log, noise="gauss", model=MODEL, sequences_per_set=B) -> dict:
@@ -419,7 +428,9 @@ def null_cell(num, log, noise="gauss", model=MODEL, sequences_per_set=B) -> dict
         for key in ("detected", "heavy_tails", "scale_off_by_2", "unnamed"):
             c[key] += out[key]
         c["named_any"] += bool(out["named"])
-        c["named_confident"] += bool(out["named"]) and not out["tentative"]
+        c["named_confident"] += bool(out["named"]) and not (
+            out["tentative"] or out["partial"]
+        )
         c["alarm"] += any(out["alarms"].values())
         alarm_counts.update(k for k, v in out["alarms"].items() if v)
         names.update(out["named"])

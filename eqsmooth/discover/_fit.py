@@ -80,6 +80,8 @@ def evaluate(
     init: np.ndarray,
     scales: np.ndarray,
     hessian_of: np.ndarray | None = None,
+    *,
+    at_map: bool = False,
 ) -> Evaluation:
     """MAP, Laplace evidence, per-sequence scores and (optionally) the Hessian.
 
@@ -89,9 +91,12 @@ def evaluate(
     objective's one-step correction makes this the Hessian of the profiled
     evidence); it is used for Newton steps, information matrices and
     confidence intervals, never for scores.
+
+    `at_map=True` takes `init` as the MAP at `z` (no solve: e.g. a model
+    extended by terms whose coefficients are zero at `z`).
     """
     zj = jnp.asarray(z)
-    xh = map_states(model, zj, data, jnp.asarray(init))
+    xh = jnp.asarray(init) if at_map else map_states(model, zj, data, jnp.asarray(init))
     vals, scores = batch_scores(model, zj, data, xh)
     P = z.shape[0]
     H = np.zeros((P, P))

@@ -1,0 +1,431 @@
+"""Monte Carlo of the naming safeguards: effects outside the library must not
+get a confident name, effects inside it must keep theirs.
+
+Three systems (B = 24 sequences × T = 40 steps per data set, the nominal
+models and libraries of `discover.py` and `discover_systems.py`):
+
+- `driven`: the oscillator driven by a known input force u (sinusoid plus
+  random telegraph, |u| ≤ 1); 11 candidates.
+- `oscillator`: the undriven oscillator of `discover.py`; 10 candidates.
+- `two_axis`: two coupled axes with two sensors; 14 candidates.
+
+Hidden effects outside every library (nonsmooth, each with a fixed shape and
+an amplitude set by the per-step signal-to-noise ratio, as in the other
+discover benchmarks): on the driven system's actuator an input `saturation`,
+a `dead zone` and a `backlash` (play), each in full (the force applied is
+`shape(u)` instead of `u`) with its level, half-width or play set by the SNR
+(found by bisection); on the velocity of the other two a `stiction`
+(Stribeck) friction `−coef · sign(v) · exp(−(v/0.5)²)`, strong only near
+rest. Hidden effects inside the library: actuator gain, quadratic drag,
+Coulomb friction and a constant force (driven); viscous damping, quadratic
+drag and Coulomb friction (oscillator); isotropic quadratic drag (two axes).
+Null data: no effect, measurement noise of the assumed std and of twice it.
+
+A name is *confident* when the verdict marks it neither tentative (the named
+model fails its innovation diagnostics) nor partial (it fails the adequacy
+test of `eqsmooth.discover.name`). For an out-of-library effect every
+confident name is wrong. Rates with Wilson 95% intervals.
+
+    python benchmarks/discover_nonsmooth.py --quick
+    python benchmarks/discover_nonsmooth.py --seeds 20 --null 200 \\
+        --json benchmarks/results/discover_nonsmooth.json \\
+        --markdown benchmarks/results/discover_nonsmooth.md
+
+The run saves after every cell and, given the same `--json`, skips the cells
+already there (it can be stopped and resumed).
+"""
+
+import argparse
+import json
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import discover as d1  # noqa: E402
+import discover_systems as d2  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import machine, write_json, write_text  # noqa: E402
+from discover import classify, fmt_rate, guarded_run, rate  # noqa: E402
+
+import eqsmooth.discover as dc  # noqa: E402
+
+
+B, T = 24, 40
+STICTION_SPEED = 0.5
+
+
+def _backlash(u: np.ndarray, gap: float) -> np.ndarray:
+    out, y = np.zeros_like(u), u[:, 0].copy()
+    for t in range(u.shape[1]):
+        y = np.clip(y, u[:, t] - gap, u[:, t] + gap)
+        out[:, t] = y
+    return out
+
+
+# Input nonlinearities: (force actually applied given the input u, a shape
+# parameter w) -> the increment is `shape(u, w) − u` (the full effect; the
+# SNR is set by w: a lower saturation level, a wider dead zone, more play).
+_INPUT = {
+    "saturation": lambda u, w: np.clip(u, -w, w) - u,
+    "dead zone": lambda u, w: np.sign(u) * np.maximum(np.abs(u) - w, 0.0) - u,
+    "backlash": lambda u, w: _backlash(u, w) - u,
+    "actuator gain": lambda u, c: c * u,
+}
+# Velocity effects: coefficient times a unit shape.
+_VELOCITY = {
+    "stiction": lambda v: -np.sign(v) * np.exp(-((v / STICTION_SPEED) ** 2)),
+    "viscous damping": lambda v: -v,
+    "quadratic drag": lambda v: -v * np.abs(v),
+    "Coulomb friction": lambda v: -np.tanh(v / d1.COULOMB_EPS),
+    "constant force": np.ones_like,
+}
+OUT_OF_LIBRARY = ("saturation", "dead zone", "backlash", "stiction")
+# Stable stream tags (str hashes change between processes).
+_TAGS = {name: i + 1 for i, name in enumerate([*_INPUT, *_VELOCITY])}
+
+
+class Plant:
+    """One system's nominal dynamics, noise and candidate library."""
+
+    def __init__(self, name, model, axes, q, r, prior, driven, effects, tag):
+        self.name, self.model, self.axes = name, model, axes
+        self.q, self.r, self.prior = np.asarray(q), float(r), np.asarray(prior)
+        self.driven, self.effects, self.tag = driven, effects, tag
+
+    def acceleration(self, p: np.ndarray) -> np.ndarray:
+        a = -d2.SPRING * p
+        if self.axes == 2:
+            a = a - d2.COUPLING * (p - p[:, ::-1])
+        return a
+
+    def trajectories(self, rng, effect: str | None, coef: float, num: int):
+        """States `(num, T, 2·axes)`, inputs `(num, T, 1)` and the effect's
+        increments (for the realised SNR)."""
+        n = 2 * self.axes
+        u = d2._inputs(rng, num) if self.driven else np.zeros((num, T, 1))
+        extra = None
+        if effect in _INPUT:
+            extra = _INPUT[effect](u[..., 0], coef)
+        x = rng.normal(size=(num, n)) * self.prior
+        xs, incs = [], []
+        for t in range(T):
+            xs.append(x)
+            p, v = x[:, : self.axes], x[:, self.axes :]
+            a = self.acceleration(p)
+            if self.driven:
+                a = a + u[:, t]
+            inc = np.zeros_like(v)
+            if extra is not None:
+                inc = np.broadcast_to(extra[:, t, None], v.shape)
+            elif effect in _VELOCITY:
+                inc = coef * _VELOCITY[effect](v)
+            incs.append(inc)
+            x = np.concatenate([p + v, v + a + inc], 1)
+            x = x + rng.normal(size=(num, n)) * self.q
+        return np.stack(xs, 1), u, np.stack(incs[:-1], 1)
+
+    def simulate(self, rng, effect, coef, noise: float = 1.0):
+        xs, u, incs = self.trajectories(rng, effect, coef, B)
+        y = xs[..., : self.axes]
+        y = y + noise * self.r * rng.normal(size=y.shape)
+        init = np.concatenate([y, np.zeros_like(y)], -1)
+        data = dc.Sequences(
+            y, np.zeros((B, 2 * self.axes)), inputs=u, initial_states=init
+        )
+        snr = float(np.sqrt(np.mean(np.square(incs)))) / self.q[self.axes]
+        return data, snr
+
+    def coefficient(self, effect: str, level: float) -> float:
+        """Coefficient (velocity effects, actuator gain) or shape parameter
+        (saturation level, dead-zone half-width, backlash play) giving the
+        per-step SNR `level` on nominal trajectories (bisection for shapes)."""
+        rng = np.random.default_rng(12345)
+        xs, u, _ = self.trajectories(rng, None, 0.0, 2000)
+        q = self.q[self.axes]
+        if effect in _VELOCITY:
+            unit = _VELOCITY[effect](xs[:, :-1, self.axes :])
+            return level / (float(np.sqrt(np.mean(np.square(unit)))) / q)
+
+        def snr(w):
+            inc = _INPUT[effect](u[..., 0], w)[:, :-1]
+            return float(np.sqrt(np.mean(np.square(inc)))) / q
+
+        if effect == "actuator gain":
+            return level / snr(1.0)
+        lo, hi = 0.0, 2.0 * float(np.max(np.abs(u)))
+        grows = snr(hi) > snr(lo)
+        if not min(snr(lo), snr(hi)) < level < max(snr(lo), snr(hi)):
+            raise ValueError(f"{effect}: SNR {level} is out of reach")
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if (snr(mid) < level) == grows else (lo, mid)
+        return 0.5 * (lo + hi)
+
+
+def plants() -> dict[str, Plant]:
+    r1 = d2.R1
+    return {
+        "driven": Plant(
+            "driven",
+            d2.driven().model,
+            1,
+            d2.Q1,
+            r1,
+            d2.PRIOR1,
+            True,
+            ("saturation", "dead zone", "backlash")
+            + ("actuator gain", "quadratic drag", "Coulomb friction", "constant force"),
+            1,
+        ),
+        "oscillator": Plant(
+            "oscillator",
+            d1.MODEL,
+            1,
+            d1.Q,
+            d1.R,
+            d1.PRIOR,
+            False,
+            ("stiction", "viscous damping", "quadratic drag", "Coulomb friction"),
+            2,
+        ),
+        "two_axis": Plant(
+            "two_axis",
+            d2.two_axis().model,
+            2,
+            d2.Q2,
+            d2.R2[0],
+            d2.PRIOR2,
+            False,
+            ("stiction", "quadratic drag"),
+            3,
+        ),
+    }
+
+
+def cell(plant: Plant, effect, level, seeds, log, noise=1.0) -> dict:
+    """`seeds` data sets of one (system, effect, level) or null cell."""
+    coef = plant.coefficient(effect, level) if effect else 0.0
+    out_of_library = effect in OUT_OF_LIBRARY
+    truth = None if (effect is None or out_of_library) else effect
+    c, names, alarms, times, snrs = Counter(), Counter(), Counter(), [], []
+    key = [2026, 37, plant.tag, _TAGS.get(effect, 0)]
+    key += [int(round(level * 1000)), int(round(noise * 10))]
+    for s in range(seeds):
+        rng = np.random.default_rng(np.random.SeedSequence(key + [s]))
+        data, snr = plant.simulate(rng, effect, coef, noise)
+        out = guarded_run(data, plant.model, log, f"{plant.name} {effect} seed {s}")
+        if out is None:
+            c["crashes"] += 1
+            continue
+        snrs.append(snr)
+        times.append(out["seconds"])
+        c["flagged"] += bool(out["flags"])
+        c["detected"] += out["detected"]
+        c["named"] += bool(out["named"])
+        c["partial"] += out["partial"]
+        c["tentative"] += out["tentative"]
+        confident = bool(out["named"]) and not (out["tentative"] or out["partial"])
+        c["confident"] += confident
+        c["alarm"] += any(out["alarms"].values())
+        alarms.update(k for k, v in out["alarms"].items() if v)
+        names.update(nm for group in (out["sets"] or [out["named"]]) for nm in group)
+        if truth is not None:
+            kind = classify(out, truth)
+            c[kind] += 1
+            c["alone_confident"] += kind == "exact" and confident
+        if effect is None or out_of_library:
+            if out["named"]:
+                log(f"  {plant.name} {effect} seed {s}: {out['verdict']}")
+    n = seeds - c["crashes"]
+    rec = {
+        "system": plant.name,
+        "effect": effect or "none",
+        "out_of_library": out_of_library,
+        "truth": truth,
+        "snr_target": level,
+        "snr_realised_median": float(np.median(snrs)) if snrs else None,
+        "measurement_noise_factor": noise,
+        "coefficient": coef,
+        "n": n,
+        "crashes": c["crashes"],
+        "flagged": c["flagged"],
+        "detected": rate(c["detected"], n),
+        "anything_named": rate(c["named"], n),
+        "named_confidently": rate(c["confident"], n),
+        "partial": rate(c["partial"], n),
+        "tentative": rate(c["tentative"], n),
+        "any_alarm": rate(c["alarm"], n),
+        "alarms": {k: rate(alarms[k], n) for k in sorted(alarms)},
+        "names": dict(names),
+        "median_s": float(np.median(times)) if times else None,
+    }
+    if truth is not None:
+        rec |= {
+            "truth_alone": rate(c["exact"], n),
+            "truth_alone_confident": rate(c["alone_confident"], n),
+            "truth_in_set": rate(c["set"], n),
+            "truth_plus_extra": rate(c["extra"], n),
+            "wrong_name": rate(c["wrong"], n),
+        }
+    return rec
+
+
+def report(records: list[dict], info: dict) -> str:
+    m = info["machine"]
+    lines = [
+        "# discover benchmark: out-of-library nonsmooth effects, in-library "
+        "effects and null data on three systems",
+        "",
+        f"- command: `{info['command']}`",
+        f"- machine: {m.get('cores')} cores, {m.get('cpu')}; JAX {m.get('jax')}",
+        f"- git: {info['git']}",
+        f"- wall time {info['total_s'] / 60:.1f} min",
+        "- `confident` = a name the verdict marks neither tentative nor partial; "
+        "for an out-of-library effect every such name is wrong.",
+        "",
+        "## Out-of-library effects (the right answer: no confident name)",
+        "",
+        "| system | effect | SNR target / realised | n | detected | anything named "
+        "| named confidently | partial | tentative | names given (alone or in sets) "
+        "| median s |",
+        "|" + "---|" * 11,
+    ]
+    for r in records:
+        if r["out_of_library"]:
+            lines.append(
+                f"| {r['system']} | {r['effect']} | {r['snr_target']} / "
+                f"{r['snr_realised_median']:.2f} | {r['n']} | "
+                + " | ".join(
+                    fmt_rate(r[k])
+                    for k in (
+                        "detected",
+                        "anything_named",
+                        "named_confidently",
+                        "partial",
+                        "tentative",
+                    )
+                )
+                + f" | {r['names'] or '–'} | {r['median_s']:.2f} |"
+            )
+    lines += [
+        "",
+        "## In-library effects (the right answer: the truth alone, confidently)",
+        "",
+        "| system | effect | SNR | n | detected | truth alone | truth alone, "
+        "confident | truth in a set | truth + extra | wrong name | partial "
+        "(false) | median s |",
+        "|" + "---|" * 12,
+    ]
+    for r in records:
+        if r["truth"] is not None:
+            lines.append(
+                f"| {r['system']} | {r['effect']} | {r['snr_target']} | {r['n']} | "
+                + " | ".join(
+                    fmt_rate(r[k])
+                    for k in (
+                        "detected",
+                        "truth_alone",
+                        "truth_alone_confident",
+                        "truth_in_set",
+                        "truth_plus_extra",
+                        "wrong_name",
+                        "partial",
+                    )
+                )
+                + f" | {r['median_s']:.2f} |"
+            )
+    lines += [
+        "",
+        "## Null data (no missing effect): every alarm (target ≤ 5% each, and "
+        "for their union)",
+        "",
+        "| system | measurement noise | n | any alarm | "
+        + " | ".join(d1.ALARMS)
+        + " | named confidently | crashes |",
+        "|" + "---|" * (6 + len(d1.ALARMS)),
+    ]
+    for r in records:
+        if r["effect"] == "none":
+            zero = {"k": 0, "n": r["n"], "rate": 0.0, "ci95": [0.0, 0.0]}
+            lines.append(
+                f"| {r['system']} | ×{r['measurement_noise_factor']:g} | {r['n']} | "
+                f"{fmt_rate(r['any_alarm'])} | "
+                + " | ".join(fmt_rate(r["alarms"].get(a, zero)) for a in d1.ALARMS)
+                + f" | {fmt_rate(r['named_confidently'])} | {r['crashes']} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--systems", nargs="+", default=list(plants()))
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--levels", type=float, nargs="+", default=[0.5, 1.0])
+    parser.add_argument("--in-library-level", type=float, default=1.0)
+    parser.add_argument("--null", type=int, default=200)
+    parser.add_argument("--null-noises", type=float, nargs="+", default=[1.0, 2.0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--markdown", default=None)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.systems, args.seeds, args.levels = ["driven"], 1, [1.0]
+        args.null, args.null_noises = 1, [1.0]
+    t0 = time.perf_counter()
+    records = []
+    if args.json and Path(args.json).exists():
+        records = json.loads(Path(args.json).read_text())["records"]
+    done = {
+        (r["system"], r["effect"], r["snr_target"], r["measurement_noise_factor"])
+        for r in records
+    }
+
+    def log(msg):
+        print(msg, flush=True)
+
+    info = {
+        "command": "python " + " ".join(["discover_nonsmooth.py", *sys.argv[1:]]),
+        "git": "{} (uncommitted: {})".format(*d1._git()),
+        "machine": machine(),
+    }
+
+    def save():
+        info["total_s"] = time.perf_counter() - t0
+        if args.json:
+            write_json(args.json, records, {"info": info})
+        if args.markdown:
+            write_text(args.markdown, report(records, info))
+
+    all_plants = plants()
+    for name in args.systems:
+        plant = all_plants[name]
+        jobs = []
+        for effect in plant.effects:
+            if effect in OUT_OF_LIBRARY:
+                jobs += [(effect, lv, args.seeds, 1.0) for lv in args.levels]
+            else:
+                jobs.append((effect, args.in_library_level, args.seeds, 1.0))
+        jobs += [(None, 0.0, args.null, nz) for nz in args.null_noises]
+        for effect, level, seeds, noise in jobs:
+            if (name, effect or "none", level, noise) in done or seeds < 1:
+                continue
+            log(f"{name}: {effect or 'null'} level {level} noise ×{noise}")
+            rec = cell(plant, effect, level, seeds, log, noise)
+            records.append(rec)
+            log(
+                f"  -> named confidently {rec['named_confidently']['k']}/{rec['n']}, "
+                f"partial {rec['partial']['k']}, any alarm {rec['any_alarm']['k']}"
+            )
+            save()
+    save()
+    print(report(records, info))
+
+
+if __name__ == "__main__":
+    main()
