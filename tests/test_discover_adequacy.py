@@ -1,0 +1,132 @@
+"""`name`'s safeguards against a confident wrong name: the adequacy test of
+the named model (piecewise-linear hats of every state and input on every
+equation) and sets only for rivals the data cannot separate."""
+
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from helpers import compiled_programs
+
+
+B, T = 24, 40
+SPRING = 0.05
+Q = np.array([0.05, 0.5])
+R = 1.0
+PRIOR = np.array([20.0, 4.0])
+
+
+def _dyn(x, u, spring):
+    return jnp.stack([x[0] + x[1], x[1] - spring * x[0]])
+
+
+def _meas(x, spring):
+    return x[:1]
+
+
+def _simulate(seed: int, one_sided: float):
+    """Oscillator data with damping on positive velocities only (a kink at
+    rest that no candidate of the mechanical library has)."""
+    import eqsmooth.discover as dc
+
+    rng = np.random.default_rng(seed)
+    x = np.stack([rng.normal(0, PRIOR[0], B), rng.normal(0, PRIOR[1], B)], 1)
+    xs = []
+    for _ in range(T):
+        xs.append(x.copy())
+        p, v = x[:, 0], x[:, 1]
+        a = -SPRING * p - one_sided * v * (v > 0)
+        x = np.stack([p + v, v + a], 1) + rng.normal(size=(B, 2)) * Q
+    y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(B, T, 1))
+    init = np.concatenate([y, np.zeros_like(y)], -1)
+    return dc.Sequences(y, np.zeros((B, 2)), initial_states=init)
+
+
+def _model():
+    import eqsmooth.discover as dc
+
+    library = dc.mechanical_library([0], [1], 2, measured_positions=[0])
+    return dc.ChainModel(_dyn, _meas, jnp.asarray(SPRING), Q, np.array([R]), PRIOR, library)
+
+
+def test_hats_are_a_partition_of_unity():
+    from eqsmooth.discover._adequacy import _Hat
+
+    knots = np.array([-1.0, -0.2, 0.1, 0.5, 2.0])
+    u = jnp.concatenate([jnp.zeros(1), jnp.asarray(knots)])  # knots from channel 1
+
+    def weights(s):
+        x = jnp.stack([0.0, s])
+        return jnp.stack([_Hat(2, 1, "x", 1, 1, b)(x, u) for b in range(5)])
+
+    s = jnp.concatenate([jnp.linspace(-3.0, 3.0, 61), jnp.asarray(knots)])
+    w = np.asarray(jax.vmap(weights)(s))  # (points, hats, equations)
+    assert np.all(w[:, :, 0] == 0.0)  # only the chosen equation
+    w = w[:, :, 1]
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+    assert w.min() >= 0.0 and w.max() <= 1.0
+    np.testing.assert_allclose(w[-5:], np.eye(5), atol=1e-12)  # 1 at its knot
+
+
+def test_out_of_library_effect_is_partial_and_reuses_the_program():
+    import eqsmooth.discover as dc
+
+    model = _model()
+    data = _simulate(1, 0.1)
+    found = dc.find(model, data)
+    named = dc.name(found, data)
+    # The nearest smooth candidate (viscous damping) absorbs part of the
+    # one-sided damping and is named, but not confidently: the hats of the
+    # velocity on the velocity equation still score.
+    assert named["named"], named["verdict"]
+    assert named["alarms"]["partial"], named["adequacy"]
+    assert named["verdict"].startswith("partial: "), named["verdict"]
+    where = named["adequacy"]["where"]
+    assert (where["equation"], where["variable"]) == ("x1'", "x1"), where
+    assert named["adequacy"]["p_value"] < 1e-3
+    # Another data set has other knots; they are data, not structure.
+    other = _simulate(2, 0.1)
+    with compiled_programs() as names:
+        named2 = dc.name(dc.find(model, other), other)
+    assert named2["adequacy"]["tested"]
+    assert names == [], names
+
+
+def test_a_rival_the_data_can_separate_makes_no_set():
+    from eqsmooth.discover._name import _classify_rivals, _verdict
+
+    names = ["a", "b", "c"]
+    # a and b: uncorrelated and well informed (expected gap 50 at c_a = 1);
+    # a and c: perfectly correlated (no data of this kind separates them).
+    info = np.array([[100.0, 0.0, 100.0], [0.0, 100.0, 0.0], [100.0, 0.0, 100.0]])
+    out = {
+        "steps": [{"best": "a"}],
+        "equivalence_sets": [],
+        "ambiguous": [],
+        "named": ["a"],
+        "tentative": False,
+    }
+    st = {"I_eff": info, "equivalence_corr": 0.95}
+    best = SimpleNamespace(z=np.array([1.0, 0.0, 0.0]))
+    data = SimpleNamespace(num_sequences=24, length=40)
+    _classify_rivals(out, names, 0, [1, 2], st, best, data)
+    rivals = {r["name"]: r for r in out["steps"][0]["rivals"]}
+    assert rivals["b"]["separable"] and np.isclose(rivals["b"]["expected_gap"], 50.0)
+    assert not rivals["c"]["separable"] and rivals["c"]["sequences_to_separate"] is None
+    assert out["equivalence_sets"] == [["a", "c"]] and out["ambiguous"] == []
+    assert _verdict(out, False) == (
+        "not identifiable from this data: {a ≡ c} "
+        "(no amount of data of this kind separates them)"
+    )
+    # Weaker information: b is kept, with the sequences that would separate.
+    st["I_eff"] = info / 20.0  # expected gap 2.5 < ln 20
+    out |= {"steps": [{"best": "a"}], "equivalence_sets": [], "ambiguous": []}
+    _classify_rivals(out, names, 0, [1], st, best, data)
+    (rival,) = out["steps"][0]["rivals"]
+    assert not rival["separable"]
+    np.testing.assert_allclose(rival["sequences_to_separate"], 24 * np.log(20) / 2.5)
+    assert out["ambiguous"] == [["a", "b"]]
+    assert "(about 29 sequences of length 40 would separate them)" in _verdict(
+        out, False
+    )
