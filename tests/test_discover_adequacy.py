@@ -47,7 +47,9 @@ def _model():
     import eqsmooth.discover as dc
 
     library = dc.mechanical_library([0], [1], 2, measured_positions=[0])
-    return dc.ChainModel(_dyn, _meas, jnp.asarray(SPRING), Q, np.array([R]), PRIOR, library)
+    return dc.ChainModel(
+        _dyn, _meas, jnp.asarray(SPRING), Q, np.array([R]), PRIOR, library
+    )
 
 
 def test_hats_are_a_partition_of_unity():

@@ -247,13 +247,14 @@ def name(
     innovations clean. So once something is named, a nonparametric
     alternative is score-tested at the named fit: piecewise-linear hat
     functions (knots at quantiles of the variable) of every state and input,
-    on every equation, one block per (variable, equation), Bonferroni over
-    the blocks. If the named model fails it, the verdict says "partial: X
-    explains part of the mismatch; structure remains in <equation> as a
-    function of <variable> (largest near <value>)", the "partial" alarm is
-    raised and `adequacy` reports every block. Equations are named `x{i}'`
-    (the next value of state `i`) and `y{j}` (measurement channel `j`);
-    variables `x{i}` and `u{k}` (input `k`).
+    on every equation a named candidate acts on, one block per (variable,
+    equation), Bonferroni over the blocks. If the named model fails it, the
+    verdict says "partial: X explains part of the mismatch; structure
+    remains in <equation> as a function of <variable> (largest near
+    <value>)", the "partial" alarm is raised and `adequacy` reports every
+    block. Equations are named `x{i}'` (the next value of state `i`) and
+    `y{j}` (measurement channel `j`); variables `x{i}` and `u{k}` (input
+    `k`).
 
     Never raises on a numerical failure: a fit that did not converge is
     listed in `flags`, and a failed `find` gives the verdict "no decision".
@@ -331,7 +332,7 @@ def name(
     leftover = _leftover(out, model, data, current, alpha)
     if out["named"] and adequacy:
         out["adequacy"] = adequacy_test(
-            model, data, current.z, current.xhat, st["nuisance"], alpha
+            model, data, current.z, current.xhat, st["nuisance"], alpha, active
         )
         out["alarms"]["partial"] = out["adequacy"]["significant"]
     out["verdict"] = _verdict(out, leftover)
