@@ -263,6 +263,7 @@ def test_hidden_effect_is_named(effect, coef, spring, expected):
     assert found["detected"]
     assert named["named"][:1] == [expected], named["verdict"]
     assert named["verdict"] == expected
+    assert named["adequacy"]["tested"] and not named["alarms"]["partial"]
     (c,) = added["coefficients"]
     assert abs(c["value"] - coef) < 0.1 * coef, c
     assert c["interval"][0] < coef < c["interval"][1]
@@ -503,9 +504,9 @@ def test_score_test_sees_a_strong_single_candidate_in_a_dropped_direction():
 
 def test_alarm_calibration_on_a_small_null_batch():
     # Every alarm the workflow can raise, on null data sets (no missing
-    # effect, fixed seeds). At alpha = 5% each alarm fires on a data set with
-    # probability <= 0.05, so 3 or more of 8 happen with probability < 0.6%.
-    # The benchmark measures the rates on 200+ data sets.
+    # effect, fixed seeds). At alpha = 5% any alarm (their union) fires on a
+    # data set with probability <= 0.05, so 3 or more of 8 happen with
+    # probability < 0.6%. The benchmarks measure the rates on 200 data sets.
     import eqsmooth.discover as dc
 
     model = _model()
@@ -520,9 +521,11 @@ def test_alarm_calibration_on_a_small_null_batch():
             "unnamed_structure",
             "ambiguous",
             "leftover_structure",
+            "partial",
         }
         for k, v in named["alarms"].items():
             counts[k] = counts.get(k, 0) + bool(v)
+        counts["any"] = counts.get("any", 0) + any(named["alarms"].values())
     assert max(counts.values()) <= 2, counts
 
 
