@@ -1,6 +1,7 @@
 """`name`'s safeguards against a confident wrong name: the adequacy test of
-the named model (piecewise-linear hats of every state and input on every
-equation) and sets only for rivals the data cannot separate."""
+the named model (piecewise-linear hats of every state and input on the
+equations the named candidates act on) and sets only for rivals the data
+cannot separate."""
 
 from types import SimpleNamespace
 
@@ -8,21 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from helpers import compiled_programs
-
-
-B, T = 24, 40
-SPRING = 0.05
-Q = np.array([0.05, 0.5])
-R = 1.0
-PRIOR = np.array([20.0, 4.0])
-
-
-def _dyn(x, u, spring):
-    return jnp.stack([x[0] + x[1], x[1] - spring * x[0]])
-
-
-def _meas(x, spring):
-    return x[:1]
+from test_discover import _dyn, _meas, B, PRIOR, Q, R, SPRING, T
 
 
 def _simulate(seed: int, one_sided: float):
