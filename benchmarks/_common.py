@@ -29,7 +29,9 @@ def git(*args: str, where: Path = HERE) -> str:
 def dirty(*paths: str) -> list[str]:
     """Paths (relative to the repository root) with uncommitted changes."""
     out = git("status", "--porcelain", "--untracked-files=no", "--", *paths)
-    return [line[3:] for line in out.splitlines() if line.strip()]
+    # `git` strips the output, and with it the first line's leading status
+    # column: split on whitespace instead of slicing fixed columns.
+    return [line.split(maxsplit=1)[1] for line in out.splitlines() if line.strip()]
 
 
 def _proc_field(path: str, key: str) -> str | None:

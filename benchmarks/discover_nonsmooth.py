@@ -9,17 +9,21 @@ models and libraries of `discover.py` and `discover_systems.py`):
 - `oscillator`: the undriven oscillator of `discover.py`; 10 candidates.
 - `two_axis`: two coupled axes with two sensors; 14 candidates.
 
-Hidden effects outside every library (nonsmooth, each with a fixed shape and
-an amplitude set by the per-step signal-to-noise ratio, as in the other
-discover benchmarks): on the driven system's actuator an input `saturation`,
-a `dead zone` and a `backlash` (play), each in full (the force applied is
-`shape(u)` instead of `u`) with its level, half-width or play set by the SNR
-(found by bisection); on the velocity of the other two a `stiction`
-(Stribeck) friction `−coef · sign(v) · exp(−(v/0.5)²)`, strong only near
-rest. Hidden effects inside the library: actuator gain, quadratic drag,
-Coulomb friction and a constant force (driven); viscous damping, quadratic
-drag and Coulomb friction (oscillator); isotropic quadratic drag (two axes).
-Null data: no effect, measurement noise of the assumed std and of twice it.
+Hidden effects outside every library (nonsmooth): on the driven system's
+actuator an input `saturation` at ±L, a `dead zone` of half-width w and a
+`backlash` (play) g, each in full (the force applied is `shape(u)` instead
+of `u`); on the velocity of the other two a `stiction` (Stribeck) friction
+`−c · sign(v) · exp(−(v/0.5)²)`, strong only near rest. Each is set by its
+shape parameter (`--shapes`), and reported with two per-step SNRs: the RMS
+of its velocity increments over the velocity noise std, and the same for
+what remains after a least-squares fit of the library's dynamics candidates
+at the true states (the part no candidate can mimic; on this input a
+saturation or dead zone never leaves more than 0.19). Hidden effects inside
+the library (set by their SNR, `--in-library-level`): actuator gain,
+quadratic drag, Coulomb friction and a constant force (driven); viscous
+damping, quadratic drag and Coulomb friction (oscillator); isotropic
+quadratic drag (two axes). Null data: no effect, measurement noise of the
+assumed std and of twice it.
 
 A name is *confident* when the verdict marks it neither tentative (the named
 model fails its innovation diagnostics) nor partial (it fails the adequacy
@@ -68,9 +72,9 @@ def _backlash(u: np.ndarray, gap: float) -> np.ndarray:
     return out
 
 
-# Input nonlinearities: (force actually applied given the input u, a shape
-# parameter w) -> the increment is `shape(u, w) − u` (the full effect; the
-# SNR is set by w: a lower saturation level, a wider dead zone, more play).
+# Input effects: (input u, shape parameter w) -> the increment
+# `shape(u, w) − u` (the full nonlinearity: the force applied is shape(u, w));
+# the gain error is c·u.
 _INPUT = {
     "saturation": lambda u, w: np.clip(u, -w, w) - u,
     "dead zone": lambda u, w: np.sign(u) * np.maximum(np.abs(u) - w, 0.0) - u,
@@ -141,31 +145,35 @@ class Plant:
         snr = float(np.sqrt(np.mean(np.square(incs)))) / self.q[self.axes]
         return data, snr
 
-    def coefficient(self, effect: str, level: float) -> float:
-        """Coefficient (velocity effects, actuator gain) or shape parameter
-        (saturation level, dead-zone half-width, backlash play) giving the
-        per-step SNR `level` on nominal trajectories (bisection for shapes)."""
-        rng = np.random.default_rng(12345)
-        xs, u, _ = self.trajectories(rng, None, 0.0, 2000)
+    def beyond_library(self, effect: str, coef: float) -> tuple[float, float]:
+        """Per-step SNR of the effect (RMS of its velocity increments over the
+        velocity noise std) and of what remains of it after a least-squares
+        fit of the library's dynamics candidates at the true states (the
+        part no candidate can mimic; measurement candidates left out)."""
+        xs, u, incs = self.trajectories(np.random.default_rng(54321), effect, coef, 400)
+        x = xs[:, :-1].reshape(-1, xs.shape[-1])
+        uu = u[:, :-1].reshape(-1, u.shape[-1])
+        cols = []
+        for c in self.model.candidates:
+            if c.target == "dynamics":
+                f = np.asarray(jax.vmap(c.feature)(x, uu))[:, self.axes :]
+                cols.append(f.reshape(-1))
+        y = incs.reshape(-1)
+        A = np.stack(cols, 1)
+        rest = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
         q = self.q[self.axes]
+        return float(np.sqrt(np.mean(y * y))) / q, float(np.sqrt(np.mean(rest**2))) / q
+
+    def coefficient(self, effect: str, level: float) -> float:
+        """Coefficient of an in-library effect (a velocity effect or the
+        actuator gain) giving the per-step SNR `level` on nominal
+        trajectories."""
+        xs, u, _ = self.trajectories(np.random.default_rng(12345), None, 0.0, 2000)
         if effect in _VELOCITY:
             unit = _VELOCITY[effect](xs[:, :-1, self.axes :])
-            return level / (float(np.sqrt(np.mean(np.square(unit)))) / q)
-
-        def snr(w):
-            inc = _INPUT[effect](u[..., 0], w)[:, :-1]
-            return float(np.sqrt(np.mean(np.square(inc)))) / q
-
-        if effect == "actuator gain":
-            return level / snr(1.0)
-        lo, hi = 0.0, 2.0 * float(np.max(np.abs(u)))
-        grows = snr(hi) > snr(lo)
-        if not min(snr(lo), snr(hi)) < level < max(snr(lo), snr(hi)):
-            raise ValueError(f"{effect}: SNR {level} is out of reach")
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if (snr(mid) < level) == grows else (lo, mid)
-        return 0.5 * (lo + hi)
+        else:
+            unit = _INPUT[effect](u[..., 0], 1.0)[:, :-1]
+        return level / (float(np.sqrt(np.mean(np.square(unit)))) / self.q[self.axes])
 
 
 def plants() -> dict[str, Plant]:
@@ -210,8 +218,13 @@ def plants() -> dict[str, Plant]:
 
 def cell(plant: Plant, effect, level, seeds, log, noise=1.0) -> dict:
     """`seeds` data sets of one (system, effect, level) or null cell."""
-    coef = plant.coefficient(effect, level) if effect else 0.0
     out_of_library = effect in OUT_OF_LIBRARY
+    # Out-of-library effects are set by their shape parameter (`level` is
+    # it); in-library ones by their per-step SNR.
+    coef = (
+        level if out_of_library else plant.coefficient(effect, level) if effect else 0.0
+    )
+    snr_total, snr_beyond = plant.beyond_library(effect, coef) if effect else (0, 0)
     truth = None if (effect is None or out_of_library) else effect
     c, names, alarms, times, snrs = Counter(), Counter(), Counter(), [], []
     key = [2026, 37, plant.tag, _TAGS.get(effect, 0)]
@@ -248,7 +261,10 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0) -> dict:
         "effect": effect or "none",
         "out_of_library": out_of_library,
         "truth": truth,
-        "snr_target": level,
+        "snr_target": None if out_of_library else level,
+        "parameter": level if out_of_library else None,
+        "snr_total": snr_total,
+        "snr_beyond_library": snr_beyond,
         "snr_realised_median": float(np.median(snrs)) if snrs else None,
         "measurement_noise_factor": noise,
         "coefficient": coef,
@@ -291,16 +307,17 @@ def report(records: list[dict], info: dict) -> str:
         "",
         "## Out-of-library effects (the right answer: no confident name)",
         "",
-        "| system | effect | SNR target / realised | n | detected | anything named "
+        "| system | effect | parameter | SNR total / beyond the library | n | "
+        "detected | anything named "
         "| named confidently | partial | tentative | names given (alone or in sets) "
         "| median s |",
-        "|" + "---|" * 11,
+        "|" + "---|" * 12,
     ]
     for r in records:
         if r["out_of_library"]:
             lines.append(
-                f"| {r['system']} | {r['effect']} | {r['snr_target']} / "
-                f"{r['snr_realised_median']:.2f} | {r['n']} | "
+                f"| {r['system']} | {r['effect']} | {r['parameter']:g} | "
+                f"{r['snr_total']:.2f} / {r['snr_beyond_library']:.2f} | {r['n']} | "
                 + " | ".join(
                     fmt_rate(r[k])
                     for k in (
@@ -366,7 +383,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--systems", nargs="+", default=list(plants()))
     parser.add_argument("--seeds", type=int, default=20)
-    parser.add_argument("--levels", type=float, nargs="+", default=[0.5, 1.0])
+    parser.add_argument(
+        "--shapes",
+        default="saturation=0.4,dead zone=0.4,backlash=0.3:0.6,stiction=1:2",
+        help="shape parameters of the out-of-library effects (level, "
+        "half-width, play, stiction coefficient)",
+    )
     parser.add_argument("--in-library-level", type=float, default=1.0)
     parser.add_argument("--null", type=int, default=200)
     parser.add_argument("--null-noises", type=float, nargs="+", default=[1.0, 2.0])
@@ -375,14 +397,20 @@ def main(argv=None):
     parser.add_argument("--markdown", default=None)
     args = parser.parse_args(argv)
     if args.quick:
-        args.systems, args.seeds, args.levels = ["driven"], 1, [1.0]
+        args.systems, args.seeds = ["driven"], 1
+        args.shapes = "saturation=0.4,dead zone=0.4,backlash=0.6"
         args.null, args.null_noises = 1, [1.0]
     t0 = time.perf_counter()
     records = []
     if args.json and Path(args.json).exists():
         records = json.loads(Path(args.json).read_text())["records"]
     done = {
-        (r["system"], r["effect"], r["snr_target"], r["measurement_noise_factor"])
+        (
+            r["system"],
+            r["effect"],
+            r["parameter"] if r["out_of_library"] else r["snr_target"],
+            r["measurement_noise_factor"],
+        )
         for r in records
     }
 
@@ -402,13 +430,17 @@ def main(argv=None):
         if args.markdown:
             write_text(args.markdown, report(records, info))
 
+    shapes = {}
+    for item in args.shapes.split(","):
+        effect, values = item.split("=")
+        shapes[effect.strip()] = [float(v) for v in values.split(":")]
     all_plants = plants()
     for name in args.systems:
         plant = all_plants[name]
         jobs = []
         for effect in plant.effects:
             if effect in OUT_OF_LIBRARY:
-                jobs += [(effect, lv, args.seeds, 1.0) for lv in args.levels]
+                jobs += [(effect, w, args.seeds, 1.0) for w in shapes.get(effect, [])]
             else:
                 jobs.append((effect, args.in_library_level, args.seeds, 1.0))
         jobs += [(None, 0.0, args.null, nz) for nz in args.null_noises]

@@ -89,14 +89,14 @@ def _knots(values: np.ndarray) -> tuple[float, ...] | None:
     return tuple(float(v) for v in q)
 
 
-def _named_equations(model, data, xhat, active) -> list[tuple[str, int, int]]:
-    """The equations (target, row, length) on which the named candidates act:
-    the rows where their features are not zero at the MAP states."""
+def _named_equations(model, data, xhat, acting) -> list[tuple[str, int, int]]:
+    """The equations (target, row, length) on which the candidates `acting`
+    act: the rows where their features are not zero at the MAP states."""
     n, m = xhat.shape[-1], int(data.measurements.shape[-1])
     x = np.asarray(xhat).reshape(-1, n)
     u = np.asarray(data.inputs).reshape(-1, data.inputs.shape[-1])
     rows = set()
-    for j in active:
+    for j in acting:
         c = model.candidates[j]
         f = np.asarray(_eval_feature(c.feature, x, u))
         nonzero = np.flatnonzero(np.any(f != 0, axis=0))
@@ -105,14 +105,14 @@ def _named_equations(model, data, xhat, active) -> list[tuple[str, int, int]]:
     return [(t, r, m if t == "measurement" else n) for t, r in sorted(rows)]
 
 
-def _augmented(model, data, xhat, active):
+def _augmented(model, data, xhat, acting):
     """The model with the hat library appended to its candidates, the data
     with the knots appended to its inputs, and where each hat sits."""
     inputs = np.asarray(data.inputs)
     n, k = xhat.shape[-1], inputs.shape[-1]
     variables = [("x", i, xhat[..., i].ravel()) for i in range(n)]
     variables += [("u", j, inputs[..., j].ravel()) for j in range(k)]
-    equations = _named_equations(model, data, xhat, active)
+    equations = _named_equations(model, data, xhat, acting)
     hats, where, knot_channels = [], [], []
     for source, index, values in variables:
         knots = _knots(values)
@@ -182,11 +182,11 @@ def adequacy_test(
     xhat: np.ndarray,
     nuisance: np.ndarray,
     alpha: float,
-    active: list[int],
+    acting: list[int],
 ) -> dict:
     """Score test of the hat library at the fit `z` of `model` (candidate
-    coefficients, then the noise scales), on the equations where the named
-    candidates `active` act.
+    coefficients, then the noise scales), on the equations where the
+    candidates `acting` (the named ones and those in a set with them) act.
 
     Only those equations: the test asks whether the named terms have the
     right shape where they act. Hats of the latent states on other equations
@@ -203,7 +203,7 @@ def adequacy_test(
     largest single score sits.
     """
     xhat = np.asarray(xhat)
-    built = _augmented(model, data, xhat, active)
+    built = _augmented(model, data, xhat, acting)
     if built is None:
         return {"tested": False, "significant": False, "p_value": float("nan")}
     augmented, augmented_data, where = built

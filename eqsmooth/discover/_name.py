@@ -247,7 +247,8 @@ def name(
     innovations clean. So once something is named, a nonparametric
     alternative is score-tested at the named fit: piecewise-linear hat
     functions (knots at quantiles of the variable) of every state and input,
-    on every equation a named candidate acts on, one block per (variable,
+    on every equation a named candidate (or one in a set with it) acts on,
+    one block per (variable,
     equation), Bonferroni over the blocks. If the named model fails it, the
     verdict says "partial: X explains part of the mismatch; structure
     remains in <equation> as a function of <variable> (largest near
@@ -331,8 +332,12 @@ def name(
         out["named"].append(names[best_k])
     leftover = _leftover(out, model, data, current, alpha)
     if out["named"] and adequacy:
+        # The equations of the named candidates and of those reported in a
+        # set with them (the data could not tell which acts).
+        rivals = out["equivalence_sets"] + out["ambiguous"]
+        acting = set(active) | {model.index(nm) for group in rivals for nm in group}
         out["adequacy"] = adequacy_test(
-            model, data, current.z, current.xhat, st["nuisance"], alpha, active
+            model, data, current.z, current.xhat, st["nuisance"], alpha, sorted(acting)
         )
         out["alarms"]["partial"] = out["adequacy"]["significant"]
     out["verdict"] = _verdict(out, leftover)
