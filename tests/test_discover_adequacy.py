@@ -119,3 +119,54 @@ def test_a_rival_the_data_can_separate_makes_no_set():
     assert "(about 29 sequences of length 40 would separate them)" in _verdict(
         out, False
     )
+
+
+def _driven_field(x, u, w2):
+    # Reads the whole input vector: the knot channels must not reach it.
+    return jnp.stack([x[1], -w2 * jnp.sin(x[0]) + jnp.sum(u)])
+
+
+def test_augmented_model_keeps_the_transition_of_an_integrator():
+    # The hats read their knots from input channels appended after the
+    # model's own inputs; the nominal vector field and the rate candidates
+    # must not see them. With the hats at zero, the augmented model is the
+    # model.
+    from test_discover_integrator import _measure, DT, W2
+
+    import eqsmooth.discover as dc
+    from eqsmooth.discover._adequacy import _augmented
+
+    library = dc.mechanical_library(
+        [0],
+        [1],
+        2,
+        dt=DT,
+        num_inputs=1,
+        include=("viscous damping", "actuator gain"),
+        rate=True,
+    )
+    model = dc.ChainModel(
+        dc.Integrator(_driven_field, DT),
+        _measure,
+        jnp.asarray(W2),
+        np.ones(2),
+        np.ones(1),
+        np.ones(2),
+        library,
+        coefficients=np.array([0.3, 0.5]),
+    )
+    rng = np.random.default_rng(0)
+    xhat = rng.normal(size=(2, 6, 2))
+    data = dc.Sequences(
+        rng.normal(size=(2, 6, 1)), np.zeros((2, 2)), inputs=rng.normal(size=(2, 6, 1))
+    )
+    augmented, adata, where = _augmented(model, data, xhat, [0, 1])
+    assert {w["block"] for w in where} == {"x0 on x1'", "x1 on x1'", "u0 on x1'"}
+    augmented = augmented.with_coefficients(
+        np.concatenate([model.coefficients, np.zeros(len(where))])
+    )
+    x, u = jnp.asarray(xhat[1, 2]), adata.inputs[1, 2]
+    assert u.shape == (1 + 3 * 5,)
+    np.testing.assert_allclose(
+        augmented.transition(x, u), model.transition(x, data.inputs[1, 2]), rtol=1e-12
+    )
