@@ -5,10 +5,10 @@ much of an effect the library does not contain (an input saturation fitted
 as a sensor scale, a dead zone as an actuator gain) and leave innovations
 clean enough for the residual diagnostics. The test here asks the data
 directly: add a nonparametric term (piecewise-linear "hat" functions of
-one state or input, on one equation of the model) for every
-(equation, variable) pair, and score-test all of them at zero, at the named
-model's fit. A significant score means the named model misses structure
-that a smooth function of one variable describes, and where it sits.
+one state or input, on one equation) for every variable and every equation
+the named candidates act on, and score-test them at zero, at the named
+model's fit. A significant score means the named term does not have the
+shape the data ask for there, and says where the difference sits.
 """
 
 import dataclasses
