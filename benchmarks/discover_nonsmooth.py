@@ -80,7 +80,14 @@ _INPUT = {
     "dead zone": lambda u, w: np.sign(u) * np.maximum(np.abs(u) - w, 0.0) - u,
     "backlash": lambda u, w: _backlash(u, w) - u,
     "actuator gain": lambda u, c: c * u,
+    # Regional (benchmarks/discover_localise.py): the actuator loses force
+    # above u = 0.3.
+    "weak above 0.3": lambda u, c: -c * np.maximum(u - 0.3, 0.0),
 }
+# Position effects on the first axis only (benchmarks/discover_localise.py):
+# a contact spring beyond p = 10.
+CONTACT_AT = 10.0
+_POSITION = {"contact": lambda p, c: -c * np.maximum(p - CONTACT_AT, 0.0)}
 # Velocity effects: coefficient times a unit shape.
 _VELOCITY = {
     "stiction": lambda v: -np.sign(v) * np.exp(-((v / STICTION_SPEED) ** 2)),
@@ -91,7 +98,13 @@ _VELOCITY = {
 }
 OUT_OF_LIBRARY = ("saturation", "dead zone", "backlash", "stiction")
 # Stable stream tags (str hashes change between processes).
-_TAGS = {name: i + 1 for i, name in enumerate([*_INPUT, *_VELOCITY])}
+_TAGS = {
+    name: i + 1
+    for i, name in enumerate(
+        ["saturation", "dead zone", "backlash", "actuator gain", *_VELOCITY]
+        + ["weak above 0.3", *_POSITION]
+    )
+}
 
 
 class Plant:
@@ -129,6 +142,9 @@ class Plant:
                 inc = np.broadcast_to(extra[:, t, None], v.shape)
             elif effect in _VELOCITY:
                 inc = coef * _VELOCITY[effect](v)
+            elif effect in _POSITION:
+                inc = np.zeros_like(v)
+                inc[:, 0] = _POSITION[effect](p[:, 0], coef)
             incs.append(inc)
             x = np.concatenate([p + v, v + a + inc], 1)
             x = x + rng.normal(size=(num, n)) * self.q

@@ -12,9 +12,10 @@ from helpers import compiled_programs
 from test_discover import _dyn, _meas, B, PRIOR, Q, R, SPRING, T
 
 
-def _simulate(seed: int, one_sided: float):
+def _simulate(seed: int, one_sided: float, contact: float = 0.0, states=None):
     """Oscillator data with damping on positive velocities only (a kink at
-    rest that no candidate of the mechanical library has)."""
+    rest that no candidate of the mechanical library has), or a contact
+    spring beyond p = 10; the true states go to `states` if given."""
     import eqsmooth.discover as dc
 
     rng = np.random.default_rng(seed)
@@ -23,8 +24,10 @@ def _simulate(seed: int, one_sided: float):
     for _ in range(T):
         xs.append(x.copy())
         p, v = x[:, 0], x[:, 1]
-        a = -SPRING * p - one_sided * v * (v > 0)
+        a = -SPRING * p - one_sided * v * (v > 0) - contact * np.maximum(p - 10, 0)
         x = np.stack([p + v, v + a], 1) + rng.normal(size=(B, 2)) * Q
+    if states is not None:
+        states.append(np.stack(xs, 1))
     y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(B, T, 1))
     init = np.concatenate([y, np.zeros_like(y)], -1)
     return dc.Sequences(y, np.zeros((B, 2)), initial_states=init)
@@ -80,6 +83,32 @@ def test_out_of_library_effect_is_partial_and_reuses_the_program():
         named2 = dc.name(dc.find(model, other), other)
     assert named2["adequacy"]["tested"]
     assert names == [], names
+
+
+def test_find_localises_a_contact_spring():
+    # A contact spring beyond p = 10 acts on the velocity equation only
+    # there: `find(..., localise=True)` names the block (the position on the
+    # velocity equation) and a region that covers p >= 10 and little else.
+    import eqsmooth.discover as dc
+
+    states = []
+    data = _simulate(0, 0.0, contact=0.02, states=states)
+    found = dc.find(_model(), data, localise=True)
+    assert found["detected"]
+    best = found["where"]["where"]
+    assert (best["variable"], best["equation"]) == ("x0", "x1'"), best
+    ((lo, hi),) = best["region"]
+    assert hi is None and 3.0 < lo < 10.0, best["region"]
+    p = states[0][..., 0]
+    flagged, true = p >= lo, p >= 10.0
+    precision = np.sum(flagged & true) / np.sum(flagged)
+    recall = np.sum(flagged & true) / np.sum(true)
+    assert precision > 0.8 and recall == 1.0, (precision, recall)
+    # Without localise (the default) there is no region, and null data
+    # (nothing detected) gets none either.
+    assert "where" not in dc.find(_model(), data)
+    null = _simulate(0, 0.0)
+    assert "where" not in dc.find(_model(), null, localise=True)
 
 
 def test_a_rival_the_data_can_separate_makes_no_set():

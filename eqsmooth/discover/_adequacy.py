@@ -12,6 +12,7 @@ shape the data ask for there, and says where the difference sits.
 """
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import jax.numpy as jnp
@@ -23,6 +24,7 @@ from ._fit import _eval_feature, evaluate, EVALUATION_ERRORS, feature_scales
 from ._integrator import Integrator
 from ._model import ChainModel, Sequences
 from ._score import score_test
+from ._stats import normal_quantile
 
 
 # Knots of the hat functions: quantiles of the variable over the smoothed
@@ -103,6 +105,48 @@ def _named_equations(model, data, xhat, acting) -> list[tuple[str, int, int]]:
         target = "measurement" if c.target == "measurement" else "dynamics"
         rows.update((target, int(r)) for r in nonzero)
     return [(t, r, m if t == "measurement" else n) for t, r in sorted(rows)]
+
+
+def _region(knots, z, z_crit) -> list[list[float | None]]:
+    """Intervals of the variable nearest to the knots of the hats with
+    `|z| ≥ z_crit` (from half-way to the previous knot to half-way to the
+    next, the outer ones open-ended), merged; the largest hat's interval when
+    none passes."""
+    z = np.asarray(z)
+    flagged = np.flatnonzero(np.abs(z) >= z_crit)
+    if not len(flagged) and np.all(np.isfinite(z)):
+        flagged = [int(np.argmax(np.abs(z)))]
+    last = len(knots) - 1
+    spans = sorted(
+        (
+            -math.inf if b == 0 else 0.5 * (knots[b - 1] + knots[b]),
+            math.inf if b == last else 0.5 * (knots[b] + knots[b + 1]),
+        )
+        for b in flagged
+    )
+    merged: list[list[float]] = []
+    for lo, hi in spans:
+        if merged and lo <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    # Open ends as None (JSON has no infinity).
+    return [[v if math.isfinite(v) else None for v in span] for span in merged]
+
+
+def describe_region(variable: str, region: list[list[float | None]]) -> str:
+    """`"x0 ≤ -3.1 or x0 ≥ 4.2"` for the intervals of `_region`."""
+    parts = []
+    for lo, hi in region:
+        if lo is None and hi is None:
+            parts.append(f"all {variable}")
+        elif lo is None:
+            parts.append(f"{variable} ≤ {hi:.3g}")
+        elif hi is None:
+            parts.append(f"{variable} ≥ {lo:.3g}")
+        else:
+            parts.append(f"{lo:.3g} ≤ {variable} ≤ {hi:.3g}")
+    return " or ".join(parts)
 
 
 def _augmented(model, data, xhat, acting):
@@ -222,6 +266,12 @@ def adequacy_test(
             "p_value": float("nan"),
             "error": f"{type(e).__name__}: {e}",
         }
+    # Each hat's own standardised score; the hats beyond a Bonferroni bound
+    # over all of them mark where the structure sits.
+    g = np.sum(ev.scores, axis=0)[test]
+    info = np.abs(np.diag(ev.hessian)[test])
+    zs = g / np.sqrt(np.maximum(info, 1e-300))
+    z_crit = normal_quantile(1.0 - alpha / (2 * H))
     names = list(dict.fromkeys(w["block"] for w in where))
     blocks = []
     for block in names:
@@ -239,6 +289,9 @@ def adequacy_test(
                 "df": int(result["df"]),
                 "near": at["near"],
                 "z": float(zj["z"]),
+                "hat_z": [float(v) for v in zs[idx]],
+                "knots": at["knots"],
+                "region": _region(at["knots"], zs[idx], z_crit),
             }
         )
     pvals = np.asarray([b["p_value"] for b in blocks])

@@ -3,6 +3,7 @@ candidate need to be to be seen?"""
 
 import numpy as np
 
+from ._adequacy import adequacy_test
 from ._candidates import check_features
 from ._diagnostics import (
     _residual_summary,
@@ -53,6 +54,7 @@ def find(
     alpha: float = 0.05,
     fit_noise: bool = True,
     covariance: str = "auto",
+    localise: bool = False,
 ) -> dict:
     """Find where the nominal model and the data disagree.
 
@@ -76,6 +78,15 @@ def find(
     - `fit_noise`: refit the process/measurement noise scales first (they
         are then nuisance parameters of the score test).
     - `covariance`: `"auto"`, `"opg"` or `"hessian"` (see `score_test`).
+    - `localise`: when the decision test detects a missing effect, also say
+        where in the states and inputs it acts: the adequacy test of
+        [`eqsmooth.discover.name`][] run on the nominal model, with hats on
+        every equation a candidate of the library acts on. The report's
+        `where` then holds the block (variable and equation) with the
+        smallest p-value, its `region` (intervals of the variable where
+        single hats score beyond a Bonferroni bound over all hats), and
+        every block. It is computed only after a detection, so it raises no
+        alarm of its own. One more compiled program per model structure.
 
     **Returns:** a [`eqsmooth.discover.StepReport`][]: the report as a dict
     (JSON-serialisable), with what later steps reuse as its `state`.
@@ -137,6 +148,11 @@ def find(
     report = _report(
         model, data, nominal, ev, innov, flags, decision, per_candidate, ident, level
     )
+    if localise and report["detected"]:
+        everything_acting = list(range(K))
+        report["where"] = adequacy_test(
+            model, data, ev.z, ev.xhat, nuis, alpha, everything_acting
+        )
     state = {
         "model": model,
         "evaluation": ev,

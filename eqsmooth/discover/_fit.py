@@ -233,7 +233,7 @@ def fit(
             z_new = z.copy()
             z_new[free] += step
             try:
-                ll_new, _ = log_marginal_at(model, data, z_new, ev.xhat)
+                ll_new, xh_new = log_marginal_at(model, data, z_new, ev.xhat)
                 ll_new += log_prior(z_new)
             except EVALUATION_ERRORS:
                 ll_new = -np.inf
@@ -251,7 +251,8 @@ def fit(
         radius = min(2.0 * radius, _TRUST_RADIUS[1])
         gain = ll_new - objective
         try:
-            new_ev = evaluate(model, data, z_new, ev.xhat, scales, free)
+            # The trial's MAP is the one just solved (same start, same z).
+            new_ev = evaluate(model, data, z_new, xh_new, scales, free, at_map=True)
         except EVALUATION_ERRORS:
             break
         z, ev = z_new, new_ev

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from ._adequacy import adequacy_test
+from ._adequacy import adequacy_test, describe_region
 from ._find import _diagnostics_significant, _safe_innovation_tests, find
 from ._fit import (
     fit,
@@ -175,7 +175,8 @@ def _verdict(out: dict, leftover: bool) -> str:
         parts = [
             "partial: " + "; ".join(parts) + " explains part of the mismatch; "
             f"structure remains in {w['equation']} as a function of "
-            f"{w['variable']} (largest near {w['variable']} = {w['near']:.3g})"
+            f"{w['variable']}, in {describe_region(w['variable'], w['region'])} "
+            f"(largest near {w['variable']} = {w['near']:.3g})"
         ]
     elif out["tentative"]:
         parts = ["tentative: " + "; ".join(parts)]
