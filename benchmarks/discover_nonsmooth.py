@@ -150,13 +150,13 @@ class Plant:
             x = x + rng.normal(size=(num, n)) * self.q
         return np.stack(xs, 1), u, np.stack(incs[:-1], 1)
 
-    def simulate(self, rng, effect, coef, noise: float = 1.0):
-        xs, u, incs = self.trajectories(rng, effect, coef, B)
+    def simulate(self, rng, effect, coef, noise: float = 1.0, num: int = B):
+        xs, u, incs = self.trajectories(rng, effect, coef, num)
         y = xs[..., : self.axes]
         y = y + noise * self.r * rng.normal(size=y.shape)
         init = np.concatenate([y, np.zeros_like(y)], -1)
         data = dc.Sequences(
-            y, np.zeros((B, 2 * self.axes)), inputs=u, initial_states=init
+            y, np.zeros((num, 2 * self.axes)), inputs=u, initial_states=init
         )
         snr = float(np.sqrt(np.mean(np.square(incs)))) / self.q[self.axes]
         return data, snr
@@ -232,8 +232,9 @@ def plants() -> dict[str, Plant]:
     }
 
 
-def cell(plant: Plant, effect, level, seeds, log, noise=1.0) -> dict:
-    """`seeds` data sets of one (system, effect, level) or null cell."""
+def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
+    """`seeds` data sets of `num` sequences of one (system, effect, level)
+    or null cell."""
     out_of_library = effect in OUT_OF_LIBRARY
     # Out-of-library effects are set by their shape parameter (`level` is
     # it); in-library ones by their per-step SNR.
@@ -245,9 +246,11 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0) -> dict:
     c, names, alarms, times, snrs = Counter(), Counter(), Counter(), [], []
     key = [2026, 37, plant.tag, _TAGS.get(effect, 0)]
     key += [int(round(level * 1000)), int(round(noise * 10))]
+    if num != B:  # the default size keeps the streams it always had
+        key.append(num)
     for s in range(seeds):
         rng = np.random.default_rng(np.random.SeedSequence(key + [s]))
-        data, snr = plant.simulate(rng, effect, coef, noise)
+        data, snr = plant.simulate(rng, effect, coef, noise, num)
         out = guarded_run(data, plant.model, log, f"{plant.name} {effect} seed {s}")
         if out is None:
             c["crashes"] += 1
@@ -283,6 +286,7 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0) -> dict:
         "snr_beyond_library": snr_beyond,
         "snr_realised_median": float(np.median(snrs)) if snrs else None,
         "measurement_noise_factor": noise,
+        "sequences": num,
         "coefficient": coef,
         "n": n,
         "crashes": c["crashes"],
@@ -314,7 +318,8 @@ def report(records: list[dict], info: dict) -> str:
         "# discover benchmark: out-of-library nonsmooth effects, in-library "
         "effects and null data on three systems",
         "",
-        f"- command: `{info['command']}`",
+        "- commands (cells are resumed and added across runs): "
+        + "; ".join(f"`{c}`" for c in info.get("commands", [info["command"]])),
         f"- machine: {m.get('cores')} cores, {m.get('cpu')}; JAX {m.get('jax')}",
         f"- git: {info['git']}",
         f"- wall time {info['total_s'] / 60:.1f} min",
@@ -323,17 +328,19 @@ def report(records: list[dict], info: dict) -> str:
         "",
         "## Out-of-library effects (the right answer: no confident name)",
         "",
-        "| system | effect | parameter | SNR total / beyond the library | n | "
+        "| system | effect | parameter | SNR total / beyond the library | "
+        "sequences | n | "
         "detected | anything named "
         "| named confidently | partial | tentative | names given (alone or in sets) "
         "| median s |",
-        "|" + "---|" * 12,
+        "|" + "---|" * 13,
     ]
     for r in records:
         if r["out_of_library"]:
             lines.append(
                 f"| {r['system']} | {r['effect']} | {r['parameter']:g} | "
-                f"{r['snr_total']:.2f} / {r['snr_beyond_library']:.2f} | {r['n']} | "
+                f"{r['snr_total']:.2f} / {r['snr_beyond_library']:.2f} | "
+                f"{r.get('sequences', B)} | {r['n']} | "
                 + " | ".join(
                     fmt_rate(r[k])
                     for k in (
@@ -408,6 +415,9 @@ def main(argv=None):
     parser.add_argument("--in-library-level", type=float, default=1.0)
     parser.add_argument("--null", type=int, default=200)
     parser.add_argument("--null-noises", type=float, nargs="+", default=[1.0, 2.0])
+    parser.add_argument(
+        "--sequences", type=int, default=B, help="sequences per data set"
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
@@ -417,15 +427,18 @@ def main(argv=None):
         args.shapes = "saturation=0.4,dead zone=0.4,backlash=0.6"
         args.null, args.null_noises = 1, [1.0]
     t0 = time.perf_counter()
-    records = []
+    records, commands = [], []
     if args.json and Path(args.json).exists():
-        records = json.loads(Path(args.json).read_text())["records"]
+        earlier = json.loads(Path(args.json).read_text())
+        records = earlier["records"]
+        commands = earlier["info"].get("commands", [earlier["info"]["command"]])
     done = {
         (
             r["system"],
             r["effect"],
             r["parameter"] if r["out_of_library"] else r["snr_target"],
             r["measurement_noise_factor"],
+            r.get("sequences", B),
         )
         for r in records
     }
@@ -433,8 +446,10 @@ def main(argv=None):
     def log(msg):
         print(msg, flush=True)
 
+    command = "python " + " ".join(["discover_nonsmooth.py", *sys.argv[1:]])
     info = {
-        "command": "python " + " ".join(["discover_nonsmooth.py", *sys.argv[1:]]),
+        "command": command,
+        "commands": [*commands, command],
         "git": "{} (uncommitted: {})".format(*d1._git()),
         "machine": machine(),
     }
@@ -461,10 +476,12 @@ def main(argv=None):
                 jobs.append((effect, args.in_library_level, args.seeds, 1.0))
         jobs += [(None, 0.0, args.null, nz) for nz in args.null_noises]
         for effect, level, seeds, noise in jobs:
-            if (name, effect or "none", level, noise) in done or seeds < 1:
+            if (name, effect or "none", level, noise, args.sequences) in done:
+                continue
+            if seeds < 1:
                 continue
             log(f"{name}: {effect or 'null'} level {level} noise ×{noise}")
-            rec = cell(plant, effect, level, seeds, log, noise)
+            rec = cell(plant, effect, level, seeds, log, noise, args.sequences)
             records.append(rec)
             log(
                 f"  -> named confidently {rec['named_confidently']['k']}/{rec['n']}, "
