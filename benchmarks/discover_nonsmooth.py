@@ -418,6 +418,9 @@ def main(argv=None):
     parser.add_argument(
         "--sequences", type=int, default=B, help="sequences per data set"
     )
+    parser.add_argument(
+        "--effects", nargs="+", default=None, help="only these effects (and null)"
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
@@ -470,6 +473,8 @@ def main(argv=None):
         plant = all_plants[name]
         jobs = []
         for effect in plant.effects:
+            if args.effects is not None and effect not in args.effects:
+                continue
             if effect in OUT_OF_LIBRARY:
                 jobs += [(effect, w, args.seeds, 1.0) for w in shapes.get(effect, [])]
             else:
