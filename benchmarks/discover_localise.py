@@ -38,7 +38,7 @@ jax.config.update("jax_enable_x64", True)
 import discover as d1  # noqa: E402
 import discover_nonsmooth as dn  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine, write_json, write_text  # noqa: E402
+from _common import machine  # noqa: E402
 from discover import fmt_rate, rate  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
@@ -201,12 +201,7 @@ def main(argv=None):
     def log(msg):
         print(msg, flush=True)
 
-    def save():
-        info["total_s"] = time.perf_counter() - t0
-        if args.json:
-            write_json(args.json, records, {"info": info})
-        if args.markdown:
-            write_text(args.markdown, report(records, info))
+    save = dn.saver(args, records, info, report, t0)
 
     plants = dn.plants()
     for name in args.systems:

@@ -402,6 +402,20 @@ def report(records: list[dict], info: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def saver(args, records, info, render, t0):
+    """`save()` for a resumable run: the records as JSON and `render`'s
+    markdown, where `args.json` and `args.markdown` say."""
+
+    def save():
+        info["total_s"] = time.perf_counter() - t0
+        if args.json:
+            write_json(args.json, records, {"info": info})
+        if args.markdown:
+            write_text(args.markdown, render(records, info))
+
+    return save
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--systems", nargs="+", default=list(plants()))
@@ -457,12 +471,7 @@ def main(argv=None):
         "machine": machine(),
     }
 
-    def save():
-        info["total_s"] = time.perf_counter() - t0
-        if args.json:
-            write_json(args.json, records, {"info": info})
-        if args.markdown:
-            write_text(args.markdown, report(records, info))
+    save = saver(args, records, info, report, t0)
 
     shapes = {}
     for item in args.shapes.split(","):
