@@ -198,15 +198,11 @@ def _augmented(model, data, xhat, acting):
         dataclasses.replace(c, feature=_FirstInputs(c.feature, k))
         for c in model.candidates
     )
-    augmented = ChainModel(
-        dynamics,
-        model.measurement,
-        model.params,
-        model.process_sigma,
-        model.measurement_sigma,
-        model.prior_sigma,
-        own + tuple(hats),
-        measurement_dof=model.measurement_dof,
+    augmented = dataclasses.replace(
+        model,
+        dynamics=dynamics,
+        candidates=own + tuple(hats),
+        coefficients=np.concatenate([model.coefficients, np.zeros(len(hats))]),
     )
     B, T = inputs.shape[:2]
     knot_inputs = np.broadcast_to(np.asarray(knot_channels), (B, T, len(knot_channels)))
