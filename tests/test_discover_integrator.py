@@ -167,3 +167,34 @@ def test_integrator_and_rate_errors():
         )
     with pytest.raises(ValueError, match="vector_field .* or rate=True"):
         dc.mechanical_library([0], [1], 2, vector_field=_Field(W2), rate=True)
+
+
+def test_library_for_the_models_dynamics():
+    """Given the model's dynamics, the library fits it: rate terms and the
+    integrator's dt for an Integrator, kicks for a discrete map."""
+    import eqsmooth.discover as dc
+
+    integrator = dc.Integrator(_pendulum_field, DT)
+    lib = dc.mechanical_library(
+        [0], [1], 2, measured_positions=[0], dynamics=integrator
+    )
+    dyn = [c for c in lib if c.target != "measurement"]
+    assert dyn and all(c.target == "rate" for c in dyn)
+    assert all(c.feature.dt == DT for c in dyn)
+    # The same candidates as asking for them by hand (same compiled code).
+    assert lib == dc.mechanical_library(
+        [0], [1], 2, dt=DT, measured_positions=[0], rate=True
+    )
+    kicks = dc.mechanical_library([0], [1], 2, dynamics=integrator, rate=False)
+    assert all(c.target == "dynamics" and c.feature.dt == DT for c in kicks)
+    midpoint = dc.mechanical_library(
+        [0], [1], 2, dynamics=integrator, vector_field=_Field(W2)
+    )
+    assert all(c.target == "dynamics" for c in midpoint)
+    discrete = dc.mechanical_library([0], [1], 2, dt=DT, dynamics=_pendulum_field)
+    assert all(c.target == "dynamics" for c in discrete)
+    with pytest.raises(ValueError, match=r"dt=0\.5 differs from the integrator's"):
+        dc.mechanical_library([0], [1], 2, dt=0.5, dynamics=integrator)
+    # Under runtime type checks the annotation refuses it first.
+    with pytest.raises(TypeError, match="dynamics"):
+        dc.mechanical_library([0], [1], 2, dynamics=3.0)

@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._integrator import Integrator
+
 
 _TARGETS = ("dynamics", "rate", "measurement")
 
@@ -359,14 +361,15 @@ def mechanical_library(
     velocities: Sequence[int],
     state_dim: int,
     *,
-    dt: float = 1.0,
+    dt: float | None = None,
     coulomb_eps: float = 0.1,
     measured_positions: Sequence[int] | None = None,
     num_inputs: int = 0,
     axis_names: Sequence[str] | None = None,
     include: Sequence[str] | None = None,
     vector_field: Callable | None = None,
-    rate: bool = False,
+    rate: bool | None = None,
+    dynamics: Callable | None = None,
 ) -> tuple[Candidate, ...]:
     """The standard candidate effects of a second-order mechanical system.
 
@@ -386,6 +389,14 @@ def mechanical_library(
     dynamics must then be an [`eqsmooth.discover.Integrator`][], and the
     coefficients are continuous-time quantities with no discretisation
     error, at a higher compile cost.
+
+    Pass the model's `dynamics` to get the library that fits it: for an
+    [`eqsmooth.discover.Integrator`][] the acceleration candidates are then
+    vector-field terms (`rate=True`, the default for a continuous-time
+    model) and `dt` is the integrator's. An effect that acts inside the
+    ODE then gets one name: as kicks at a coarse sample time it also picks
+    up stiffness-like terms and the sensor scale
+    (`benchmarks/results/discover_continuous.md`).
     Dissipative and stiffness terms share one coefficient over all axes
     (isotropic); constant force, actuator gain and the sensor effects get one
     candidate per axis or channel.
@@ -411,7 +422,8 @@ def mechanical_library(
 
     - `positions`, `velocities`: state indices, one per axis.
     - `state_dim`: the state dimension `n`.
-    - `dt`: time step of the discrete model.
+    - `dt`: time step of the discrete model (default 1, or the
+        integrator's when `dynamics` is an `Integrator`).
     - `coulomb_eps`: smoothing velocity `ε` of the Coulomb term (velocity
         units); small compared with typical speeds.
     - `measured_positions`: for sensor candidates (see above), or `None`.
@@ -428,11 +440,30 @@ def mechanical_library(
         identity (a module-level function or a frozen dataclass; a lambda
         works but compiles again every time it is created).
     - `rate`: build the acceleration candidates as vector-field terms (see
-        above; then `dt` and `vector_field` are not used by them).
+        above; then `dt` and `vector_field` are not used by them). `None`
+        (default): `True` when `dynamics` is an `Integrator`, else `False`.
+    - `dynamics`: the nominal model's dynamics (what is passed to
+        [`eqsmooth.discover.ChainModel`][]), or `None`. An `Integrator`
+        makes rate candidates the default and supplies `dt`.
 
     **Returns:** a tuple of [`eqsmooth.discover.Candidate`][].
     """
     positions, velocities = tuple(positions), tuple(velocities)
+    if isinstance(dynamics, Integrator):
+        if dt is not None and dt != dynamics.dt:
+            raise ValueError(
+                f"mechanical_library: dt={dt} differs from the integrator's dt="
+                f"{dynamics.dt}; leave dt out when dynamics is given"
+            )
+        dt = dynamics.dt
+        if rate is None:
+            rate = vector_field is None
+    elif dynamics is not None and not callable(dynamics):
+        raise TypeError(
+            "mechanical_library: dynamics must be the model's dynamics (a callable "
+            f"or an eqsmooth.discover.Integrator), got {type(dynamics).__name__}"
+        )
+    rate, dt = bool(rate), 1.0 if dt is None else float(dt)
     _check_mechanical(positions, velocities, state_dim, coulomb_eps, vector_field, rate)
     if vector_field is not None:
         _check_vector_field(vector_field, state_dim, num_inputs)
