@@ -210,11 +210,15 @@ def fit(
     z = np.asarray(z0, dtype=float).copy()
     log_prior, prior_grad, prior_negH = _scale_prior(model, free)
     ev = evaluate(model, data, z, init, scales, free)
+    # The difference-of-gradients Hessian costs two score evaluations per
+    # free parameter; it is computed where the fit starts and where it ends
+    # (for intervals), and updated by BFGS in between.
+    negH = -ev.hessian[np.ix_(free, free)] + prior_negH
+    fresh = True
     lam, radius = 1e-3, _TRUST_RADIUS[0]
     converged = False
     for _ in range(max_iter):
         g = np.sum(ev.scores, axis=0)[free] + prior_grad(z)
-        negH = -ev.hessian[np.ix_(free, free)] + prior_negH
         objective = ev.log_marginal + log_prior(z)
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(negH))):
             break
@@ -252,17 +256,36 @@ def fit(
         gain = ll_new - objective
         try:
             # The trial's MAP is the one just solved (same start, same z).
-            new_ev = evaluate(model, data, z_new, xh_new, scales, free, at_map=True)
+            new_ev = evaluate(model, data, z_new, xh_new, scales, at_map=True)
         except EVALUATION_ERRORS:
             break
-        z, ev = z_new, new_ev
+        g_new = np.sum(new_ev.scores, axis=0)[free] + prior_grad(z_new)
+        negH = _bfgs(negH, step, g - g_new)
+        z, ev, fresh = z_new, new_ev, False
         if (
             gain < tol * max(1.0, abs(ev.log_marginal + log_prior(z)))
             and np.max(np.abs(step * d)) < 1e-3
         ):
             converged = True
             break
+    if not fresh:
+        try:
+            ev = evaluate(model, data, ev.z, ev.xhat, scales, free, at_map=True)
+        except EVALUATION_ERRORS:
+            converged = False
     return eqx.tree_at(lambda e: e.converged, ev, converged)
+
+
+def _bfgs(B: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """BFGS update of the curvature `B` (of the negative objective) after the
+    step `s` changed the negative gradient by `y`; kept as is when the pair
+    has no positive curvature (`sᵀy ≤ 0`)."""
+    sy = float(s @ y)
+    Bs = B @ s
+    sBs = float(s @ Bs)
+    if not (np.isfinite(sy) and sy > 1e-12 * max(1.0, sBs)) or sBs <= 0:
+        return B
+    return B + np.outer(y, y) / sy - np.outer(Bs, Bs) / sBs
 
 
 def null_z(model: ChainModel) -> np.ndarray:

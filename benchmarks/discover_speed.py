@@ -1,0 +1,179 @@
+"""Time of one `find` → `name` → `add` call of the discrepancy workflow.
+
+Each case runs in a fresh process (`--child`), so the first call includes
+every compilation; the later calls reuse them. Cases:
+
+- `oscillator`: the 1-D oscillator of `discover.py` (10 candidates) with
+  viscous damping at SNR 0.4, B = 24 × T = 40.
+- `pendulum`: the continuous-time pendulum of `discover_continuous.py`
+  (an `Integrator` model, 10 candidates inside the vector field) with
+  viscous damping at SNR 1, B = 24 × T = 40.
+
+Reported per case: the first call (with compilation), the median of the
+later calls (each on a new data set), the number of XLA compilations and
+their total time in the first call. `--flags fast` starts each child with
+`eqsmooth.set_xla_cpu_flags(fast_compile=True)`, the documented set-up.
+`--eqsmooth PATH` times another checkout (e.g. a worktree of an earlier
+commit, for a before/after run in one command).
+
+    python benchmarks/discover_speed.py --json benchmarks/results/discover_speed.json
+"""
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+HERE = Path(__file__).resolve().parent
+CASES = ("oscillator", "pendulum")
+
+
+def child(case: str, repeats: int, flags: str) -> dict:
+    if flags == "fast":
+        import eqsmooth
+
+        eqsmooth.set_xla_cpu_flags(fast_compile=True)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from jax import monitoring
+
+    compiles = {"n": 0, "s": 0.0}
+
+    def on_event(name, duration, **kwargs):
+        if "backend_compile" in name:
+            compiles["n"] += 1
+            compiles["s"] += duration
+
+    monitoring.register_event_duration_secs_listener(on_event)
+    import eqsmooth.discover as dc
+
+    if case == "oscillator":
+        import discover as d1
+
+        coef = d1.calibrate([0.4])["viscous"][0.4]
+        model = d1.MODEL
+
+        def data(seed):
+            _, y, _ = d1.simulate(d1.rng_for(1, 0.4, seed), "viscous", coef)
+            return d1.sequences(y)
+    else:
+        import discover_continuous as d3
+        import numpy as np
+
+        coef = d3.coefficient("viscous damping", 1.0)
+        model = d3.MODELS["rate"]
+
+        def data(seed):
+            rng = np.random.default_rng([2026, 37, 99, seed])
+            return d3.simulate(rng, "viscous damping", coef)[0]
+
+    times, names = [], []
+    first = None
+    for seed in range(repeats + 1):
+        d = data(seed)
+        t0 = time.perf_counter()
+        found = dc.find(model, d)
+        named = dc.name(found, d)
+        dc.add(found, named, d)
+        dt = time.perf_counter() - t0
+        names.append(list(named["named"]))
+        if first is None:
+            first = {
+                "seconds": dt,
+                "compiles": compiles["n"],
+                "compile_s": compiles["s"],
+            }
+        else:
+            times.append(dt)
+    from _common import git
+
+    import eqsmooth
+
+    where = Path(eqsmooth.__file__).resolve().parent
+    return {
+        "case": case,
+        "flags": flags,
+        "eqsmooth": str(where),
+        "eqsmooth_git": git("rev-parse", "--short", "HEAD", where=where),
+        "eqsmooth_dirty": bool(
+            git("status", "--porcelain", "--untracked-files=no", where=where)
+        ),
+        "first_call_s": first["seconds"],
+        "first_call_compiles": first["compiles"],
+        "first_call_compile_s": first["compile_s"],
+        "later_calls_s": times,
+        "later_median_s": statistics.median(times),
+        "named": names,
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--cases", nargs="+", default=list(CASES))
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--flags", choices=("default", "fast"), nargs="+", default=["default", "fast"]
+    )
+    parser.add_argument("--eqsmooth", default=None, help="checkout to time")
+    parser.add_argument("--label", default="this checkout")
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+    if args.child:
+        case, flags = args.child.split(":")
+        print(json.dumps(child(case, args.repeats, flags)))
+        return
+    from _common import machine, write_json
+
+    env = dict(os.environ)
+    if args.eqsmooth:
+        env["PYTHONPATH"] = os.pathsep.join([args.eqsmooth, env.get("PYTHONPATH", "")])
+    records = []
+    for case in args.cases:
+        for flags in args.flags:
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--child",
+                    f"{case}:{flags}",
+                    "--repeats",
+                    str(args.repeats),
+                ],
+                capture_output=True,
+                text=True,
+                env=env,
+                cwd=HERE,
+            )
+            if out.returncode:
+                raise RuntimeError(f"{case} {flags}: {out.stderr[-2000:]}")
+            rec = json.loads(out.stdout.strip().splitlines()[-1]) | {
+                "label": args.label
+            }
+            records.append(rec)
+            print(
+                f"{args.label} {case} {flags}: first {rec['first_call_s']:.1f} s "
+                f"({rec['first_call_compiles']} compiles, "
+                f"{rec['first_call_compile_s']:.1f} s), later median "
+                f"{rec['later_median_s']:.2f} s",
+                flush=True,
+            )
+    if args.json:
+        path = Path(args.json)
+        earlier = json.loads(path.read_text())["records"] if path.exists() else []
+        command = "python " + " ".join(["discover_speed.py", *sys.argv[1:]])
+        write_json(
+            args.json,
+            earlier + records,
+            {"info": {"command": command, "machine": machine()}},
+        )
+
+
+if __name__ == "__main__":
+    main()
