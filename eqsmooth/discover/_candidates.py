@@ -388,7 +388,7 @@ def mechanical_library(
     `v̇ = … + c a`), integrated by the model's own scheme: the nominal model's
     dynamics must then be an [`eqsmooth.discover.Integrator`][], and the
     coefficients are continuous-time quantities with no discretisation
-    error, at a higher compile cost.
+    error, at a somewhat higher compile cost.
 
     Pass the model's `dynamics` to get the library that fits it: for an
     [`eqsmooth.discover.Integrator`][] the acceleration candidates are then
