@@ -134,7 +134,9 @@ def main(argv=None):
     env = dict(os.environ)
     if args.eqsmooth:
         env["PYTHONPATH"] = os.pathsep.join([args.eqsmooth, env.get("PYTHONPATH", "")])
-    records = []
+    path = Path(args.json) if args.json else None
+    records = json.loads(path.read_text())["records"] if path and path.exists() else []
+    command = "python " + " ".join(["discover_speed.py", *sys.argv[1:]])
     for case in args.cases:
         for flags in args.flags:
             out = subprocess.run(
@@ -153,9 +155,8 @@ def main(argv=None):
             )
             if out.returncode:
                 raise RuntimeError(f"{case} {flags}: {out.stderr[-2000:]}")
-            rec = json.loads(out.stdout.strip().splitlines()[-1]) | {
-                "label": args.label
-            }
+            rec = json.loads(out.stdout.strip().splitlines()[-1])
+            rec |= {"label": args.label, "command": command}
             records.append(rec)
             print(
                 f"{args.label} {case} {flags}: first {rec['first_call_s']:.1f} s "
@@ -164,15 +165,8 @@ def main(argv=None):
                 f"{rec['later_median_s']:.2f} s",
                 flush=True,
             )
-    if args.json:
-        path = Path(args.json)
-        earlier = json.loads(path.read_text())["records"] if path.exists() else []
-        command = "python " + " ".join(["discover_speed.py", *sys.argv[1:]])
-        write_json(
-            args.json,
-            earlier + records,
-            {"info": {"command": command, "machine": machine()}},
-        )
+            if path:  # saved after every case: a stopped run keeps its cases
+                write_json(path, records)
 
 
 if __name__ == "__main__":

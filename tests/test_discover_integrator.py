@@ -198,3 +198,42 @@ def test_library_for_the_models_dynamics():
     # Under runtime type checks the annotation refuses it first.
     with pytest.raises(TypeError, match="dynamics"):
         dc.mechanical_library([0], [1], 2, dynamics=3.0)
+
+
+def test_integrator_step_derivatives_match_central_differences():
+    """The scanned scheme differentiates like the formula: first derivatives
+    in the state and a rate coefficient, and the second derivative in the
+    state (the Laplace evidence's gradient uses it), against float64
+    central differences."""
+    import eqsmooth.discover as dc
+
+    lib = dc.mechanical_library(
+        [0], [1], 2, include=("viscous damping", "cubic stiffness"), rate=True
+    )
+    model = dc.ChainModel(
+        dc.Integrator(_pendulum_field, DT, "rk4", 2),
+        _measure,
+        jnp.asarray(W2),
+        np.ones(2),
+        np.ones(1),
+        np.ones(2),
+        lib,
+        coefficients=np.array([GAMMA, 0.2]),
+    )
+    x, u, w = jnp.asarray([0.7, -0.4]), jnp.zeros(1), jnp.asarray([0.3, -1.1])
+
+    def out(x, c):
+        return w @ model.with_coefficients(c).transition(x, u)
+
+    c = model.coefficients
+    eps = 1e-5
+    grad_x, grad_c = jax.grad(out, argnums=(0, 1))(x, c)
+    hess_x = jax.hessian(out)(x, c)
+    for i in range(2):
+        e = jnp.zeros(2).at[i].set(eps)
+        fd_x = (out(x + e, c) - out(x - e, c)) / (2 * eps)
+        fd_c = (out(x, c + e) - out(x, c - e)) / (2 * eps)
+        fd_h = (jax.grad(out)(x + e, c) - jax.grad(out)(x - e, c)) / (2 * eps)
+        np.testing.assert_allclose(grad_x[i], fd_x, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(grad_c[i], fd_c, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(hess_x[:, i], fd_h, rtol=1e-6, atol=1e-9)
