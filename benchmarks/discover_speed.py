@@ -166,7 +166,7 @@ def main(argv=None):
                 flush=True,
             )
             if path:  # saved after every case: a stopped run keeps its cases
-                write_json(path, records)
+                write_json(path, records, {"info": {"machine": machine()}})
 
 
 if __name__ == "__main__":
