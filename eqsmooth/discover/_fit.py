@@ -206,13 +206,45 @@ def fit(
     `free` (for confidence intervals).
     """
     free = np.asarray(free, dtype=int)
-    num_coefficients = len(model.candidates)
-    z = np.asarray(z0, dtype=float).copy()
     log_prior, prior_grad, prior_negH = _scale_prior(model, free)
-    ev = evaluate(model, data, z, init, scales, free)
+    objective = (log_prior, prior_grad, prior_negH)
+    ev = evaluate(model, data, np.asarray(z0, dtype=float).copy(), init, scales, free)
+    ev, converged, fresh = _newton(
+        model, data, free, ev, scales, objective, max_iter, tol
+    )
+    if not (converged or fresh):
+        # Stopped short (the iteration limit, or no better point along a
+        # step of the updated curvature): restart once from the best point
+        # with a new difference-of-gradients Hessian and a reset trust region.
+        # On a pendulum with a constant torque, a fit that crept along the
+        # ridge between the torque and the process-noise scale for 25 steps
+        # gained 7 more nats this way.
+        try:
+            restart = evaluate(model, data, ev.z, ev.xhat, scales, free, at_map=True)
+        except EVALUATION_ERRORS:
+            restart = None
+        if restart is not None:
+            ev, converged, fresh = _newton(
+                model, data, free, restart, scales, objective, max_iter, tol
+            )
+    if not fresh:
+        try:
+            ev = evaluate(model, data, ev.z, ev.xhat, scales, free, at_map=True)
+        except EVALUATION_ERRORS:
+            converged = False
+    return eqx.tree_at(lambda e: e.converged, ev, converged)
+
+
+def _newton(model, data, free, ev, scales, objective_terms, max_iter, tol):
+    """Damped Newton iterations of `fit` from `ev` (whose Hessian over `free`
+    is fresh). Returns `(evaluation, converged, fresh)`; `fresh` is False when
+    the evaluation returned holds no Hessian of its own."""
+    log_prior, prior_grad, prior_negH = objective_terms
+    num_coefficients = len(model.candidates)
+    z = ev.z.copy()
     # The difference-of-gradients Hessian costs two score evaluations per
-    # free parameter; it is computed where the fit starts and where it ends
-    # (for intervals), and updated by BFGS in between.
+    # free parameter; it is computed where the iterations start and where
+    # the fit ends (for intervals), and updated by BFGS in between.
     negH = -ev.hessian[np.ix_(free, free)] + prior_negH
     fresh = True
     lam, radius = 1e-3, _TRUST_RADIUS[0]
@@ -268,12 +300,7 @@ def fit(
         ):
             converged = True
             break
-    if not fresh:
-        try:
-            ev = evaluate(model, data, ev.z, ev.xhat, scales, free, at_map=True)
-        except EVALUATION_ERRORS:
-            converged = False
-    return eqx.tree_at(lambda e: e.converged, ev, converged)
+    return ev, converged, fresh
 
 
 def _bfgs(B: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
