@@ -13,10 +13,17 @@ Reported per case: the first call (with compilation), the median of the
 later calls (each on a new data set), the number of XLA compilations and
 their total time in the first call. `--flags fast` starts each child with
 `eqsmooth.set_xla_cpu_flags(fast_compile=True)`, the documented set-up.
-`--eqsmooth PATH` times another checkout (e.g. a worktree of an earlier
-commit, for a before/after run in one command).
+`--cache DIR` turns on JAX's persistent compilation cache in DIR
+(`eqsmooth.enable_compilation_cache`): run twice, the second run's first
+call reads what the first run compiled. `--eqsmooth PATH` times another
+checkout (e.g. a worktree of an earlier commit, for a before/after run in
+one command).
 
     python benchmarks/discover_speed.py --json benchmarks/results/discover_speed.json
+    rm -rf /tmp/dc_cache; for run in cold warm; do python benchmarks/discover_speed.py \
+        --cases oscillator --flags fast --repeats 1 --cache /tmp/dc_cache \
+        --label "cache $run" --json benchmarks/results/discover_speed.json; done
+    # the same with EQX_ON_ERROR=nan set, to a new folder (no host callbacks)
 """
 
 import argparse
@@ -33,8 +40,12 @@ HERE = Path(__file__).resolve().parent
 CASES = ("oscillator", "pendulum")
 
 
-def child(case: str, repeats: int, flags: str) -> dict:
-    if flags == "fast":
+def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
+    if cache:
+        import eqsmooth
+
+        eqsmooth.enable_compilation_cache(cache, fast_compile=flags == "fast")
+    elif flags == "fast":
         import eqsmooth
 
         eqsmooth.set_xla_cpu_flags(fast_compile=True)
@@ -99,6 +110,7 @@ def child(case: str, repeats: int, flags: str) -> dict:
     return {
         "case": case,
         "flags": flags,
+        "cache": cache,
         "eqsmooth": str(where),
         "eqsmooth_git": git("rev-parse", "--short", "HEAD", where=where),
         "eqsmooth_dirty": bool(
@@ -122,12 +134,18 @@ def main(argv=None):
     )
     parser.add_argument("--eqsmooth", default=None, help="checkout to time")
     parser.add_argument("--label", default="this checkout")
+    parser.add_argument(
+        "--cache",
+        default=None,
+        help="run each child with eqsmooth.enable_compilation_cache(CACHE); "
+        "an empty folder measures a cold cache, a second run the warm one",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
     if args.child:
         case, flags = args.child.split(":")
-        print(json.dumps(child(case, args.repeats, flags)))
+        print(json.dumps(child(case, args.repeats, flags, args.cache)))
         return
     from _common import machine, write_json
 
@@ -147,6 +165,7 @@ def main(argv=None):
                     f"{case}:{flags}",
                     "--repeats",
                     str(args.repeats),
+                    *(["--cache", args.cache] if args.cache else []),
                 ],
                 capture_output=True,
                 text=True,
