@@ -746,3 +746,21 @@ def test_two_coupled_axes_with_two_sensors():
     assert together == {"constant force [y]", "sensor bias [y1]"}, named
     found, named, _ = run(None, 0.0)
     assert not found["detected"] and named["named"] == [], named
+
+
+def test_compiled_programs_hold_no_host_callbacks():
+    """JAX's persistent cache does not store programs with host callbacks, and
+    a traced noise check (`eqx.error_if`) is one: the workflow's MAP, evidence
+    and score programs must be free of them (with one, a second process
+    compiled everything again: `benchmarks/discover_speed.py --cache`)."""
+    import jax
+
+    from eqsmooth.discover import _model as M
+
+    model = _model()
+    data = _simulate(0)
+    z = jnp.asarray(M.z_of(model))
+    x = data.initial_states
+    for fn in (M.map_states, M.batch_log_marginal, M.batch_scores):
+        text = str(jax.make_jaxpr(fn.__wrapped__)(model, z, data, x))
+        assert "callback" not in text, fn.__name__

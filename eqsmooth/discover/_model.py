@@ -278,7 +278,7 @@ class ChainModel(eqx.Module):
 
     def measurement_noise(self) -> AbstractNoiseModel:
         """The measurement factor's noise model (Gaussian or Student-t)."""
-        gaussian = DiagonalNoise(sqrt_precision=1.0 / self.measurement_sigma)
+        gaussian = _diagonal_noise(self.measurement_sigma)
         if self.measurement_dof is None:
             return gaussian
         m = self.measurement_sigma.shape[0]
@@ -360,13 +360,13 @@ class ChainModel(eqx.Module):
                 FunctionFactor(
                     _prior_residual,
                     (Var("x", [0]),),
-                    DiagonalNoise(sqrt_precision=1.0 / self.prior_sigma),
+                    _diagonal_noise(self.prior_sigma),
                     data=x0_mean[None],
                 ),
                 FunctionFactor(
                     _transition_residual,
                     (Var("x", t[:-1]), Var("x", t[1:])),
-                    DiagonalNoise(sqrt_precision=1.0 / self.process_sigma),
+                    _diagonal_noise(self.process_sigma),
                     data=inputs[:-1],
                     params=self,
                 ),
@@ -379,6 +379,22 @@ class ChainModel(eqx.Module):
                 ),
             ]
         )
+
+
+def _diagonal_noise(sigma: Float[Array, " d"]) -> DiagonalNoise:
+    """`DiagonalNoise(sqrt_precision=1/sigma)` without the noise model's
+    run-time positivity check.
+
+    Under `jit` that check is an `eqx.error_if`, a host callback, and JAX's
+    persistent cache does not store programs with host callbacks: every
+    process compiled the workflow's programs again (`benchmarks/
+    discover_speed.py`). Here the check is redundant: `ChainModel` checks its
+    sigmas positive and finite where it is built, and the workflow only
+    multiplies them by `exp(·)` of bounded log scales.
+    """
+    with jax.ensure_compile_time_eval():  # a concrete template: checked now
+        template = DiagonalNoise(sqrt_precision=np.ones(sigma.shape))
+    return eqx.tree_at(lambda n: n.sqrt_precision, template, 1.0 / sigma)
 
 
 def _prior_residual(x, data, params):
@@ -510,14 +526,14 @@ def _diagnostic_filter_one(model: ChainModel, y, u, x0, xhat):
     transition = FunctionFactor(
         _linear_transition_residual,
         (Var("x", t[:-1]), Var("x", t[1:])),
-        DiagonalNoise(sqrt_precision=1.0 / model.process_sigma),
+        _diagonal_noise(model.process_sigma),
         data=(u[:-1], xhat[:-1]),
         params=model,
     )
     measurement = FunctionFactor(
         _linear_measurement_residual,
         (Var("x", t),),
-        DiagonalNoise(sqrt_precision=1.0 / model.measurement_std),
+        _diagonal_noise(model.measurement_std),
         data=(y, u, xhat),
         params=model,
     )
