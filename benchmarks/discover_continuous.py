@@ -52,8 +52,8 @@ import discover as d1  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine  # noqa: E402
-from discover import classify, fmt_rate, guarded_run, rate  # noqa: E402
-from discover_nonsmooth import saver  # noqa: E402
+from discover import fmt_rate, guarded_run, rate  # noqa: E402
+from discover_nonsmooth import outcome_rates, saver, tally  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
 
@@ -170,19 +170,8 @@ def cell(library, effect, level, seeds, log, noise=1.0) -> dict:
             continue
         snrs.append(snr)
         times.append(out["seconds"])
-        c["detected"] += out["detected"]
-        c["named"] += bool(out["named"])
-        c["partial"] += out["partial"]
-        c["tentative"] += out["tentative"]
-        confident = bool(out["named"]) and not (out["tentative"] or out["partial"])
-        c["confident"] += confident
-        c["alarm"] += any(out["alarms"].values())
-        alarms.update(k for k, v in out["alarms"].items() if v)
-        names.update(nm for group in (out["sets"] or [out["named"]]) for nm in group)
+        kind = tally(out, truth, c, names, alarms)
         if truth is not None:
-            kind = classify(out, truth)
-            c[kind] += 1
-            c["alone_confident"] += kind == "exact" and confident
             if truth in out["coefficients"]:
                 value, (lo, hi) = out["coefficients"][truth]
                 rel.append((value - coef) / coef)
@@ -201,24 +190,12 @@ def cell(library, effect, level, seeds, log, noise=1.0) -> dict:
         "coefficient": coef,
         "n": n,
         "crashes": c["crashes"],
-        "detected": rate(c["detected"], n),
-        "anything_named": rate(c["named"], n),
-        "named_confidently": rate(c["confident"], n),
-        "partial": rate(c["partial"], n),
-        "tentative": rate(c["tentative"], n),
-        "any_alarm": rate(c["alarm"], n),
-        "alarms": {k: rate(alarms[k], n) for k in sorted(alarms)},
-        "names": dict(names),
+        **outcome_rates(c, n, names, alarms, truth),
         "median_s": float(np.median(times)) if times else None,
         "max_s": float(np.max(times)) if times else None,
     }
     if truth is not None:
         rec |= {
-            "truth_alone": rate(c["exact"], n),
-            "truth_alone_confident": rate(c["alone_confident"], n),
-            "truth_in_set": rate(c["set"], n),
-            "truth_plus_extra": rate(c["extra"], n),
-            "wrong_name": rate(c["wrong"], n),
             "coef_ci95_coverage": rate(c["covered"], len(rel)),
             "coef_rel_error_median_abs": (
                 float(np.median(np.abs(rel))) if rel else None

@@ -257,20 +257,7 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
             continue
         snrs.append(snr)
         times.append(out["seconds"])
-        c["flagged"] += bool(out["flags"])
-        c["detected"] += out["detected"]
-        c["named"] += bool(out["named"])
-        c["partial"] += out["partial"]
-        c["tentative"] += out["tentative"]
-        confident = bool(out["named"]) and not (out["tentative"] or out["partial"])
-        c["confident"] += confident
-        c["alarm"] += any(out["alarms"].values())
-        alarms.update(k for k, v in out["alarms"].items() if v)
-        names.update(nm for group in (out["sets"] or [out["named"]]) for nm in group)
-        if truth is not None:
-            kind = classify(out, truth)
-            c[kind] += 1
-            c["alone_confident"] += kind == "exact" and confident
+        tally(out, truth, c, names, alarms)
         if effect is None or out_of_library:
             if out["named"]:
                 log(f"  {plant.name} {effect} seed {s}: {out['verdict']}")
@@ -291,6 +278,37 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
         "n": n,
         "crashes": c["crashes"],
         "flagged": c["flagged"],
+        **outcome_rates(c, n, names, alarms, truth),
+        "median_s": float(np.median(times)) if times else None,
+    }
+    return rec
+
+
+def tally(out: dict, truth: str | None, c: Counter, names, alarms) -> str | None:
+    """Count one workflow run (`guarded_run`'s dict) into the counters `c`,
+    the names given (`names`) and the alarms raised (`alarms`); returns its
+    `classify` kind against `truth` (None without one)."""
+    c["flagged"] += bool(out["flags"])
+    c["detected"] += out["detected"]
+    c["named"] += bool(out["named"])
+    c["partial"] += out["partial"]
+    c["tentative"] += out["tentative"]
+    confident = bool(out["named"]) and not (out["tentative"] or out["partial"])
+    c["confident"] += confident
+    c["alarm"] += any(out["alarms"].values())
+    alarms.update(k for k, v in out["alarms"].items() if v)
+    names.update(nm for group in (out["sets"] or [out["named"]]) for nm in group)
+    if truth is None:
+        return None
+    kind = classify(out, truth)
+    c[kind] += 1
+    c["alone_confident"] += kind == "exact" and confident
+    return kind
+
+
+def outcome_rates(c: Counter, n: int, names, alarms, truth: str | None) -> dict:
+    """The rates of a cell from `tally`'s counts over its `n` runs."""
+    out = {
         "detected": rate(c["detected"], n),
         "anything_named": rate(c["named"], n),
         "named_confidently": rate(c["confident"], n),
@@ -299,17 +317,16 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
         "any_alarm": rate(c["alarm"], n),
         "alarms": {k: rate(alarms[k], n) for k in sorted(alarms)},
         "names": dict(names),
-        "median_s": float(np.median(times)) if times else None,
     }
     if truth is not None:
-        rec |= {
+        out |= {
             "truth_alone": rate(c["exact"], n),
             "truth_alone_confident": rate(c["alone_confident"], n),
             "truth_in_set": rate(c["set"], n),
             "truth_plus_extra": rate(c["extra"], n),
             "wrong_name": rate(c["wrong"], n),
         }
-    return rec
+    return out
 
 
 def report(records: list[dict], info: dict) -> str:

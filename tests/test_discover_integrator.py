@@ -38,6 +38,16 @@ class _Unhashable:
         return x
 
 
+def _unit_noise_model(integrator, library, coefficients):
+    """The test pendulum with unit noise sigmas and the given coefficients."""
+    import eqsmooth.discover as dc
+
+    ones = np.ones(2), np.ones(1), np.ones(2)
+    return dc.ChainModel(
+        integrator, _measure, jnp.asarray(W2), *ones, library, np.asarray(coefficients)
+    )
+
+
 def _true_states(num=6, steps=40):
     """Sampled states of the damped pendulum, integrated with 1 ms RK4 steps."""
 
@@ -123,15 +133,8 @@ def test_integrator_schemes_and_a_rate_term():
         return jnp.stack([z[1], -W2 * jnp.sin(z[0]) - GAMMA * z[1]])
 
     for method, substeps in (("rk4", 1), ("midpoint", 2), ("euler", 3)):
-        model = dc.ChainModel(
-            dc.Integrator(_pendulum_field, DT, method, substeps),
-            _measure,
-            jnp.asarray(W2),
-            np.ones(2),
-            np.ones(1),
-            np.ones(2),
-            lib,
-            coefficients=np.array([GAMMA]),
+        model = _unit_noise_model(
+            dc.Integrator(_pendulum_field, DT, method, substeps), lib, [GAMMA]
         )
         z, h = x, DT / substeps
         for _ in range(substeps):
@@ -210,15 +213,8 @@ def test_integrator_step_derivatives_match_central_differences():
     lib = dc.mechanical_library(
         [0], [1], 2, include=("viscous damping", "cubic stiffness"), rate=True
     )
-    model = dc.ChainModel(
-        dc.Integrator(_pendulum_field, DT, "rk4", 2),
-        _measure,
-        jnp.asarray(W2),
-        np.ones(2),
-        np.ones(1),
-        np.ones(2),
-        lib,
-        coefficients=np.array([GAMMA, 0.2]),
+    model = _unit_noise_model(
+        dc.Integrator(_pendulum_field, DT, "rk4", 2), lib, [GAMMA, 0.2]
     )
     x, u, w = jnp.asarray([0.7, -0.4]), jnp.zeros(1), jnp.asarray([0.3, -1.1])
 
