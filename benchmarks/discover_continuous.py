@@ -53,7 +53,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import machine  # noqa: E402
 from discover import fmt_rate, guarded_run, rate  # noqa: E402
-from discover_nonsmooth import outcome_rates, saver, tally  # noqa: E402
+from discover_nonsmooth import null_table, outcome_rates, saver, tally  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
 
@@ -253,21 +253,8 @@ def report(records: list[dict], info: dict) -> str:
         "## Null data (no missing effect; target ≤ 5% for each alarm and for "
         "their union)",
         "",
-        "| library | measurement noise | n | any alarm | "
-        + " | ".join(d1.ALARMS)
-        + " | named confidently | crashes | median s |",
-        "|" + "---|" * (7 + len(d1.ALARMS)),
+        *null_table(records, "library", median_s=True),
     ]
-    for r in records:
-        if r["effect"] == "none":
-            zero = {"k": 0, "n": r["n"], "rate": 0.0, "ci95": [0.0, 0.0]}
-            lines.append(
-                f"| {r['library']} | ×{r['measurement_noise_factor']:g} | {r['n']} | "
-                f"{fmt_rate(r['any_alarm'])} | "
-                + " | ".join(fmt_rate(r["alarms"].get(a, zero)) for a in d1.ALARMS)
-                + f" | {fmt_rate(r['named_confidently'])} | {r['crashes']} | "
-                f"{r['median_s']:.1f} |"
-            )
     return "\n".join(lines) + "\n"
 
 

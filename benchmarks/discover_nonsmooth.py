@@ -402,21 +402,33 @@ def report(records: list[dict], info: dict) -> str:
         "## Null data (no missing effect): every alarm (target ≤ 5% each, and "
         "for their union)",
         "",
-        "| system | measurement noise | n | any alarm | "
+        *null_table(records, "system"),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def null_table(records: list[dict], key: str, median_s: bool = False) -> list[str]:
+    """Markdown rows of the null cells: every alarm's rate and their union;
+    the first column is `record[key]`."""
+    extra = " median s |" if median_s else ""
+    lines = [
+        f"| {key} | measurement noise | n | any alarm | "
         + " | ".join(d1.ALARMS)
-        + " | named confidently | crashes |",
-        "|" + "---|" * (6 + len(d1.ALARMS)),
+        + " | named confidently | crashes |"
+        + extra,
+        "|" + "---|" * (6 + len(d1.ALARMS) + median_s),
     ]
     for r in records:
         if r["effect"] == "none":
             zero = {"k": 0, "n": r["n"], "rate": 0.0, "ci95": [0.0, 0.0]}
             lines.append(
-                f"| {r['system']} | ×{r['measurement_noise_factor']:g} | {r['n']} | "
+                f"| {r[key]} | ×{r['measurement_noise_factor']:g} | {r['n']} | "
                 f"{fmt_rate(r['any_alarm'])} | "
                 + " | ".join(fmt_rate(r["alarms"].get(a, zero)) for a in d1.ALARMS)
                 + f" | {fmt_rate(r['named_confidently'])} | {r['crashes']} |"
+                + (f" {r['median_s']:.1f} |" if median_s else "")
             )
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def saver(args, records, info, render, t0):
