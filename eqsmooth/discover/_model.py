@@ -392,8 +392,7 @@ def _diagonal_noise(sigma: Float[Array, " d"]) -> DiagonalNoise:
     sigmas positive and finite where it is built, and the workflow only
     multiplies them by `exp(·)` of bounded log scales.
     """
-    with jax.ensure_compile_time_eval():  # a concrete template: checked now
-        template = DiagonalNoise(sqrt_precision=np.ones(sigma.shape))
+    template = DiagonalNoise(sqrt_precision=np.ones(sigma.shape))  # concrete
     return eqx.tree_at(lambda n: n.sqrt_precision, template, 1.0 / sigma)
 
 

@@ -105,9 +105,14 @@ def _cholesky_checked(name: str, field: str, value: Array) -> Array:
 
 
 def _as_float(x) -> Array:
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.inexact):
-        x = x.astype(jax.dtypes.canonicalize_dtype(jnp.float64))
+    # A value that is not a tracer (a number, a NumPy or concrete JAX array)
+    # stays concrete even inside `jit`: it is then checked when the noise
+    # model is built, instead of by an `eqx.error_if` in the program (a host
+    # callback, which keeps JAX's persistent cache from storing it).
+    with jax.ensure_compile_time_eval():
+        x = jnp.asarray(x)
+        if not jnp.issubdtype(x.dtype, jnp.inexact):
+            x = x.astype(jax.dtypes.canonicalize_dtype(jnp.float64))
     return x
 
 
