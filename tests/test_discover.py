@@ -607,6 +607,87 @@ def test_user_defined_candidate_is_first_class():
     assert abs(c["value"] - 0.05) < 0.1 * 0.05 and c["sign_ok"], c
 
 
+def _saturating_spring_data(seed, limit):
+    import eqsmooth.discover as dc
+
+    rng = np.random.default_rng(seed)
+    x = np.stack([rng.normal(0, PRIOR[0], B), rng.normal(0, PRIOR[1], B)], 1)
+    xs = []
+    for _ in range(T):
+        xs.append(x.copy())
+        a = -0.05 * limit * np.tanh(x[:, 0] / limit)
+        x = np.stack([x[:, 0] + x[:, 1], x[:, 1] + a], 1)
+        x = x + rng.normal(size=(B, 2)) * Q
+    y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(B, T, 1))
+    init = np.concatenate([y, np.zeros_like(y)], -1)
+    return dc.Sequences(y, np.zeros((B, 2)), initial_states=init)
+
+
+def test_family_is_one_effect_with_a_profiled_parameter():
+    """A family over a shape parameter: the workflow names one member, reports
+    the profile over the grid, never makes a set of two members, and takes
+    the family out of later steps."""
+    import eqsmooth.discover as dc
+
+    family = dc.Candidate.family(
+        "saturating spring",
+        _saturating_spring,
+        over="limit",
+        values=(4.0, 8.0, 32.0),
+        dt=1.0,
+        sign=1,
+    )
+    assert [c.name for c in family] == [
+        "saturating spring, limit = 4",
+        "saturating spring, limit = 8",
+        "saturating spring, limit = 32",
+    ]
+    assert family[1].profiled == dc.Profiled("saturating spring", "limit", 8.0)
+    # The member equals the plain candidate with the same constants, but for
+    # its family record; feature_at moves the parameter off the grid.
+    x, u = jnp.array([3.0, 0.5]), jnp.zeros(1)
+    plain = dc.Candidate.from_function("s", _saturating_spring, limit=8.0, dt=1.0)
+    assert family[1].feature == plain.feature
+    np.testing.assert_allclose(
+        family[1].feature_at(5.0)(x, u), _saturating_spring(x, u, 5.0, 1.0)
+    )
+    with pytest.raises(ValueError, match="not a member of a family"):
+        plain.feature_at(5.0)
+    with pytest.raises(ValueError, match="distinct"):
+        dc.Candidate.family("s", _saturating_spring, over="limit", values=(1, 1))
+    with pytest.raises(ValueError, match="profiled parameter"):
+        dc.Candidate.family(
+            "s", _saturating_spring, over="limit", values=(1,), limit=2.0
+        )
+
+    base = dc.mechanical_library([0], [1], 2, include=["viscous damping"])
+    model = dc.ChainModel(
+        _dyn, _meas, jnp.asarray(0.0), Q, np.array([R]), PRIOR, base + family
+    )
+    data = _saturating_spring_data(6, 8.0)
+    found = dc.find(model, data)
+    named = dc.name(found, data)
+    first = named["steps"][0]
+    members = {c.name for c in family}
+    assert named["named"][0].startswith("saturating spring, limit = "), named
+    profile = first["profile"]
+    assert profile["family"] == "saturating spring"
+    # Every identifiable member is in the profile (a limit of 32 is nearly
+    # linear over these states, and not identifiable beside the damping).
+    identifiable = [c["name"] for c in found["candidates"] if c["identifiable"]]
+    assert len(profile["values"]) == len(members & set(identifiable)) >= 2
+    assert len(profile["log_marginal_gains"]) == len(profile["values"])
+    assert profile["best"] in profile["set_95"]
+    # The true limit is inside the profile's 95% set.
+    assert 8.0 in profile["set_95"], profile
+    for group in named["equivalence_sets"] + named["ambiguous"]:
+        assert len(members & set(group)) <= 1, group
+    # Later steps do not refit the family.
+    for step in named["steps"][1:]:
+        assert not members & {c["name"] for c in step["candidates"]}
+    assert "limit" in named["verdict"], named["verdict"]
+
+
 def _oscillator_field(x, u):
     # ẋ = (v, −ω₀² p) with ω₀ = 3 (module-level: hashable by identity).
     return jnp.stack([x[1], -9.0 * x[0]])
@@ -767,3 +848,37 @@ def test_compiled_programs_hold_no_host_callbacks():
         for fn in (M.map_states, M.batch_log_marginal, M.batch_scores):
             text = str(jax.make_jaxpr(fn.__wrapped__)(model, z, data, x))
             assert "callback" not in text, (fn.__name__, model.measurement_dof)
+
+
+def test_indefinite_information_never_claims_an_equivalence():
+    """A pair whose block of the information is not positive semi-definite
+    (|correlation| > 1) is ambiguous with a flag, never "not identifiable:
+    no amount of data separates them"."""
+    import types
+
+    from eqsmooth.discover._name import _classify_rivals, _verdict
+
+    def classify(info):
+        out = {
+            "named": ["a"],
+            "steps": [{"best": "a"}],
+            "flags": [],
+            "equivalence_sets": [],
+            "ambiguous": [],
+            "tentative": False,
+        }
+        st = {"I_eff": np.asarray(info), "equivalence_corr": 0.95}
+        best = types.SimpleNamespace(z=np.array([0.5, 0.0]))
+        data = types.SimpleNamespace(num_sequences=8, length=128)
+        _classify_rivals(out, ["a", "b"], 0, [1], st, best, data)
+        return out
+
+    out = classify([[1.0, 1.04], [1.04, 1.0]])
+    assert out["equivalence_sets"] == [] and out["ambiguous"] == [["a", "b"]]
+    assert out["steps"][0]["rivals"][0]["information_indefinite"]
+    assert "not positive semi-definite" in out["flags"][0]
+    verdict = _verdict(out, leftover=False)
+    assert "ambiguous: {a, b}" in verdict and "no amount" not in verdict, verdict
+    # A definite pair correlated beyond the threshold is an equivalence.
+    out = classify([[1.0, 0.99], [0.99, 1.0]])
+    assert out["equivalence_sets"] == [["a", "b"]] and not out["flags"]

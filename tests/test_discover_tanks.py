@@ -54,10 +54,15 @@ def test_user_candidates_have_the_right_shapes(ex):
 
     from eqsmooth.discover._candidates import check_features
 
-    library = ex.tank_library(4.0, (5.0,), (9.0,))
+    library = ex.tank_library((0.05, 0.09), (5.0, 7.5))
     check_features(library, jnp.zeros(2), jnp.zeros(1), 1)
     names = [c.name for c in library]
     assert len(set(names)) == len(names)
+    # The upper tank's overflow level is profiled: two families over it.
+    families = {c.profiled.family for c in library if c.profiled is not None}
+    assert families == {"upper overflow (lost)", "upper overflow (to lower)"}
+    # Rate candidates act inside the integrator the model is built on.
+    assert {c.target for c in library} == {"rate", "measurement"}
 
 
 @pytest.mark.slow
@@ -73,6 +78,13 @@ def test_quick_example_runs(data, tmp_path):
     assert report["workflow"]["find"]["status"] == "ok"
     assert report["workflow"]["find"]["detected"]
     assert report["nominal"]["validation_rmse"] > 0
+    # The workflow names the upper tank's overflow, and adding what it named
+    # lowers the validation RMSE (0.669 -> 0.284 V at the commit that added
+    # this check).
+    named = report["workflow"]["name"]["named"]
+    assert any(nm.startswith("upper overflow") for nm in named), named
+    stages = report["after"]["stages"]
+    assert stages[-1]["validation_rmse"] < 0.8 * report["nominal"]["validation_rmse"]
     # A coefficient without a standard error is explained by a flag, never a
     # bare NaN (the sensor clip's information matrix is indefinite).
     added = report["workflow"]["add"]

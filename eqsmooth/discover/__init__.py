@@ -7,6 +7,7 @@ from ._add import add as add
 from ._candidates import (
     Candidate as Candidate,
     mechanical_library as mechanical_library,
+    Profiled as Profiled,
 )
 from ._find import find as find
 from ._integrator import Integrator as Integrator

@@ -39,6 +39,9 @@ class Candidate(eqx.Module):
         non-positive, `0` if either (only reported, not enforced).
     - `unit`: unit of the coefficient, for reports.
     - `description`: one line for reports, e.g. `"v' -= c v|v| dt"`.
+    - `profiled`: set by [`eqsmooth.discover.Candidate.family`][] on the
+        members of a family of one effect over a shape parameter (a
+        threshold); `None` for a candidate of its own.
     """
 
     name: str = eqx.field(static=True)
@@ -47,6 +50,7 @@ class Candidate(eqx.Module):
     sign: int = eqx.field(static=True, default=0)
     unit: str = eqx.field(static=True, default="")
     description: str = eqx.field(static=True, default="")
+    profiled: "Profiled | None" = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -62,6 +66,10 @@ class Candidate(eqx.Module):
             )
         if not callable(self.feature):
             raise TypeError(f"Candidate {self.name!r}: feature must be callable")
+        if self.profiled is not None and not isinstance(self.profiled, Profiled):
+            raise TypeError(
+                f"Candidate {self.name!r}: profiled must be a Profiled or None"
+            )
 
     @classmethod
     def from_function(
@@ -104,6 +112,117 @@ class Candidate(eqx.Module):
                 ) from None
         feature = _BoundFeature(fn, tuple(sorted(constants.items())))
         return cls(name, feature, target, sign, unit, description)
+
+    def feature_at(self, value: float | Array) -> Callable:
+        """This family member's feature with its profiled parameter set to
+        `value` instead of the grid value: `feature_at(v)(x, u)`. `value`
+        may be a traced array, so a refit can fit the parameter itself (as
+        the cascaded tanks example fits the overflow level). Raises for a
+        candidate not made by [`eqsmooth.discover.Candidate.family`][]."""
+        if self.profiled is None or not isinstance(self.feature, _BoundFeature):
+            raise ValueError(
+                f"Candidate {self.name!r} is not a member of a family "
+                "(Candidate.family): it has no profiled parameter"
+            )
+        constants = dict(self.feature.constants)
+        constants[self.profiled.parameter] = value
+        fn = self.feature.fn
+
+        def feature(x, u):
+            return fn(x, u, **constants)
+
+        return feature
+
+    @classmethod
+    def family(
+        cls,
+        name: str,
+        fn: Callable,
+        *,
+        over: str,
+        values: Sequence[float | int] | np.ndarray,
+        target: str = "dynamics",
+        sign: int = 0,
+        unit: str = "",
+        description: str = "",
+        **constants: Hashable,
+    ) -> tuple["Candidate", ...]:
+        """One effect whose shape parameter (a threshold, a level, a width)
+        is not known: a candidate per value of `over`, profiled by the
+        workflow.
+
+        Each member is `Candidate.from_function(f"{name}, {over} = {v}", fn,
+        **constants, **{over: v})`. [`eqsmooth.discover.name`][] treats the
+        members as one effect: their coefficients are fitted in turn, the
+        value with the largest evidence is the one named, and the step
+        reports the profile (the gain at every value) and the values within
+        1.92 log-units of the best (the grid's 95% profile-likelihood set for
+        the parameter). Members of the family never form an equivalence or
+        ambiguity set with each other (that the data tell neighbouring
+        thresholds apart only roughly is what the profile says), and once one
+        is named the others leave the library. The naming gate still counts
+        every member (Bonferroni over the grid, conservative for a profiled
+        parameter). For example, an upper tank that spills above an unknown
+        level:
+
+            def overflow(x, u, level, ts):
+                e = jax.nn.relu(x[0] - level)
+                return jnp.stack([-ts * e, ts * e])
+
+            Candidate.family(
+                "upper overflow", overflow, over="level",
+                values=(16.0, 20.0, 24.0), ts=4.0, sign=1,
+            )
+
+        The grid is the user's: a few values spread over the range the
+        parameter could take in the data (quantiles of the state it acts on
+        under the nominal model, say). A finer value is then fitted where
+        the model is refitted, as in the cascaded tanks example.
+        """
+        if over in constants:
+            raise ValueError(
+                f"Candidate family {name!r}: {over!r} is the profiled parameter; "
+                "do not also pass it as a constant"
+            )
+        values = tuple(float(v) for v in values)
+        if len(values) < 1 or len(set(values)) != len(values):
+            raise ValueError(
+                f"Candidate family {name!r}: values of {over!r} must be one or "
+                f"more distinct numbers, got {values}"
+            )
+        if not all(np.isfinite(values)):
+            raise ValueError(
+                f"Candidate family {name!r}: values of {over!r} must be finite, "
+                f"got {values}"
+            )
+        members = []
+        for v in values:
+            member = cls.from_function(
+                f"{name}, {over} = {v:.4g}", fn, **constants, **{over: v}
+            )
+            members.append(
+                cls(
+                    member.name,
+                    member.feature,
+                    target,
+                    sign,
+                    unit,
+                    description,
+                    Profiled(name, over, v),
+                )
+            )
+        return tuple(members)
+
+
+@dataclasses.dataclass(frozen=True)
+class Profiled:
+    """Where a candidate sits in a family (see
+    [`eqsmooth.discover.Candidate.family`][]): the family's name, the
+    profiled parameter and this member's value of it."""
+
+    family: str
+    parameter: str
+    value: float
 
 
 @dataclasses.dataclass(frozen=True)

@@ -71,11 +71,50 @@ def _forward_step(model, data, st, current, active, remaining, out):
     out["steps"].append(step)
     if p >= gate:
         return None
+    family = _family(model, best_k)
+    if family is not None:
+        step["profile"] = _profile(model, trials, family, current.log_marginal)
+    # Members of the named candidate's family are the same effect at another
+    # value of its shape parameter: the profile reports them, not a set.
+    rivals = [
+        (k, e) for k, e in trials[1:] if _family(model, k) != family or family is None
+    ]
     close = []
-    if len(trials) > 1:
-        step["margin"] = best.log_marginal - trials[1][1].log_marginal
-        close = [k for k, e in trials[1:] if best.log_marginal - e.log_marginal < _LN20]
+    if rivals:
+        step["margin"] = best.log_marginal - rivals[0][1].log_marginal
+        close = [k for k, e in rivals if best.log_marginal - e.log_marginal < _LN20]
     return best_k, best, close
+
+
+def _family(model, k: int) -> str | None:
+    profiled = model.candidates[k].profiled
+    return None if profiled is None else profiled.family
+
+
+# Half the 95% point of chi-square with one degree of freedom: the drop in
+# log-likelihood that bounds a profile-likelihood 95% set of one parameter.
+_PROFILE_DROP = 1.92
+
+
+def _profile(model, trials, family: str, log_marginal0: float) -> dict:
+    """The evidence gain of every member of `family` fitted at this step, in
+    the order of the profiled parameter, and the values within
+    `_PROFILE_DROP` of the best (a 95% profile set on the grid)."""
+    rows = sorted(
+        (model.candidates[k].profiled.value, e.log_marginal - log_marginal0)
+        for k, e in trials
+        if _family(model, k) == family
+    )
+    best = max(g for _, g in rows)
+    kept = [v for v, g in rows if best - g < _PROFILE_DROP]
+    return {
+        "family": family,
+        "parameter": model.candidates[trials[0][0]].profiled.parameter,
+        "values": [v for v, _ in rows],
+        "log_marginal_gains": [g for _, g in rows],
+        "best": next(v for v, g in rows if g == best),
+        "set_95": kept,
+    }
 
 
 def _separation(info, best_k, k, coefficient) -> float:
@@ -106,8 +145,30 @@ def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
     coefficient = float(best.z[best_k])
     equiv, amb, rivals = [names[best_k]], [names[best_k]], []
     for k in close:
+        ibb, ikk, ibk = info[best_k, best_k], info[k, k], info[best_k, k]
+        if not (ibb > 0 and ikk > 0 and ibk * ibk <= ibb * ikk):
+            # The pair's block of the information is not positive
+            # semi-definite (a fit beside a kink, say): its "correlation"
+            # would exceed 1 and claim an equivalence it cannot show. Neither
+            # a gap nor a data size can be computed; the pair is ambiguous.
+            rivals.append(
+                {
+                    "name": names[k],
+                    "information_indefinite": True,
+                    "separable": False,
+                    "sequences_to_separate": None,
+                    "sequence_length": T,
+                }
+            )
+            out["flags"].append(
+                f"step {len(out['steps'])}: the information of {names[best_k]!r} "
+                f"and {names[k]!r} is not positive semi-definite; reported as "
+                "ambiguous, with no data size to separate them"
+            )
+            amb.append(names[k])
+            continue
         gap = _separation(info, best_k, k, coefficient)
-        corr = info[best_k, k] / np.sqrt(max(info[best_k, best_k] * info[k, k], 1e-300))
+        corr = ibk / np.sqrt(ibb * ikk)
         separable = gap >= _LN20
         needed = math.inf if gap <= 0 else B * _LN20 / gap
         rivals.append(
@@ -143,11 +204,35 @@ def _needed(out: dict, nm: str) -> str:
         sizes = [r["sequences_to_separate"] for r in kept]
         if not kept:
             return ""
+        if any(r.get("information_indefinite") for r in kept):
+            return (
+                " (the information is indefinite for some of them: no data size "
+                "that would separate them can be given)"
+            )
         if any(n is None for n in sizes):
             return " (no amount of data of this kind separates them)"
         return (
             f" (about {math.ceil(max(sizes))} sequences of length "
             f"{kept[0]['sequence_length']} would separate them)"
+        )
+    return ""
+
+
+def _profile_note(out: dict, nm: str) -> str:
+    """ " (level in 19.2 – 24.7 at 95%)" for a named family member: the grid
+    values of its parameter within the profile's 95% set."""
+    for step in out["steps"]:
+        if step["best"] != nm or "profile" not in step:
+            continue
+        pr = step["profile"]
+        kept = pr["set_95"]
+        if len(kept) == len(pr["values"]) and len(kept) > 1:
+            return f" ({pr['parameter']} not resolved by the grid)"
+        if len(kept) == 1:
+            return f" ({pr['parameter']} {kept[0]:.4g} of {len(pr['values'])} values)"
+        return (
+            f" ({pr['parameter']} in {kept[0]:.4g} – {kept[-1]:.4g} at 95%, "
+            f"{len(pr['values'])} values)"
         )
     return ""
 
@@ -168,7 +253,7 @@ def _verdict(out: dict, leftover: bool) -> str:
         elif am:
             parts.append("ambiguous: {" + ", ".join(am[0]) + "}" + _needed(out, nm))
         else:
-            parts.append(nm)
+            parts.append(nm + _profile_note(out, nm))
     partial = out.get("adequacy", {})
     if partial.get("significant"):
         w = partial["where"]
@@ -311,8 +396,14 @@ def name(
     active: list[int] = []
     current = ev0
     for _ in range(max_terms):
+        # A named family member takes its family out of the library.
+        taken = {_family(model, k) for k in active} - {None}
         remaining = [
-            k for k in range(len(names)) if k not in active and st["identifiable"][k]
+            k
+            for k in range(len(names))
+            if k not in active
+            and st["identifiable"][k]
+            and _family(model, k) not in taken
         ]
         if not remaining:
             break
