@@ -46,7 +46,7 @@ def _hessian_test(ev, G, test, rank_cut) -> dict:
     """The score test with the candidates' own observed information (see
     `score_test`): the combination of the joint test over the informative
     directions and the largest single standardised score."""
-    k = len(test)
+    B, k = G.shape[0], len(test)
     covariance = "hessian"
     # The candidates' own observed information, noise scales held at their
     # null estimates. Adjusting for the nuisance parameters would give the
@@ -80,17 +80,30 @@ def _hessian_test(ev, G, test, rank_cut) -> dict:
     proj = V[:, keep].T @ g
     stat = float(np.sum(proj * proj / w[keep]))
     df = int(np.sum(keep))
-    # g is already standardised by the diagonal: g_j is candidate j's z.
-    j = int(np.argmax(np.abs(g)))
+    # A single candidate's z: its score over the larger of two estimates of
+    # the score's standard deviation, the observed information and the
+    # spread of the per-sequence scores (B times their sample variance).
+    # Where the evidence is not concave along a candidate once the noise
+    # scales are profiled, the information understates the score's variance:
+    # on null data of the oscillator under twice the assumed measurement
+    # noise, a sensor delay with efficient information −1.4 scored z = 6.2
+    # against its information (4.5% detections at α/2 = 2.5% in 200 sets).
+    # The spread is an honest variance on null data, and under an effect the
+    # sequences' scores share its sign, so it does not cap the power.
+    Gt = G[:, test]
+    spread = B * np.var(Gt, axis=0, ddof=1) if B > 1 else np.zeros(k)
+    sd = np.sqrt(np.maximum(d * d, spread))
+    z = np.sum(Gt, axis=0) / sd
+    j = int(np.argmax(np.abs(z)))
     p_joint = chi2_sf(stat, df)
-    p_single = min(1.0, k * normal_two_sided(g[j]))
+    p_single = min(1.0, k * normal_two_sided(z[j]))
     return {
         "statistic": stat,
         "df": df,
         "p_value": min(1.0, 2.0 * min(p_joint, p_single)),
         "joint_p_value": p_joint,
         "single_p_value": p_single,
-        "largest_z": {"index": j, "z": float(g[j])},
+        "largest_z": {"index": j, "z": float(z[j])},
         "covariance": covariance,
     }
 
@@ -117,8 +130,10 @@ def score_test(
 
     The Hessian form's decision combines two tests at α/2 each (Bonferroni,
     so the combination keeps level α): the joint statistic above, and the
-    largest single-candidate score `|z_j| = |g_j| / √I_jj` with a Bonferroni
-    correction over the `k` candidates. The rank cut-off keeps the joint
+    largest single-candidate score `|z_j| = |g_j| / √max(I_jj, B s_j²)` with
+    a Bonferroni correction over the `k` candidates (`s_j²` is the sample
+    variance of candidate `j`'s score over the `B` sequences: where the
+    information understates the score's variance, the spread sets it). The rank cut-off keeps the joint
     test calibrated but leaves out the contrasts between nearly collinear
     candidates, where a real effect can sit (on the Cascaded Tanks data,
     13 overflow, leak and sensor candidates kept one direction, p = 0.94,
