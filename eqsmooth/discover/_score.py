@@ -133,13 +133,13 @@ def score_test(
     largest single-candidate score `|z_j| = |g_j| / √max(I_jj, B s_j²)` with
     a Bonferroni correction over the `k` candidates (`s_j²` is the sample
     variance of candidate `j`'s score over the `B` sequences: where the
-    information understates the score's variance, the spread sets it). The rank cut-off keeps the joint
-    test calibrated but leaves out the contrasts between nearly collinear
-    candidates, where a real effect can sit (on the Cascaded Tanks data,
-    13 overflow, leak and sensor candidates kept one direction, p = 0.94,
-    while one overflow candidate alone had z = 7.3); a single candidate's
-    direction has unit standardised information, so its score is not
-    inflated by the weak directions. `p_value` is the combination's;
+    information understates the score's variance, the spread sets it).
+    The rank cut-off keeps the joint test calibrated but leaves out the contrasts
+    between nearly collinear candidates, where a real effect can sit (on the
+    Cascaded Tanks data, 13 overflow, leak and sensor candidates kept one direction,
+    p = 0.94, while one overflow candidate alone had z = 7.3); a single candidate's
+    direction has unit standardised information, so its score is not inflated by the
+    weak directions. `p_value` is the combination's;
     `joint_p_value`, `single_p_value` and `largest_z` (candidate position in
     `test`, and its z) report the parts.
     """
