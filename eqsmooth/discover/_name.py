@@ -128,6 +128,13 @@ def _separation(info, best_k, k, coefficient) -> float:
     return float(0.5 * coefficient * coefficient * ibb * (1.0 - rho2))
 
 
+def _definite_pair(info, a: int, b: int) -> bool:
+    """Whether the 2x2 block of `info` over `a` and `b` is positive
+    semi-definite with positive diagonal."""
+    iaa, ibb, iab = info[a, a], info[b, b], info[a, b]
+    return bool(iaa > 0 and ibb > 0 and iab * iab <= iaa * ibb)
+
+
 def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
     """Runner-ups within ln 20 of the named candidate.
 
@@ -139,18 +146,26 @@ def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
     could separate is recorded but does not make a set (its small observed
     margin is then the adequacy test's business).
     """
-    info = st["I_eff"]
+    efficient = st["I_eff"]
+    # The candidates' own observed information at the nominal fit, noise
+    # scales held (positive definite where the efficient one, adjusted for
+    # the noise scales at a misspecified null fit, often is not).
     equivalence_corr = st["equivalence_corr"]
     B, T = data.num_sequences, data.length
     coefficient = float(best.z[best_k])
     equiv, amb, rivals = [names[best_k]], [names[best_k]], []
     for k in close:
-        ibb, ikk, ibk = info[best_k, best_k], info[k, k], info[best_k, k]
-        if not (ibb > 0 and ikk > 0 and ibk * ibk <= ibb * ikk):
-            # The pair's block of the information is not positive
-            # semi-definite (a fit beside a kink, say): its "correlation"
-            # would exceed 1 and claim an equivalence it cannot show. Neither
-            # a gap nor a data size can be computed; the pair is ambiguous.
+        source = "efficient"
+        info = efficient
+        if not _definite_pair(info, best_k, k):
+            # The pair's block of the efficient information is not positive
+            # semi-definite: its "correlation" would exceed 1 (−1.04 for two
+            # overflow candidates of the Cascaded Tanks library) and claim an
+            # equivalence it cannot show. The pair's own information decides.
+            source, info = "own", -np.asarray(st["evaluation"].hessian)
+        if not _definite_pair(info, best_k, k):
+            # Neither block is usable: no gap or data size can be computed,
+            # and the pair is ambiguous.
             rivals.append(
                 {
                     "name": names[k],
@@ -167,6 +182,7 @@ def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
             )
             amb.append(names[k])
             continue
+        ibb, ikk, ibk = info[best_k, best_k], info[k, k], info[best_k, k]
         gap = _separation(info, best_k, k, coefficient)
         corr = ibk / np.sqrt(ibb * ikk)
         separable = gap >= _LN20
@@ -174,6 +190,7 @@ def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
         rivals.append(
             {
                 "name": names[k],
+                "information": source,
                 "expected_gap": gap,
                 "information_correlation": float(corr),
                 "separable": bool(separable),
