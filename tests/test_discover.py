@@ -858,16 +858,16 @@ def test_compiled_programs_hold_no_host_callbacks():
             assert "callback" not in text, (fn.__name__, model.measurement_dof)
 
 
-def test_indefinite_information_never_claims_an_equivalence():
-    """A pair whose block of the efficient information is not positive
-    semi-definite (|correlation| > 1) is judged by its own information; if
-    that is indefinite too, it is ambiguous with a flag, never "not
-    identifiable: no amount of data separates them"."""
+def test_indefinite_information_claims_no_data_size():
+    """A pair whose block of the information is not positive semi-definite
+    (|correlation| > 1) is classified as before (here an equivalence), but
+    the verdict claims neither "no amount of data separates them" nor a
+    number of sequences."""
     import types
 
     from eqsmooth.discover._name import _classify_rivals, _verdict
 
-    def classify(efficient, own):
+    def classify(info):
         out = {
             "named": ["a"],
             "steps": [{"best": "a"}],
@@ -876,33 +876,21 @@ def test_indefinite_information_never_claims_an_equivalence():
             "ambiguous": [],
             "tentative": False,
         }
-        st = {
-            "I_eff": np.asarray(efficient),
-            "evaluation": types.SimpleNamespace(hessian=-np.asarray(own)),
-            "equivalence_corr": 0.95,
-        }
+        st = {"I_eff": np.asarray(info), "equivalence_corr": 0.95}
         best = types.SimpleNamespace(z=np.array([0.5, 0.0]))
         data = types.SimpleNamespace(num_sequences=8, length=128)
         _classify_rivals(out, ["a", "b"], 0, [1], st, best, data)
         return out
 
-    indefinite = [[1.0, 1.04], [1.04, 1.0]]
-    out = classify(indefinite, indefinite)
-    assert out["equivalence_sets"] == [] and out["ambiguous"] == [["a", "b"]]
-    assert out["steps"][0]["rivals"][0]["information_indefinite"]
-    assert "not positive semi-definite" in out["flags"][0]
+    out = classify([[1.0, 1.04], [1.04, 1.0]])
+    assert out["equivalence_sets"] == [["a", "b"]]
+    (rival,) = out["steps"][0]["rivals"]
+    assert rival["information_indefinite"] and rival["sequences_to_separate"] is None
     verdict = _verdict(out, leftover=False)
-    assert "ambiguous: {a, b}" in verdict and "no amount" not in verdict, verdict
-    # The pair's own information, definite and correlated beyond the
-    # threshold, makes an equivalence; moderately correlated, an ambiguity
-    # with a data size.
-    out = classify(indefinite, [[1.0, 0.99], [0.99, 1.0]])
-    assert out["equivalence_sets"] == [["a", "b"]] and not out["flags"]
-    assert out["steps"][0]["rivals"][0]["information"] == "own"
-    out = classify(indefinite, [[1.0, 0.5], [0.5, 1.0]])
-    assert out["ambiguous"] == [["a", "b"]] and out["equivalence_sets"] == []
-    assert out["steps"][0]["rivals"][0]["sequences_to_separate"] > 8
-    # A definite efficient block is used as it is.
-    out = classify([[1.0, 0.99], [0.99, 1.0]], indefinite)
-    assert out["equivalence_sets"] == [["a", "b"]] and not out["flags"]
-    assert out["steps"][0]["rivals"][0]["information"] == "efficient"
+    assert "{a ≡ b}" in verdict and "no amount" not in verdict, verdict
+    assert "no data size" in verdict, verdict
+    # A definite pair correlated beyond the threshold: "no amount of data".
+    out = classify([[1.0, 1.0], [1.0, 1.0]])
+    assert out["equivalence_sets"] == [["a", "b"]]
+    assert not out["steps"][0]["rivals"][0]["information_indefinite"]
+    assert "no amount of data" in _verdict(out, leftover=False)

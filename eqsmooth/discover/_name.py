@@ -146,51 +146,29 @@ def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
     could separate is recorded but does not make a set (its small observed
     margin is then the adequacy test's business).
     """
-    efficient = st["I_eff"]
-    # The candidates' own observed information at the nominal fit, noise
-    # scales held (positive definite where the efficient one, adjusted for
-    # the noise scales at a misspecified null fit, often is not).
+    info = st["I_eff"]
     equivalence_corr = st["equivalence_corr"]
     B, T = data.num_sequences, data.length
     coefficient = float(best.z[best_k])
     equiv, amb, rivals = [names[best_k]], [names[best_k]], []
     for k in close:
-        source = "efficient"
-        info = efficient
-        if not _definite_pair(info, best_k, k):
-            # The pair's block of the efficient information is not positive
-            # semi-definite: its "correlation" would exceed 1 (−1.04 for two
-            # overflow candidates of the Cascaded Tanks library) and claim an
-            # equivalence it cannot show. The pair's own information decides.
-            source, info = "own", -np.asarray(st["evaluation"].hessian)
-        if not _definite_pair(info, best_k, k):
-            # Neither block is usable: no gap or data size can be computed,
-            # and the pair is ambiguous.
-            rivals.append(
-                {
-                    "name": names[k],
-                    "information_indefinite": True,
-                    "separable": False,
-                    "sequences_to_separate": None,
-                    "sequence_length": T,
-                }
-            )
-            out["flags"].append(
-                f"step {len(out['steps'])}: the information of {names[best_k]!r} "
-                f"and {names[k]!r} is not positive semi-definite; reported as "
-                "ambiguous, with no data size to separate them"
-            )
-            amb.append(names[k])
-            continue
         ibb, ikk, ibk = info[best_k, best_k], info[k, k], info[best_k, k]
+        # Where the pair's block of the (efficient) information is not
+        # positive semi-definite, its correlation can exceed 1 (−1.04 for two
+        # overflow candidates of the Cascaded Tanks library). The pair is
+        # still classified as below (a correlation beyond the threshold is an
+        # equivalence: an actuator gain and a sensor scale of a linear model
+        # gain the same evidence to 0.1 nats and land here), but no data size
+        # is claimed for it.
+        indefinite = not _definite_pair(info, best_k, k)
         gap = _separation(info, best_k, k, coefficient)
-        corr = ibk / np.sqrt(ibb * ikk)
-        separable = gap >= _LN20
-        needed = math.inf if gap <= 0 else B * _LN20 / gap
+        corr = ibk / np.sqrt(max(ibb * ikk, 1e-300))
+        separable = gap >= _LN20 and not indefinite
+        needed = math.inf if gap <= 0 or indefinite else B * _LN20 / gap
         rivals.append(
             {
                 "name": names[k],
-                "information": source,
+                "information_indefinite": indefinite,
                 "expected_gap": gap,
                 "information_correlation": float(corr),
                 "separable": bool(separable),
