@@ -286,25 +286,22 @@ def tank_library(k, x1_levels) -> tuple[dc.Candidate, ...]:
             unit="1/s",
             description=f"ẋ2 -= c·max(x2 − {SENSOR_LIMIT}, 0)",
         ),
-        *F(
-            "upper overflow (lost)",
-            overflow_lost,
-            target="rate",
-            over="level",
-            values=levels,
-            sign=1,
-            unit="1/s",
-            description="ẋ1 -= c·max(x1 − level, 0)",
-        ),
-        *F(
-            "upper overflow (to lower)",
-            overflow_to_lower,
-            target="rate",
-            over="level",
-            values=levels,
-            sign=1,
-            unit="1/s",
-            description="ẋ1 -= c·max(x1 − level, 0), ẋ2 += same",
+        *(
+            member
+            for label, fn, also in (
+                ("lost", overflow_lost, ""),
+                ("to lower", overflow_to_lower, ", ẋ2 += same"),
+            )
+            for member in F(
+                f"upper overflow ({label})",
+                fn,
+                target="rate",
+                over="level",
+                values=levels,
+                sign=1,
+                unit="1/s",
+                description=f"ẋ1 -= c·max(x1 − level, 0){also}",
+            )
         ),
         C(
             "lower outflow exponent",

@@ -592,17 +592,7 @@ def test_user_defined_candidate_is_first_class():
     # Data from a saturating spring (no linear spring in the nominal model):
     # the workflow checks the user's candidate for identifiability, names it
     # and fits its coefficient.
-    rng = np.random.default_rng(6)
-    x = np.stack([rng.normal(0, PRIOR[0], B), rng.normal(0, PRIOR[1], B)], 1)
-    xs = []
-    for _ in range(T):
-        xs.append(x.copy())
-        a = -0.05 * 8.0 * np.tanh(x[:, 0] / 8.0)
-        x = np.stack([x[:, 0] + x[:, 1], x[:, 1] + a], 1)
-        x = x + rng.normal(size=(B, 2)) * Q
-    y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(B, T, 1))
-    init = np.concatenate([y, np.zeros_like(y)], -1)
-    data = dc.Sequences(y, np.zeros((B, 2)), initial_states=init)
+    data = _saturating_spring_data(6, 8.0)
     model = dc.ChainModel(
         _dyn, _meas, jnp.asarray(0.0), Q, np.array([R]), PRIOR, base + (user,)
     )
