@@ -198,18 +198,17 @@ class Candidate(eqx.Module):
         members = []
         for v in values:
             member = cls.from_function(
-                f"{name}, {over} = {v:.4g}", fn, **constants, **{over: v}
+                f"{name}, {over} = {v:.4g}",
+                fn,
+                target=target,
+                sign=sign,
+                unit=unit,
+                description=description,
+                **constants,
+                **{over: v},
             )
             members.append(
-                cls(
-                    member.name,
-                    member.feature,
-                    target,
-                    sign,
-                    unit,
-                    description,
-                    Profiled(name, over, v),
-                )
+                dataclasses.replace(member, profiled=Profiled(name, over, v))
             )
         return tuple(members)
 

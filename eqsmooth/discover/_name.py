@@ -77,7 +77,7 @@ def _forward_step(model, data, st, current, active, remaining, out):
     # Members of the named candidate's family are the same effect at another
     # value of its shape parameter: the profile reports them, not a set.
     rivals = [
-        (k, e) for k, e in trials[1:] if _family(model, k) != family or family is None
+        (k, e) for k, e in trials[1:] if family is None or _family(model, k) != family
     ]
     close = []
     if rivals:
@@ -100,16 +100,14 @@ def _profile(model, trials, family: str, log_marginal0: float) -> dict:
     """The evidence gain of every member of `family` fitted at this step, in
     the order of the profiled parameter, and the values within
     `_PROFILE_DROP` of the best (a 95% profile set on the grid)."""
-    rows = sorted(
-        (model.candidates[k].profiled.value, e.log_marginal - log_marginal0)
-        for k, e in trials
-        if _family(model, k) == family
-    )
+    members = [(model.candidates[k].profiled, e) for k, e in trials]
+    members = [(pr, e) for pr, e in members if pr is not None and pr.family == family]
+    rows = sorted((pr.value, e.log_marginal - log_marginal0) for pr, e in members)
     best = max(g for _, g in rows)
     kept = [v for v, g in rows if best - g < _PROFILE_DROP]
     return {
         "family": family,
-        "parameter": model.candidates[trials[0][0]].profiled.parameter,
+        "parameter": members[0][0].parameter,
         "values": [v for v, _ in rows],
         "log_marginal_gains": [g for _, g in rows],
         "best": next(v for v, g in rows if g == best),
