@@ -33,6 +33,23 @@ and unpad each time) and `padded_solve_only` (padded once), beside GTSAM's.
         --json benchmarks/results/small_graph_batch_mixed.json
     python benchmarks/small_graph.py --other-graphs 12 \\
         --json benchmarks/results/small_graph_structure.json
+
+`--floor` adds a row `floor`: `_floor_lm`, a Levenberg-Marquardt loop
+written here with as few operations as it can have (the same closed-form
+linearisation, then a dense `J`, `JᵀJ`, one Cholesky and one trial
+linearisation per iteration; no result codes, no derivative rules, no
+checks). It is not a solver of the library: it measures how close to
+GTSAM XLA:CPU gets on this problem with the library's linearisation, so
+that the gap of `jit` to GTSAM splits into what the solver adds and what
+the runtime costs. `--sync-dispatch` sets JAX's
+`jax_cpu_enable_async_dispatch` to False before the first computation
+(JAX reads it once, so the comparison is two processes):
+
+    for d in "" --sync-dispatch; do python benchmarks/small_graph.py --floor \\
+        --repeats 300 $d --json benchmarks/results/small_graph_floor${d:+_sync}.json
+    done
+    python benchmarks/small_graph.py --floor --batch 1000 --repeats 5 \\
+        --json benchmarks/results/small_graph_batch_floor.json
 """
 
 import argparse
@@ -93,7 +110,46 @@ def _times(fn, repeats: int, warm_up: bool = True) -> tuple[float, float]:
     return statistics.median(times), min(times)
 
 
-def single(gtsam, repeats: int) -> list[dict]:
+def _floor_lm(graph, values, max_steps: int = 100):
+    """The fewest-operations LM of `--floor`: `(values, cost, steps)`."""
+    lin_mod = eqs.solve._linearization
+
+    def linearise(v):
+        lin = lin_mod.linearize_graph(graph, v)
+        J, r = lin_mod.dense_jacobian(lin)
+        return lin.layout, J, r, lin.cost
+
+    layout, J, r, cost = linearise(values)
+    eps = jnp.finfo(cost.dtype).eps
+
+    def body(s):
+        v, J, r, cost, lam, nu, k, _ = s
+        H, g = J.T @ J, J.T @ r
+        D = jnp.clip(jnp.diagonal(H), 1e-6, 1e32)
+        L = jnp.linalg.cholesky(H + jnp.diag(lam * D))
+        delta = jax.scipy.linalg.cho_solve((L, True), -g)
+        nv = lin_mod.retract_values(v, lin_mod.unflatten_layout(layout, delta))
+        _, nJ, nr, ncost = linearise(nv)
+        Jd = J @ delta
+        predicted = -g @ delta - 0.5 * Jd @ Jd
+        gain = (cost - ncost) / jnp.where(predicted > 0, predicted, 1.0)
+        accept = (predicted > 0) & (gain > 1e-3) & jnp.isfinite(ncost)
+        converged = accept & (cost - ncost <= 1e-8 * cost)
+        stalled = predicted <= 16 * eps * jnp.maximum(cost, 1.0)
+        shrink = jnp.maximum(1 / 3, 1 - (2 * gain - 1) ** 3)
+        lam = jnp.where(accept, lam * shrink, lam * nu)
+        nu = jnp.where(accept, 2.0, 2 * nu)
+        kept = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(accept, a, b), (nv, nJ, nr, ncost), (v, J, r, cost)
+        )
+        return (*kept, lam, nu, k + 1, converged | stalled)
+
+    start = (values, J, r, cost, jnp.asarray(1e-8), jnp.asarray(2.0), 0, False)
+    out = jax.lax.while_loop(lambda s: ~s[-1] & (s[-2] < max_steps), body, start)
+    return out[0], out[3], out[6]
+
+
+def single(gtsam, repeats: int, floor: bool = False) -> list[dict]:
     graph, values = pose2_problem()
     solver = eqs.LevenbergMarquardt()
 
@@ -113,6 +169,17 @@ def single(gtsam, repeats: int) -> list[dict]:
 
     cost = float(jitted()[1])
     calls = {"api": (api, lambda: cost), "jit": (jitted, lambda: cost)}
+    if floor:
+
+        @jax.jit
+        def floor_compiled(dynamic):
+            g, v = eqx.combine(dynamic, static)
+            return _floor_lm(g, v)[:2]
+
+        def floor_call():
+            return jax.block_until_ready(floor_compiled(dynamic))
+
+        calls["floor"] = (floor_call, lambda: float(floor_call()[1]))
     if gtsam is not None:
         solve, error = gtsam_case(gtsam, graph, values)
         calls["gtsam"] = (solve, lambda: float(error(solve())))
@@ -126,6 +193,7 @@ def single(gtsam, repeats: int) -> list[dict]:
     for r in rows:
         r["ratio_to_gtsam"] = r["median_ms"] / ref if ref else float("nan")
         config = {"graph": "pose2 (5 SE(2) poses)", "method": r["method"]}
+        config["dispatch"] = _dispatch()
         records.append(
             {"benchmark": "small_graph", "config": config}
             | {"median_s": r["median_ms"] / 1e3, "compile_s": 0.0, **r}
@@ -159,7 +227,13 @@ def _mixed_bucket(n: int) -> int:
     return 1 if n == 1 else 12
 
 
-def batch(gtsam, num_graphs: int, repeats: int, mixed: bool = False) -> list[dict]:
+def _dispatch() -> str:
+    return "async" if jax.config.values["jax_cpu_enable_async_dispatch"] else "sync"
+
+
+def batch(
+    gtsam, num_graphs: int, repeats: int, mixed: bool = False, floor: bool = False
+) -> list[dict]:
     graph, values = pose2_problem()
     rng = np.random.default_rng(0)
     if mixed:  # other sizes and connectivity, padded to one bucket
@@ -195,8 +269,34 @@ def batch(gtsam, num_graphs: int, repeats: int, mixed: bool = False) -> list[dic
             "per_graph_us": batch_s / num_graphs * 1e6,
             "first_call_s": first_s,
             "graphs_by_num_steps": steps,
+            "dispatch": _dispatch(),
         }
     ]
+    if floor:
+        floor_batch = jax.jit(jax.vmap(_floor_lm))
+
+        def floor_run():
+            return jax.block_until_ready(floor_batch(graphs, inits))
+
+        t0 = time.perf_counter()
+        floor_values, _, floor_steps = floor_run()
+        floor_first = time.perf_counter() - t0
+        floor_s = _times(floor_run, repeats, warm_up=False)[0]
+        floor_x = np.asarray(floor_values["x"].x())
+        rows.append(
+            {
+                "method": "floor (fewest-operations LM, vmapped)",
+                "num_graphs": num_graphs,
+                "median_s": floor_s,
+                "per_graph_us": floor_s / num_graphs * 1e6,
+                "first_call_s": floor_first,
+                "graphs_by_num_steps": np.bincount(np.asarray(floor_steps)).tolist(),
+                "max_abs_x_difference_to_eqsmooth": float(
+                    np.max(np.abs(floor_x - np.asarray(ours["x"].x())))
+                ),
+                "dispatch": _dispatch(),
+            }
+        )
     if gtsam is not None:
         solves = [gtsam_case(gtsam, g, v)[0] for g, v in cases]
         results = []
@@ -220,7 +320,8 @@ def batch(gtsam, num_graphs: int, repeats: int, mixed: bool = False) -> list[dic
                 "max_abs_x_difference": diff,
             }
         )
-        rows[0]["speedup_over_gtsam"] = gtsam_s / batch_s
+        for row in rows[:-1]:
+            row["speedup_over_gtsam"] = gtsam_s / row["median_s"]
     columns = ["method", "num_graphs", "median_s", "per_graph_us", "first_call_s"]
     print(
         markdown_table(rows, columns + ["speedup_over_gtsam", "max_abs_x_difference"])
@@ -357,9 +458,19 @@ def main(argv=None):
     parser.add_argument(
         "--other-graphs", type=int, default=0, metavar="K", help="K more graphs"
     )
+    parser.add_argument(
+        "--floor", action="store_true", help="add the fewest-operations LM row"
+    )
+    parser.add_argument(
+        "--sync-dispatch",
+        action="store_true",
+        help="jax_cpu_enable_async_dispatch=False (set before any computation)",
+    )
     parser.add_argument("--quick", action="store_true", help="20 repeats; N <= 20")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    if args.sync_dispatch:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     gtsam = optional("gtsam")
     repeats = args.repeats or (5 if args.batch else 200)
     if args.quick:
@@ -369,9 +480,9 @@ def main(argv=None):
             gtsam, min(args.other_graphs, 3 if args.quick else 10**6), repeats
         )
     elif args.batch:
-        records = batch(gtsam, args.batch, repeats, args.mixed)
+        records = batch(gtsam, args.batch, repeats, args.mixed, args.floor)
     else:
-        records = single(gtsam, repeats)
+        records = single(gtsam, repeats, args.floor)
     if args.json:
         write_json(args.json, records)
 
