@@ -238,6 +238,28 @@ def test_summary_and_docs_table_come_from_fold_json(tmp_path):
         report.update_docs(tmp_path / "fold_0.json", table)
 
 
+def test_derived_rows_are_paired_per_fold(tmp_path):
+    import json
+
+    from eqsmooth.experiments.kitti_vo import report
+
+    methods = ["smoother_hetero_e2e", "ekf_hetero"]
+    for k, late in enumerate([0.02, 0.04, 0.03]):
+        rows = {m: {"trans_m_per_m": 0.2, "rot_deg_per_m": 0.1} for m in methods}
+        rows["ekf_hetero_one_frame_late"] = {
+            "trans_m_per_m": 0.2 + late,
+            "rot_deg_per_m": 0.1,
+        }
+        config = {"quick": False, "methods": methods}
+        fold = {"fold": k, "rows": rows, "config": config}
+        (tmp_path / f"fold_{k}.json").write_text(json.dumps(fold))
+    table = report.write_summary(tmp_path)
+    # mean +0.03, std 0.01 / √3; the smoother is below the late EKF on 3/3.
+    assert "| ekf_hetero_one_frame_late − ekf_hetero | +0.0300 ± 0.0058" in table
+    assert "| smoother_hetero_e2e − ekf_hetero_one_frame_late | -0.0300" in table
+    assert "(3/3 folds below 0) | -0.0227 ± 0.0064 (8/10 folds below 0) |" in table
+
+
 def test_declared_criterion_of_a_variant(tmp_path):
     import json
 
@@ -294,6 +316,65 @@ def _check_losses():
     p = np.asarray(est.pose.unit_complex_xy)
     np.testing.assert_allclose(p[0], np.asarray(w["pose"][0, 0]), atol=1e-3)
     assert np.max(np.abs(p[:, 2:] - np.asarray(w["pose"][0, :, 2:]))) < 0.5
+
+
+def test_session_30_rows():
+    """The rows added for issue 33: the code release's one-frame-late EKF
+    scoring, the velocity surrogate loss and the bidirectional LSTM."""
+    import jax
+
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        _check_session_30_rows()
+
+
+def _check_session_30_rows():
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from eqsmooth.experiments.kitti_vo import experiment as E, models as M
+    from eqsmooth.factors import vehicle_motion
+
+    w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
+    one = jax.tree_util.tree_map(lambda a: a[0], w)
+    model = M.Estimator(M.constant_noise(np.array([1.0, 0.1])))
+    # One frame late: every mean moved one step by the motion model, so the
+    # pose scored at t is the filter's prediction of t + 1.
+    mean = M.run_ekf(model, one).mean
+    late = M.ekf_one_frame_late(model, one)
+    nxt = vehicle_motion(mean[2], D.DT)
+    np.testing.assert_allclose(
+        np.asarray(late[2].pose.unit_complex_xy),
+        np.asarray(nxt.pose.unit_complex_xy),
+        rtol=1e-6,
+    )
+    step = np.linalg.norm(np.diff(np.asarray(mean.pose.unit_complex_xy)[:, 2:], axis=0))
+    assert step > 0  # the toy path moves, so the late scoring differs
+    # The velocity loss scores velocities only: a position-only change of the
+    # truth leaves it unchanged, a velocity change does not.
+    vel = E.losses("smoother_const_e2e_vel", E.Config())[0]
+    pos = E.losses("smoother_const_e2e", E.Config())[0]
+    moved = {**w, "pose": w["pose"].at[..., 2:].add(0.5)}
+    faster = {**w, "velocity": w["velocity"] + 0.5}
+    base = float(vel(model, w))
+    np.testing.assert_allclose(float(vel(model, moved)), base, rtol=1e-5)
+    assert float(vel(model, faster)) > base + 1e-3
+    assert float(pos(model, moved)) != pytest.approx(float(pos(model, w)))
+    assert E.losses("smoother_hetero_nll", E.Config())[0] is M.nll_loss
+    # The bidirectional LSTM: a change at the last step reaches the first
+    # velocity (the unidirectional one cannot see it).
+    bi = E.build_model("lstm_bi", None, jax.random.key(0))
+    uni = E.build_model("lstm", None, jax.random.key(0))
+    bi = eqx.tree_at(lambda m: m.head.weight, bi, jnp.ones_like(bi.head.weight))
+    uni = eqx.tree_at(lambda m: m.head.weight, uni, jnp.ones_like(uni.head.weight))
+    late_change = {**one, "features": one["features"].at[-1].add(3.0)}
+    for m, reaches in ((bi, True), (uni, False)):
+        v0, v1 = m.velocities(one), m.velocities(late_change)
+        assert bool(jnp.any(v0[0] != v1[0])) == reaches
+    assert E.estimator_kind("lstm_bi") == "lstm"
+    assert E.estimator_kind("ekf_one_frame_late") == "ekf_one_frame_late"
+    assert E.estimator_kind("smoother_hetero_e2e_vel") == "smoother"
+    assert set(s for _, s in E.DERIVED.values()) <= set(E.METHODS)
 
 
 @pytest.mark.slow

@@ -40,7 +40,27 @@ METHODS = (
     "ekf_hetero",
     "ekf_const",
     "lstm",
+    # Added in session 30 (issue 33): the end-to-end smoothers trained with
+    # the surrogate loss on the velocities instead of the positions, and the
+    # bidirectional LSTM.
+    "smoother_hetero_e2e_vel",
+    "smoother_const_e2e_vel",
+    "lstm_bi",
 )
+# Rows scored from the trained models of other rows, without training:
+# row -> (how it estimates, the trained method whose model it uses).
+# `ekf_*_one_frame_late` scores the EKF as the paper's code release does
+# (`models.ekf_one_frame_late`); the `*_noise_from_*` rows transfer the
+# learned noise (head and dynamics noise) between filter and smoother (the
+# paper's Table II).
+DERIVED = {
+    "ekf_hetero_one_frame_late": ("ekf_one_frame_late", "ekf_hetero"),
+    "ekf_const_one_frame_late": ("ekf_one_frame_late", "ekf_const"),
+    "smoother_hetero_noise_from_ekf": ("smoother", "ekf_hetero"),
+    "ekf_hetero_noise_from_smoother": ("ekf", "smoother_hetero_e2e"),
+    "smoother_const_noise_from_ekf": ("smoother", "ekf_const"),
+    "ekf_const_noise_from_smoother": ("ekf", "smoother_const_e2e"),
+}
 
 
 @dataclasses.dataclass
@@ -277,8 +297,8 @@ def concat(ws: list[dict]) -> dict:
 
 
 def build_model(method: str, sigmas, key):
-    if method == "lstm":
-        return M.LstmOdometry(key)
+    if method in ("lstm", "lstm_bi"):
+        return M.LstmOdometry(key, bidirectional=method == "lstm_bi")
     if "hetero" in method:
         noise = M.heteroscedastic_noise(sigmas, key)
     else:
@@ -287,24 +307,44 @@ def build_model(method: str, sigmas, key):
 
 
 def losses(method: str, cfg: Config):
-    if method == "lstm":
+    """(training loss, validation loss) of a method. Every smoother is
+    selected on the position error of its test-time solve, whatever it is
+    trained on."""
+    if method in ("lstm", "lstm_bi"):
         return M.lstm_loss, M.lstm_loss
     if method.startswith("ekf"):
         return M.ekf_loss, M.ekf_loss
+    target = "velocity" if method.endswith("_e2e_vel") else "position"
 
     def e2e(model, batch):
-        return M.surrogate_loss(model, batch, cfg.gn_steps, cfg.surrogate_from_truth)
+        return M.surrogate_loss(
+            model, batch, cfg.gn_steps, cfg.surrogate_from_truth, target
+        )
 
-    train = e2e if method.endswith("e2e") else M.nll_loss
+    train = M.nll_loss if method.endswith("_nll") else e2e
     return train, M.smoother_valid_loss
 
 
+def estimator_kind(method: str) -> str:
+    """How a method (or a `DERIVED` row's first entry) estimates: `"lstm"`,
+    `"ekf"`, `"ekf_one_frame_late"`, `"dead_reckoning"` or `"smoother"`."""
+    if method in ("lstm", "lstm_bi"):
+        return "lstm"
+    if method in ("ekf_one_frame_late", "dead_reckoning"):
+        return method
+    return "ekf" if method.startswith("ekf") else "smoother"
+
+
 def estimate(method: str, model, window: dict) -> eqs.factors.VehicleState:
-    if method == "lstm":
+    """The estimate of a method (see `estimator_kind`) for one window."""
+    kind = estimator_kind(method)
+    if kind == "lstm":
         return model(window)
-    if method.startswith("ekf"):
+    if kind == "ekf_one_frame_late":
+        return M.ekf_one_frame_late(model, window)
+    if kind == "ekf":
         return M.run_ekf(model, window).mean
-    if method == "dead_reckoning":
+    if kind == "dead_reckoning":
         return M.dead_reckoning(window)
     return M.smooth(model, window)
 
@@ -315,16 +355,17 @@ def _planar(state) -> np.ndarray:
 
 
 @functools.cache
-def _batched_estimator(method: str):
-    """One jitted batched estimator per method, so that scoring a method
-    again (the figures do) reuses its compiled program."""
-    return eqx.filter_jit(lambda m, w: jax.vmap(lambda x: estimate(method, m, x))(w))
+def _batched_estimator(kind: str):
+    """One jitted batched estimator per way of estimating, so that scoring a
+    method again (the figures do), or another model of the same structure
+    (the `DERIVED` rows), reuses its compiled program."""
+    return eqx.filter_jit(lambda m, w: jax.vmap(lambda x: estimate(kind, m, x))(w))
 
 
 def evaluate(method: str, model, windows: dict, batch: int = 8):
     """Per-window (m/m, deg/m; final step, then whole window) and estimated
     planar poses."""
-    fn = _batched_estimator(method)
+    fn = _batched_estimator(estimator_kind(method))
     n = windows["z"].shape[0]
     est = []
     for i in range(0, n, batch):
@@ -544,6 +585,22 @@ def _train_and_score(cfg, key, sigmas, train_w, valid_w, test_w, work, result, s
     return models
 
 
+def _score_derived(models: dict, test_w: dict, result: dict, save) -> None:
+    """Stage 5: the `DERIVED` rows whose source model this run trained."""
+    for row, (how, source) in DERIVED.items():
+        if row in result["rows"] or source not in models:
+            continue
+        t1 = time.perf_counter()
+        m, _ = evaluate(how, models[source], test_w)
+        result["rows"][row] = _row(m, 0.0, time.perf_counter() - t1, None)
+        result["rows"][row]["derived_from"] = source
+        print(
+            f"{row}: {result['rows'][row]['trans_m_per_m']:.4f} m/m, "
+            f"{result['rows'][row]['rot_deg_per_m']:.4f} deg/m"
+        )
+        save()
+
+
 def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     """Run (or resume) every stage of fold `fold`; write `fold_K.json` under
     `out` after each; return the result, the models and the test data."""
@@ -610,6 +667,7 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     models = _train_and_score(
         cfg, key, sigmas, train_w, valid_w, test_w, work, result, save
     )
+    _score_derived(models, test_w, result, save)
     save()
     return {
         "result": result,
