@@ -253,6 +253,14 @@ def test_derived_rows_are_paired_per_fold(tmp_path):
         config = {"quick": False, "methods": methods}
         fold = {"fold": k, "rows": rows, "config": config}
         (tmp_path / f"fold_{k}.json").write_text(json.dumps(fold))
+    # A derived row from a retrained source model counts as its source row
+    # shifted by the difference to the retrained model's own score in that
+    # run (source_now): here +0.03 again.
+    fold2 = json.loads((tmp_path / "fold_2.json").read_text())
+    late = fold2["rows"]["ekf_hetero_one_frame_late"]
+    late.update(derived_from="ekf_hetero", source_now={"trans_m_per_m": 0.5})
+    late["trans_m_per_m"] = 0.53  # still +0.03 against its own source
+    (tmp_path / "fold_2.json").write_text(json.dumps(fold2))
     table = report.write_summary(tmp_path)
     # mean +0.03, std 0.01 / √3; the smoother is below the late EKF on 3/3.
     assert "| ekf_hetero_one_frame_late − ekf_hetero | +0.0300 ± 0.0058" in table

@@ -586,14 +586,29 @@ def _train_and_score(cfg, key, sigmas, train_w, valid_w, test_w, work, result, s
 
 
 def _score_derived(models: dict, test_w: dict, result: dict, save) -> None:
-    """Stage 5: the `DERIVED` rows whose source model this run trained."""
+    """Stage 5: the `DERIVED` rows whose source model this run trained.
+
+    Each also records `source_now`, its source model scored the usual way in
+    this run: where the source row was scored by an earlier run whose
+    checkpoints are gone, the model was trained again, and a derived row is
+    compared with what its own model scores (equal to the source row when
+    the retraining reproduced it)."""
+    now = {}
     for row, (how, source) in DERIVED.items():
         if row in result["rows"] or source not in models:
             continue
+        if source not in now:
+            m, _ = evaluate(source, models[source], test_w)
+            now[source] = {
+                k: v
+                for k, v in _row(m, 0.0, 0.0, None).items()
+                if not k.endswith("_windows") and k.startswith(("trans", "rot"))
+            }
         t1 = time.perf_counter()
         m, _ = evaluate(how, models[source], test_w)
         result["rows"][row] = _row(m, 0.0, time.perf_counter() - t1, None)
         result["rows"][row]["derived_from"] = source
+        result["rows"][row]["source_now"] = now[source]
         print(
             f"{row}: {result['rows'][row]['trans_m_per_m']:.4f} m/m, "
             f"{result['rows'][row]['rot_deg_per_m']:.4f} deg/m"

@@ -181,9 +181,21 @@ def best_step_lines(results: list[dict]) -> list[str]:
 def _paired(results: list[dict], a: str, b: str, key: str = "trans_m_per_m"):
     """`a − b` per fold over the folds with both rows: (mean, sem, number of
     folds where a < b, n), or None."""
+
+    def value(rows: dict, name: str) -> float:
+        # A derived row whose source model was trained again (its source row
+        # came from an earlier run whose checkpoints are gone): the source
+        # row shifted by what the derived scoring changed on the retrained
+        # model (see experiment._score_derived).
+        row = rows[name]
+        source = row.get("derived_from")
+        if "source_now" in row and source in rows:
+            return rows[source][key] + row[key] - row["source_now"][key]
+        return row[key]
+
     d = np.array(
         [
-            r["rows"][a][key] - r["rows"][b][key]
+            value(r["rows"], a) - value(r["rows"], b)
             for r in results
             if a in r["rows"] and b in r["rows"]
         ]
