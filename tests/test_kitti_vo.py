@@ -313,7 +313,11 @@ def _check_losses():
     w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
     sig = np.array([1.0, 0.1])
     hetero = M.Estimator(M.heteroscedastic_noise(sig, jax.random.key(0)))
-    for loss in (M.surrogate_loss, M.nll_loss, M.ekf_loss):
+
+    def velocity_loss(model, batch):
+        return M.surrogate_loss(model, batch, target="velocity")
+
+    for loss in (M.surrogate_loss, velocity_loss, M.nll_loss, M.ekf_loss):
         value, grads = eqx.filter_value_and_grad(loss)(hetero, w)
         assert np.isfinite(float(value))
         leaves = jax.tree_util.tree_leaves(grads)
@@ -369,6 +373,8 @@ def _check_session_30_rows():
     assert float(vel(model, faster)) > base + 1e-3
     assert float(pos(model, moved)) != pytest.approx(float(pos(model, w)))
     assert E.losses("smoother_hetero_nll", E.Config())[0] is M.nll_loss
+    with pytest.raises(ValueError, match="target must be one of"):
+        M.surrogate_loss(model, w, target="pose")
     # The bidirectional LSTM: a change at the last step reaches the first
     # velocity (the unidirectional one cannot see it).
     bi = E.build_model("lstm_bi", None, jax.random.key(0))

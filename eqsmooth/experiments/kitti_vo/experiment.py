@@ -297,7 +297,7 @@ def concat(ws: list[dict]) -> dict:
 
 
 def build_model(method: str, sigmas, key):
-    if method in ("lstm", "lstm_bi"):
+    if estimator_kind(method) == "lstm":
         return M.LstmOdometry(key, bidirectional=method == "lstm_bi")
     if "hetero" in method:
         noise = M.heteroscedastic_noise(sigmas, key)
@@ -310,9 +310,10 @@ def losses(method: str, cfg: Config):
     """(training loss, validation loss) of a method. Every smoother is
     selected on the position error of its test-time solve, whatever it is
     trained on."""
-    if method in ("lstm", "lstm_bi"):
+    kind = estimator_kind(method)
+    if kind == "lstm":
         return M.lstm_loss, M.lstm_loss
-    if method.startswith("ekf"):
+    if kind == "ekf":
         return M.ekf_loss, M.ekf_loss
     target = "velocity" if method.endswith("_e2e_vel") else "position"
 

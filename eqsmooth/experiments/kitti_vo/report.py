@@ -200,6 +200,12 @@ def _paired(results: list[dict], a: str, b: str, key: str = "trans_m_per_m"):
             if a in r["rows"] and b in r["rows"]
         ]
     )
+    return _paired_summary(d)
+
+
+def _paired_summary(d: np.ndarray):
+    """(mean, std/√n, number below 0, n) of per-fold differences, or None
+    for fewer than two folds."""
     if d.size < 2:
         return None
     return (
@@ -217,13 +223,7 @@ def _paper_paired(a: str, b: str):
         return None
     fa = {f["fold"]: f["m_per_m"] for f in ra["folds"]}
     fb = {f["fold"]: f["m_per_m"] for f in rb["folds"]}
-    d = np.array([fa[k] - fb[k] for k in sorted(set(fa) & set(fb))])
-    return (
-        float(d.mean()),
-        float(d.std(ddof=1) / np.sqrt(d.size)),
-        int((d < 0).sum()),
-        d.size,
-    )
+    return _paired_summary(np.array([fa[k] - fb[k] for k in sorted(set(fa) & set(fb))]))
 
 
 def derived_lines(results: list[dict]) -> list[str]:
