@@ -268,6 +268,42 @@ def test_derived_rows_are_paired_per_fold(tmp_path):
     assert "(3/3 folds below 0) | -0.0227 ± 0.0064 (8/10 folds below 0) |" in table
 
 
+def test_rescore_rule_and_method_key():
+    """A row scored before the whole-window metric existed keeps its
+    final-step fields of record and takes the whole-window fields of the
+    retrained model, whose own final-step score is kept beside them; a
+    method's initialisation key does not depend on the run's method list."""
+    import jax
+
+    from eqsmooth.experiments.kitti_vo import experiment as E
+
+    old = {"trans_m_per_m": 0.2, "rot_deg_per_m": 0.1, "best_step": 100}
+    old["trans_m_per_m_windows"] = [0.2]
+    metrics = np.array([[0.3, 0.2, 0.05, 0.04]])
+    new = E._row(metrics, 12.0, 1.0, 300)
+    row = E._rescored(old, new, {"git": "abc"})
+    assert row["trans_m_per_m"] == 0.2 and row["trans_m_per_m_windows"] == [0.2]
+    assert row["best_step"] == 100
+    assert row["trans_m_per_m_whole"] == 0.05
+    assert row["rot_deg_per_m_whole_windows"] == [0.04]
+    assert row["whole_window_from"] == {
+        "git": "abc",
+        "best_step": 300,
+        "train_s": 12.0,
+        "trans_m_per_m": 0.3,
+        "rot_deg_per_m": 0.2,
+    }
+    assert "trans_m_per_m_whole" not in old  # the earlier record is not mutated
+    key = jax.random.key(3)
+    a, b = (E.method_key(key, m) for m in ("ekf_hetero", "lstm_bi"))
+    assert not np.array_equal(jax.random.key_data(a), jax.random.key_data(b))
+    # The full protocol's keys are those it always had (place in METHODS).
+    assert np.array_equal(
+        jax.random.key_data(E.method_key(key, "ekf_hetero")),
+        jax.random.key_data(jax.random.fold_in(key, 10 + 4)),
+    )
+
+
 def test_declared_criterion_of_a_variant(tmp_path):
     import json
 
