@@ -26,7 +26,14 @@ import json
 from pathlib import Path
 
 from eqsmooth.experiments._cli import experiment_parser
-from eqsmooth.experiments.disk_tracking import fresh, online, protocol, report, train
+from eqsmooth.experiments.disk_tracking import (
+    fresh,
+    online,
+    protocol,
+    report,
+    seeds,
+    train,
+)
 
 
 _INT = ("sequences_per_fold", "sensor_steps", "sensor_batch", "fg_steps", "fg_batch")
@@ -73,6 +80,14 @@ def parse_args(argv=None) -> tuple[train.Config, argparse.Namespace]:
         "sensor as that folder's rows",
     )
     p.add_argument(
+        "--seed-summary",
+        type=Path,
+        metavar="ROOT",
+        help="train nothing: compare the runs ROOT/seedS (made with --sensor-from "
+        "OUT --model-seed S --out ROOT/seedS) with seed 0 under --out; writes "
+        "ROOT/seeds.json and ROOT/seeds.md",
+    )
+    p.add_argument(
         "--docs", type=Path, help="also write the summary table into this page"
     )
     p.add_argument(
@@ -113,6 +128,9 @@ def main(argv=None):
     a.out.mkdir(parents=True, exist_ok=True)
     label = "QUICK RUN" if cfg.quick else "full protocol"
     print(f"Disk tracking ({label}): test folds {list(cfg.test_folds)}")
+    if a.seed_summary is not None:
+        print(seeds.summarise(a.out, a.seed_summary)[1])
+        return
     if a.fresh:
         return main_fresh(cfg, a)
     for k in cfg.test_folds:

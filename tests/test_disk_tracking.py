@@ -613,3 +613,39 @@ def test_ablation_pairs_are_reported():
     (key,) = paired
     assert paired[key]["mean"] == pytest.approx(0.2)
     assert "no first-state prior (the paper's graph)" in table
+
+
+def test_seed_summary_pools_within_fold_spread(tmp_path):
+    import json
+
+    from eqsmooth.experiments.disk_tracking import seeds
+
+    base, root = tmp_path / "disk", tmp_path / "seeds"
+    # (smoother, LSTM) test RMSE per run and fold; fold 2 only in seed 0.
+    runs = {
+        base: {0: (2.0, 1.8), 1: (2.2, 1.9), 2: (2.1, 1.7)},
+        base / "fresh": {0: (2.1, 1.8), 1: (2.2, 1.9)},
+        root / "seed1": {0: (1.9, 1.8), 1: (2.3, 1.9)},
+    }
+    for d, folds in runs.items():
+        d.mkdir(parents=True)
+        for k, (s, lstm) in folds.items():
+            rec = dict(smoother_hetero_surrogate=s, lstm_bi=lstm)
+            rec = {m: {"test_rmse": v} for m, v in rec.items()}
+            (d / f"fold_{k}.json").write_text(json.dumps({"fold": k, "records": rec}))
+    record, table = seeds.summarise(base, root)
+    assert record["runs"] == ["seed 0", "seed 0 again", "seed 1"]
+    assert record["folds"] == [0, 1]
+    row = record["rows"]["smoother_hetero_surrogate"]
+    np.testing.assert_allclose(row["mean_per_run"], [2.1, 2.15, 2.1])
+    # fold 0: std of (2.0, 2.1, 1.9) = 0.1; fold 1: of (2.2, 2.2, 2.3) ≈ 0.0577
+    np.testing.assert_allclose(
+        row["within_fold_seed_std"], np.sqrt((0.01 + 0.01 / 3) / 2)
+    )
+    assert record["rows"]["lstm_bi"]["within_fold_seed_std"] == pytest.approx(0.0)
+    pair = record["paired"]["smoother_hetero_surrogate - lstm_bi"]
+    assert pair["negative_cells"] == 0 and pair["same_sign_everywhere"]
+    assert (root / "seeds.md").read_text() == table
+    assert "seed std within a fold" in table
+    with pytest.raises(FileNotFoundError, match="seedS"):
+        seeds.summarise(base, tmp_path / "nothing")
