@@ -294,6 +294,11 @@ def test_rescore_rule_and_method_key():
         "rot_deg_per_m": 0.2,
     }
     assert "trans_m_per_m_whole" not in old  # the earlier record is not mutated
+    from eqsmooth.experiments.kitti_vo import report
+
+    (line,) = report.rescored_lines([{"rows": {"ekf_hetero": row}}])
+    assert "ekf_hetero (1 folds; largest |Δ| 0.1000 m/m, 0.1000 deg/m)" in line
+    assert report.rescored_lines([{"rows": {"ekf_hetero": old}}]) == []
     key = jax.random.key(3)
     a, b = (E.method_key(key, m) for m in ("ekf_hetero", "lstm_bi"))
     assert not np.array_equal(jax.random.key_data(a), jax.random.key_data(b))
