@@ -5,7 +5,6 @@ cannot separate."""
 
 from types import SimpleNamespace
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from helpers import compiled_programs
@@ -43,22 +42,19 @@ def _model():
 
 
 def test_hats_are_a_partition_of_unity():
-    from eqsmooth.discover._adequacy import _Hat
+    from eqsmooth.discover._adequacy import hat
 
     knots = np.array([-1.0, -0.2, 0.1, 0.5, 2.0])
-    u = jnp.concatenate([jnp.zeros(1), jnp.asarray(knots)])  # knots from channel 1
-
-    def weights(s):
-        x = jnp.stack([0.0, s])
-        return jnp.stack([_Hat(2, 1, "x", 1, 1, b)(x, u) for b in range(5)])
-
-    s = jnp.concatenate([jnp.linspace(-3.0, 3.0, 61), jnp.asarray(knots)])
-    w = np.asarray(jax.vmap(weights)(s))  # (points, hats, equations)
-    assert np.all(w[:, :, 0] == 0.0)  # only the chosen equation
-    w = w[:, :, 1]
+    s = np.concatenate([np.linspace(-3.0, 3.0, 61), knots])
+    w = np.stack([hat(s, knots, b)[0] for b in range(5)], 1)  # (points, hats)
     np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
     assert w.min() >= 0.0 and w.max() <= 1.0
     np.testing.assert_allclose(w[-5:], np.eye(5), atol=1e-12)  # 1 at its knot
+    # The slopes are those of the pieces (central differences off the knots).
+    s = np.linspace(-2.9, 2.9, 57)
+    for b in range(5):
+        up, down = hat(s + 1e-6, knots, b)[0], hat(s - 1e-6, knots, b)[0]
+        np.testing.assert_allclose(hat(s, knots, b)[1], (up - down) / 2e-6, atol=1e-6)
 
 
 def test_out_of_library_effect_is_partial_and_reuses_the_program():
@@ -151,19 +147,22 @@ def test_a_rival_the_data_can_separate_makes_no_set():
 
 
 def _driven_field(x, u, w2):
-    # Reads the whole input vector: the knot channels must not reach it.
-    return jnp.stack([x[1], -w2 * jnp.sin(x[0]) + jnp.sum(u)])
+    return jnp.stack([x[1], -w2 * jnp.sin(x[0]) + u[0]])
 
 
-def test_augmented_model_keeps_the_transition_of_an_integrator():
-    # The hats read their knots from input channels appended after the
-    # model's own inputs; the nominal vector field and the rate candidates
-    # must not see them. With the hats at zero, the augmented model is the
-    # model.
+def test_hat_scores_from_offsets_equal_those_of_the_augmented_model():
+    """The adequacy test scores its hats through the nominal model's score
+    program (`Offsets`: a term's value and slope at the MAP); the scores and
+    the observed information equal those of the model with the hats added
+    as candidates, on an integrator with rate terms, hats of a state and of
+    an input, on a dynamics and a measurement equation."""
+    import dataclasses
+
     from test_discover_integrator import _measure, DT, W2
 
     import eqsmooth.discover as dc
-    from eqsmooth.discover._adequacy import _augmented
+    from eqsmooth.discover import _adequacy as A
+    from eqsmooth.discover._fit import evaluate
 
     library = dc.mechanical_library(
         [0],
@@ -171,31 +170,76 @@ def test_augmented_model_keeps_the_transition_of_an_integrator():
         2,
         dt=DT,
         num_inputs=1,
-        include=("viscous damping", "actuator gain"),
+        measured_positions=[0],
+        include=("viscous damping", "actuator gain", "sensor scale"),
         rate=True,
     )
     model = dc.ChainModel(
         dc.Integrator(_driven_field, DT),
         _measure,
         jnp.asarray(W2),
-        np.ones(2),
-        np.ones(1),
+        np.array([0.05, 0.2]),
+        np.array([0.3]),
         np.ones(2),
         library,
-        coefficients=np.array([0.3, 0.5]),
+        coefficients=np.array([0.3, 0.5, 0.0]),
     )
     rng = np.random.default_rng(0)
-    xhat = rng.normal(size=(2, 6, 2))
-    data = dc.Sequences(
-        rng.normal(size=(2, 6, 1)), np.zeros((2, 2)), inputs=rng.normal(size=(2, 6, 1))
+    B, T = 3, 12
+    u = rng.normal(size=(B, T, 1))
+    data = dc.Sequences(rng.normal(size=(B, T, 1)), np.zeros((B, 2)), inputs=u)
+    z = np.concatenate([np.asarray(model.coefficients), [0.1, -0.2, 0.0]])
+    from eqsmooth.discover._model import map_states
+
+    xhat = np.asarray(
+        map_states(model, jnp.asarray(z), data, jnp.asarray(data.initial_states))
     )
-    augmented, adata, where = _augmented(model, data, xhat, [0, 1])
-    assert {w["block"] for w in where} == {"x0 on x1'", "x1 on x1'", "u0 on x1'"}
-    augmented = augmented.with_coefficients(
-        np.concatenate([model.coefficients, np.zeros(len(where))])
+    # Named: the actuator gain (velocity equation) and the sensor scale (y0).
+    terms, where = A._hat_terms(model, data, xhat, [1, 2])
+    blocks = {w["block"] for w in where}
+    assert blocks == {
+        f"{v} on {e}" for v in ("x0", "x1", "u0") for e in ("x1'", "y0")
+    }, blocks
+    ev = A._hat_evaluation(model, data, z, xhat, terms)
+
+    # The same hats as candidates (knots fixed for this data set).
+    def feature(term, knots, b):
+        def f(x, uu):
+            s = (x if term.source == "x" else uu)[term.index]
+            k = jnp.asarray(knots)
+            last = len(knots) - 1
+            if b == 0:
+                w = jnp.clip((k[1] - s) / (k[1] - k[0]), 0.0, 1.0)
+            elif b == last:
+                w = jnp.clip((s - k[-2]) / (k[-1] - k[-2]), 0.0, 1.0)
+            else:
+                up = (s - k[b - 1]) / (k[b] - k[b - 1])
+                w = jnp.maximum(jnp.minimum(up, (k[b + 1] - s) / (k[b + 1] - k[b])), 0)
+            dim = 2 if term.target == "dynamics" else 1
+            return w * jnp.zeros(dim).at[term.row].set(1.0)
+
+        return f
+
+    hats = []
+    for i, (t, w) in enumerate(zip(terms, where)):
+        b = w["knots"].index(w["near"])
+        hats.append(
+            dc.Candidate(f"hat {i}", feature(t, w["knots"], b), target=t.target)
+        )
+    K, H = len(library), len(terms)
+    augmented = dataclasses.replace(
+        model,
+        candidates=model.candidates + tuple(hats),
+        coefficients=np.concatenate([model.coefficients, np.zeros(H)]),
     )
-    x, u = jnp.asarray(xhat[1, 2]), adata.inputs[1, 2]
-    assert u.shape == (1 + 3 * 5,)
+    za = np.concatenate([z[:K], np.zeros(H), z[K:]])
+    scales = np.array([np.sqrt(np.mean(t.value**2)) for t in terms])
+    scales = np.concatenate([np.ones(K), np.where(scales > 0, scales, 1.0)])
+    test = K + np.arange(H)
+    ref = evaluate(augmented, data, za, xhat, scales, test, at_map=True)
+    np.testing.assert_allclose(ev.per_sequence, ref.per_sequence, rtol=1e-12)
+    np.testing.assert_allclose(ev.scores, ref.scores[:, test], rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(
-        augmented.transition(x, u), model.transition(x, data.inputs[1, 2]), rtol=1e-12
+        ev.hessian, ref.hessian[np.ix_(test, test)], rtol=1e-5, atol=1e-6
     )
+    assert np.abs(ev.scores).max() > 1e-3  # not a comparison of zeros

@@ -9,20 +9,23 @@ one state or input, on one equation) for every variable and every equation
 the named candidates act on, and score-test them at zero, at the named
 model's fit. A significant score means the named term does not have the
 shape the data ask for there, and says where the difference sits.
+
+The hats are not added to the model as candidates (that was a new,
+larger program to compile for every model structure, about half of a
+first call's compile time). Each enters the nominal model's score program
+through `Offsets`, its value and slope at the MAP, which give its exact
+score and, by central differences, its observed information (equal to the
+augmented model's: `tests/test_discover_adequacy.py`).
 """
 
 import dataclasses
 import math
-from collections.abc import Callable
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 
-from ._candidates import Candidate
-from ._fit import _eval_feature, evaluate, EVALUATION_ERRORS, feature_scales
-from ._integrator import Integrator
-from ._model import ChainModel, Sequences
+from ._fit import _eval_feature, Evaluation, EVALUATION_ERRORS
+from ._model import batch_scores, ChainModel, Offsets, Sequences
 from ._score import score_test
 from ._stats import normal_quantile
 
@@ -34,48 +37,28 @@ _KNOT_QUANTILES = (0.02, 0.25, 0.5, 0.75, 0.98)
 _NUM_KNOTS = len(_KNOT_QUANTILES)
 
 
-@dataclasses.dataclass(frozen=True)
-class _Hat:
-    """Hat function `b` of a variable, on one equation (a unit vector of
-    length `dim`). The knots are not constants of the feature (that would make
-    every data set a new program): they arrive as input channels
-    `u[knot_at : knot_at + NUM_KNOTS]`, constant over time. The first and last
-    hats stay at 1 beyond the outer knots."""
-
-    dim: int
-    equation: int
-    source: str  # "x" or "u"
-    index: int
-    knot_at: int
-    b: int
-
-    def __call__(self, x: Float[Array, " n"], u: Float[Array, " k"]) -> Array:
-        s = (x if self.source == "x" else u)[self.index]
-        k = [u[self.knot_at + i] for i in range(_NUM_KNOTS)]
-        b = self.b
-        if b == 0:
-            w = jnp.clip((k[1] - s) / (k[1] - k[0]), 0.0, 1.0)
-        elif b == _NUM_KNOTS - 1:
-            w = jnp.clip((s - k[-2]) / (k[-1] - k[-2]), 0.0, 1.0)
-        else:
-            up = (s - k[b - 1]) / (k[b] - k[b - 1])
-            down = (k[b + 1] - s) / (k[b + 1] - k[b])
-            w = jnp.maximum(jnp.minimum(up, down), 0.0)
-        unit = np.zeros(self.dim)
-        unit[self.equation] = 1.0
-        return w * jnp.asarray(unit, x.dtype)
-
-
-@dataclasses.dataclass(frozen=True)
-class _FirstInputs:
-    """`fn(x, u[:k], *rest)`: a model function or feature that sees only the
-    model's own inputs, not the knot channels appended after them."""
-
-    fn: Callable
-    k: int
-
-    def __call__(self, x, u, *rest):
-        return self.fn(x, u[: self.k], *rest)
+def hat(s: np.ndarray, knots, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Value and slope at `s` of hat `b` over `knots`: 1 at its knot, falling
+    linearly to 0 at the neighbouring knots; the first and last hats stay at
+    1 beyond the outer knots (so the hats sum to 1 everywhere). The slope is
+    that of the piece `s` lies in (0 on a flat piece; exactly at a knot, the
+    piece to its right)."""
+    k = np.asarray(knots, float)
+    s = np.asarray(s, float)
+    last = len(k) - 1
+    if b == 0:
+        w = np.clip((k[1] - s) / (k[1] - k[0]), 0.0, 1.0)
+        dw = np.where((s >= k[0]) & (s < k[1]), -1.0 / (k[1] - k[0]), 0.0)
+    elif b == last:
+        w = np.clip((s - k[-2]) / (k[-1] - k[-2]), 0.0, 1.0)
+        dw = np.where((s >= k[-2]) & (s < k[-1]), 1.0 / (k[-1] - k[-2]), 0.0)
+    else:
+        up = (s - k[b - 1]) / (k[b] - k[b - 1])
+        down = (k[b + 1] - s) / (k[b + 1] - k[b])
+        w = np.maximum(np.minimum(up, down), 0.0)
+        dw = np.where((s >= k[b - 1]) & (s < k[b]), 1.0 / (k[b] - k[b - 1]), 0.0)
+        dw = np.where((s >= k[b]) & (s < k[b + 1]), -1.0 / (k[b + 1] - k[b]), dw)
+    return w, dw
 
 
 def _knots(values: np.ndarray) -> tuple[float, ...] | None:
@@ -149,33 +132,69 @@ def describe_region(variable: str, region: list[list[float | None]]) -> str:
     return " or ".join(parts)
 
 
-def _augmented(model, data, xhat, acting):
-    """The model with the hat library appended to its candidates, the data
-    with the knots appended to its inputs, and where each hat sits."""
+@dataclasses.dataclass(frozen=True)
+class _HatTerm:
+    """One hat term: hat `b` of variable `source[index]` on row `row` of the
+    dynamics or measurement equations, with its values and slopes (in that
+    variable) at the MAP states, `(B, T)` each."""
+
+    target: str  # "dynamics" or "measurement"
+    row: int
+    source: str  # "x" or "u"
+    index: int
+    value: np.ndarray
+    slope: np.ndarray
+
+    def offsets(self, zero: Offsets, c: float) -> Offsets:
+        """`zero` with this term at coefficient `c` added."""
+        w, dw = c * self.value, c * self.slope
+        if self.target == "dynamics":
+            d = zero.dynamics.at[:, :, self.row].add(w[:, :-1])
+            jac = zero.dynamics_jacobian
+            if self.source == "x":
+                jac = jac.at[:, :, self.row, self.index].add(dw[:, :-1])
+            return dataclasses.replace(zero, dynamics=d, dynamics_jacobian=jac)
+        d = zero.measurement.at[:, :, self.row].add(w)
+        jac = zero.measurement_jacobian
+        if self.source == "x":
+            jac = jac.at[:, :, self.row, self.index].add(dw)
+        return dataclasses.replace(zero, measurement=d, measurement_jacobian=jac)
+
+    def score(self, g: Offsets) -> np.ndarray:
+        """Per-sequence score `(B,)` of this term's coefficient at 0, from the
+        gradients `g` of the evidences with respect to the offsets."""
+        if self.target == "dynamics":
+            d, jac, w, dw = g.dynamics, g.dynamics_jacobian, self.value, self.slope
+            w, dw = w[:, :-1], dw[:, :-1]
+        else:
+            d, jac = g.measurement, g.measurement_jacobian
+            w, dw = self.value, self.slope
+        out = np.sum(np.asarray(d)[:, :, self.row] * w, axis=1)
+        if self.source == "x":
+            out = out + np.sum(np.asarray(jac)[:, :, self.row, self.index] * dw, axis=1)
+        return out
+
+
+def _hat_terms(model, data, xhat, acting):
+    """The hat library on the equations where the candidates `acting` act:
+    its terms and where each sits."""
     inputs = np.asarray(data.inputs)
     n, k = xhat.shape[-1], inputs.shape[-1]
-    variables = [("x", i, xhat[..., i].ravel()) for i in range(n)]
-    variables += [("u", j, inputs[..., j].ravel()) for j in range(k)]
+    variables = [("x", i, xhat[..., i]) for i in range(n)]
+    variables += [("u", j, inputs[..., j]) for j in range(k)]
     equations = _named_equations(model, data, xhat, acting)
-    hats, where, knot_channels = [], [], []
+    terms, where = [], []
     for source, index, values in variables:
-        knots = _knots(values)
+        knots = _knots(values.ravel())
         if knots is None:
             continue
-        knot_at = k + len(knot_channels)
-        knot_channels.extend(knots)
-        for target, eq, dim in equations:
+        for target, row, _ in equations:
             block = f"{source}{index} on " + (
-                f"x{eq}'" if target == "dynamics" else f"y{eq}"
+                f"x{row}'" if target == "dynamics" else f"y{row}"
             )
             for b, knot in enumerate(knots):
-                hats.append(
-                    Candidate(
-                        f"[hat {b} of {block}]",
-                        _Hat(dim, eq, source, index, knot_at, b),
-                        target=target,
-                    )
-                )
+                w, dw = hat(values, knots, b)
+                terms.append(_HatTerm(target, row, source, index, w, dw))
                 where.append(
                     {
                         "block": block,
@@ -185,34 +204,40 @@ def _augmented(model, data, xhat, acting):
                         "knots": list(knots),
                     }
                 )
-    if not hats:
-        return None
-    dynamics = model.dynamics
-    if isinstance(dynamics, Integrator):
-        dynamics = dataclasses.replace(
-            dynamics, vector_field=_FirstInputs(dynamics.vector_field, k)
-        )
-    else:
-        dynamics = _FirstInputs(dynamics, k)
-    own = tuple(
-        dataclasses.replace(c, feature=_FirstInputs(c.feature, k))
-        for c in model.candidates
+    return terms, where
+
+
+def _hat_evaluation(model, data, z, xhat, terms) -> Evaluation:
+    """Scores `(B, H)` of the hat terms at coefficient 0 and their observed
+    information (central differences of the exact scores, the MAP held at
+    `xhat`, as `evaluate` does for candidates), from the nominal model's
+    one score program."""
+    zj, xj = jnp.asarray(z), jnp.asarray(xhat)
+    zero = Offsets.zeros(data, xhat.shape[-1])
+
+    def hat_scores(offsets):
+        vals, _, g = batch_scores(model, zj, data, xj, offsets)
+        return np.asarray(vals), np.stack([t.score(g) for t in terms], axis=1)
+
+    vals, scores = hat_scores(zero)
+    H = len(terms)
+    hessian = np.zeros((H, H))
+    for i, t in enumerate(terms):
+        # A perturbation of 1e-4 state units per step (as `_step_sizes`).
+        scale = float(np.sqrt(np.mean(t.value**2)))
+        h = 1e-4 / (scale if scale > 0 else 1.0)
+        _, gp = hat_scores(t.offsets(zero, h))
+        _, gm = hat_scores(t.offsets(zero, -h))
+        hessian[:, i] = (gp.sum(0) - gm.sum(0)) / (2 * h)
+    hessian = 0.5 * (hessian + hessian.T)
+    return Evaluation(
+        z=np.zeros(H),
+        log_marginal=float(np.sum(vals)),
+        per_sequence=vals,
+        scores=scores,
+        hessian=hessian,
+        xhat=np.asarray(xhat).copy(),
     )
-    augmented = dataclasses.replace(
-        model,
-        dynamics=dynamics,
-        candidates=own + tuple(hats),
-        coefficients=np.concatenate([model.coefficients, np.zeros(len(hats))]),
-    )
-    B, T = inputs.shape[:2]
-    knot_inputs = np.broadcast_to(np.asarray(knot_channels), (B, T, len(knot_channels)))
-    augmented_data = Sequences(
-        data.measurements,
-        data.x0_mean,
-        np.concatenate([inputs, knot_inputs], axis=-1),
-        data.initial_states,
-    )
-    return augmented, augmented_data, where
 
 
 def adequacy_test(
@@ -243,18 +268,13 @@ def adequacy_test(
     largest single score sits.
     """
     xhat = np.asarray(xhat)
-    built = _augmented(model, data, xhat, acting)
-    if built is None:
+    terms, where = _hat_terms(model, data, xhat, acting)
+    if not terms:
         return {"tested": False, "significant": False, "p_value": float("nan")}
-    augmented, augmented_data, where = built
-    K, H = len(model.candidates), len(where)
-    za = np.concatenate([z[:K], np.zeros(H), z[K:]])
-    test = K + np.arange(H)
-    nuis = np.asarray(nuisance, int)
-    nuis = np.where(nuis >= K, nuis + H, nuis)
+    H = len(terms)
+    test = np.arange(H)
     try:
-        scales = feature_scales(augmented, augmented_data, xhat)
-        ev = evaluate(augmented, augmented_data, za, xhat, scales, test, at_map=True)
+        ev = _hat_evaluation(model, data, z, xhat, terms)
     except (*EVALUATION_ERRORS, ValueError) as e:
         return {
             "tested": False,
@@ -272,7 +292,7 @@ def adequacy_test(
     blocks = []
     for block in names:
         idx = np.asarray([i for i, w in enumerate(where) if w["block"] == block])
-        result = score_test(ev, test[idx], nuis, "hessian")
+        result = score_test(ev, test[idx], np.zeros(0, int), "hessian")
         zj = result.get("largest_z", {"index": 0, "z": float("nan")})
         at = where[int(idx[zj["index"]])]
         blocks.append(

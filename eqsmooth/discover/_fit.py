@@ -97,7 +97,7 @@ def evaluate(
     """
     zj = jnp.asarray(z)
     xh = jnp.asarray(init) if at_map else map_states(model, zj, data, jnp.asarray(init))
-    vals, scores = batch_scores(model, zj, data, xh)
+    vals, scores, _ = batch_scores(model, zj, data, xh)
     P = z.shape[0]
     H = np.zeros((P, P))
     if hessian_of is not None and len(hessian_of):
@@ -106,8 +106,8 @@ def evaluate(
         for i in hessian_of:
             e = np.zeros(P)
             e[i] = h[i]
-            _, gp = batch_scores(model, jnp.asarray(z + e), data, xh)
-            _, gm = batch_scores(model, jnp.asarray(z - e), data, xh)
+            _, gp, _ = batch_scores(model, jnp.asarray(z + e), data, xh)
+            _, gm, _ = batch_scores(model, jnp.asarray(z - e), data, xh)
             cols[i] = (np.sum(np.asarray(gp), 0) - np.sum(np.asarray(gm), 0)) / (
                 2 * h[i]
             )

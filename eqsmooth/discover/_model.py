@@ -353,32 +353,7 @@ class ChainModel(eqx.Module):
         x0_mean: Float[Array, " n"],
     ) -> FactorGraph:
         """The factor graph of ONE sequence (prior, transitions, measurements)."""
-        T = measurements.shape[0]
-        t = np.arange(T)
-        return FactorGraph(
-            [
-                FunctionFactor(
-                    _prior_residual,
-                    (Var("x", [0]),),
-                    _diagonal_noise(self.prior_sigma),
-                    data=x0_mean[None],
-                ),
-                FunctionFactor(
-                    _transition_residual,
-                    (Var("x", t[:-1]), Var("x", t[1:])),
-                    _diagonal_noise(self.process_sigma),
-                    data=inputs[:-1],
-                    params=self,
-                ),
-                FunctionFactor(
-                    _measurement_residual,
-                    (Var("x", t),),
-                    self.measurement_noise(),
-                    data=(measurements, inputs),
-                    params=self,
-                ),
-            ]
-        )
+        return _graph(self, measurements, inputs, x0_mean)
 
 
 def _diagonal_noise(sigma: Float[Array, " d"]) -> DiagonalNoise:
@@ -396,6 +371,91 @@ def _diagonal_noise(sigma: Float[Array, " d"]) -> DiagonalNoise:
     return eqx.tree_at(lambda n: n.sqrt_precision, template, 1.0 / sigma)
 
 
+class Offsets(eqx.Module):
+    """Additive terms on the equations of a batch of sequences, linear in the
+    state about reference states `x_ref` (the MAP):
+
+        x_{t+1} = f(x_t, u_t) + … + d[t] + D[t] (x_t − x_ref[t])
+        y_t     = h(x_t)      + … + e[t] + E[t] (x_t − x_ref[t])
+
+    (`d`, `D`, `e`, `E` = `dynamics`, `dynamics_jacobian`, `measurement`,
+    `measurement_jacobian`; `…` the model's candidate terms).
+
+    A term `c φ(x, u)` of a small coefficient enters the Laplace evidence at
+    `x_ref` only through its value and its Jacobian there (and its second
+    derivative, which a piecewise-linear `φ` does not have): the gradient of
+    the evidence with respect to these offsets, contracted with `φ` and `∂φ/∂x`
+    at the reference states, is the score of `c`. One compiled program then
+    scores any number of such terms (the adequacy test's hats) on the
+    nominal model, instead of a program per augmented model.
+    """
+
+    dynamics: Float[Array, "B T1 n"]
+    dynamics_jacobian: Float[Array, "B T1 n n"]
+    measurement: Float[Array, "B T m"]
+    measurement_jacobian: Float[Array, "B T m n"]
+
+    @staticmethod
+    def zeros(data: "Sequences", n: int) -> "Offsets":
+        B, T, m = data.measurements.shape
+        dtype = data.measurements.dtype
+        return Offsets(
+            jnp.zeros((B, T - 1, n), dtype),
+            jnp.zeros((B, T - 1, n, n), dtype),
+            jnp.zeros((B, T, m), dtype),
+            jnp.zeros((B, T, m, n), dtype),
+        )
+
+
+def _graph(model, measurements, inputs, x0_mean, offsets=None, x_ref=None):
+    """The factor graph of one sequence; with `offsets` (of this sequence)
+    and `x_ref`, their linear terms on the transitions and measurements."""
+    T = measurements.shape[0]
+    t = np.arange(T)
+    if offsets is None:
+        transition = (_transition_residual, inputs[:-1])
+        measurement = (_measurement_residual, (measurements, inputs))
+    else:
+        transition = (
+            _offset_transition_residual,
+            (inputs[:-1], offsets.dynamics, offsets.dynamics_jacobian, x_ref[:-1]),
+        )
+        measurement = (
+            _offset_measurement_residual,
+            (
+                measurements,
+                inputs,
+                offsets.measurement,
+                offsets.measurement_jacobian,
+                x_ref,
+            ),
+        )
+    return FactorGraph(
+        [
+            FunctionFactor(
+                _prior_residual,
+                (Var("x", [0]),),
+                _diagonal_noise(model.prior_sigma),
+                data=x0_mean[None],
+            ),
+            FunctionFactor(
+                transition[0],
+                (Var("x", t[:-1]), Var("x", t[1:])),
+                _diagonal_noise(model.process_sigma),
+                data=transition[1],
+                params=model,
+            ),
+            FunctionFactor(
+                measurement[0],
+                (Var("x", t),),
+                model.measurement_noise(),
+                data=measurement[1],
+                params=model,
+            ),
+        ]
+    )
+
+
 def _prior_residual(x, data, params):
     return x - data
 
@@ -407,6 +467,16 @@ def _transition_residual(a, b, u, model: ChainModel):
 def _measurement_residual(x, data, model: ChainModel):
     y, u = data
     return y - model.observe(x, u)
+
+
+def _offset_transition_residual(a, b, data, model: ChainModel):
+    u, d, jac, a_ref = data
+    return b - (model.transition(a, u) + d + jac @ (a - a_ref))
+
+
+def _offset_measurement_residual(x, data, model: ChainModel):
+    y, u, d, jac, x_ref = data
+    return y - (model.observe(x, u) + d + jac @ (x - x_ref))
 
 
 # ---------------------------------------------------------------------------
@@ -491,15 +561,40 @@ def batch_log_marginal(model, z, data, xhat):
     return sequence_log_marginals(model, z, data, xhat)
 
 
-def _one_z(zz, model, y, u, x0, xh):
-    return _laplace_one(apply_z(model, zz), y, u, x0, xh)
+def _one_z(zz, offsets, model, y, u, x0, xh):
+    graph = _graph(apply_z(model, zz), y, u, x0, offsets, xh)
+    return laplace_at_map(graph, {"x": xh}, _SOLVER.linear_solver)
 
 
 @_compiled
-def batch_scores(model, z, data, xhat):
-    """Per-sequence values `(B,)` and scores `(B, P)` (reverse mode, vmapped)."""
-    fn = jax.vmap(jax.value_and_grad(_one_z), in_axes=(None, None, 0, 0, 0, 0))
-    return fn(z, model, data.measurements, data.inputs, data.x0_mean, xhat)
+def _batch_scores(model, z, data, xhat, offsets):
+    fn = jax.vmap(
+        jax.value_and_grad(_one_z, argnums=(0, 1)),
+        in_axes=(None, 0, None, 0, 0, 0, 0),
+    )
+    vals, (gz, goff) = fn(
+        z, offsets, model, data.measurements, data.inputs, data.x0_mean, xhat
+    )
+    return vals, gz, goff
+
+
+def batch_scores(
+    model: ChainModel,
+    z: Float[Array, " P"],
+    data: Sequences,
+    xhat: Float[Array, "B T n"],
+    offsets: Offsets | None = None,
+) -> tuple[Float[Array, " B"], Float[Array, "B P"], Offsets]:
+    """Per-sequence Laplace evidences `(B,)`, their scores `(B, P)` in `z`
+    (reverse mode, vmapped) and their gradients with respect to `offsets`
+    (zero offsets when `None`) at the MAP `xhat`.
+
+    One compiled program per model structure serves both uses: scores of
+    the candidates, and (through the offsets) of terms the model does not
+    hold (see `Offsets`)."""
+    if offsets is None:
+        offsets = Offsets.zeros(data, xhat.shape[-1])
+    return _batch_scores(model, z, data, xhat, offsets)
 
 
 # ---------------------------------------------------------------------------

@@ -345,9 +345,9 @@ def name(
     - `data`: the same sequences.
     - `max_terms`: at most this many named terms.
     - `equivalence_corr`: information-correlation threshold for equivalence.
-    - `adequacy`: run the adequacy test of the named model (one extra
-        compiled program per model structure, about 0.5 s per call on the
-        benchmark's oscillator once compiled).
+    - `adequacy`: run the adequacy test of the named model. Its hats are
+        scored through the model's own score program, as additive terms
+        linear in the state about the MAP (no extra compilation).
 
     **Returns:** a [`eqsmooth.discover.StepReport`][] with `verdict` (a
     sentence), `named` (list of names),
