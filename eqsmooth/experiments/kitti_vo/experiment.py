@@ -134,7 +134,10 @@ def train_sequences(cfg: Config, spec: D.FoldSpec) -> tuple[int, ...]:
     return tuple(sorted(shortest[: cfg.max_train_sequences]))
 
 
+@functools.cache
 def _git_hash() -> str:
+    """The commit this process started from (read once: a commit made while
+    a long run goes on does not describe the code it runs)."""
     try:
         return subprocess.run(
             ["git", "rev-parse", "HEAD"],
