@@ -218,24 +218,21 @@ def _paired(results: list[dict], a: str, b: str, key: str = "trans_m_per_m"):
     """`a − b` per fold over the folds with both rows: (mean, sem, number of
     folds where a < b, n), or None."""
 
-    def value(rows: dict, name: str) -> float:
+    def value(rows: dict, name: str) -> float | None:
         # A derived row whose source model was trained again (its source row
         # came from an earlier run whose checkpoints are gone): the source
         # row shifted by what the derived scoring changed on the retrained
-        # model (see experiment._score_derived).
-        row = rows[name]
+        # model (see experiment._score_derived). None where a row lacks the
+        # metric (the fold then does not count).
+        row = rows.get(name, {})
         source = row.get("derived_from")
         if "source_now" in row and source in rows:
-            return rows[source][key] + row[key] - row["source_now"][key]
-        return row[key]
+            parts = (rows[source].get(key), row.get(key), row["source_now"].get(key))
+            return None if None in parts else parts[0] + parts[1] - parts[2]
+        return row.get(key)
 
-    d = np.array(
-        [
-            value(r["rows"], a) - value(r["rows"], b)
-            for r in results
-            if a in r["rows"] and b in r["rows"]
-        ]
-    )
+    pairs = [(value(r["rows"], a), value(r["rows"], b)) for r in results]
+    d = np.array([x - y for x, y in pairs if x is not None and y is not None])
     return _paired_summary(d)
 
 
@@ -292,15 +289,23 @@ def derived_lines(results: list[dict]) -> list[str]:
         ("lstm_bi", "lstm", ("lstm_bi", "lstm")),
         ("smoother_hetero_e2e", "lstm_bi", ("smoother_hetero_e2e", "lstm_bi")),
     ]
-    rows = []
+    rows, whole = [], []
     for a, b, paper in pairs:
         ours = _paired(results, a, b)
         if ours is None:
             continue
         theirs = _paper_paired(*paper) if paper else None
-        rows.append(f"| {a} − {b} | {cell(ours)} | {cell(theirs)} |")
+        whole.append(_paired(results, a, b, "trans_m_per_m_whole"))
+        rows.append((a, b, ours, theirs))
     if not rows:
         return []
+    with_whole = any(w is not None for w in whole)
+    rows = [
+        f"| {a} − {b} | {cell(ours)} | "
+        + (f"{cell(w)} | " if with_whole else "")
+        + f"{cell(theirs)} |"
+        for (a, b, ours, theirs), w in zip(rows, whole)
+    ]
     retrained = {}
     for r in results:
         for row in r["rows"].values():
@@ -325,8 +330,19 @@ def derived_lines(results: list[dict]) -> list[str]:
             "paired differences shift each of them by its retrained source's "
             "own score in the same run (`source_now`): " + "; ".join(notes) + ".",
         ]
+    head = (
+        [
+            "| difference | final-step m/m | whole-window m/m | paper's code "
+            "release (final-step) |",
+            "|---|---|---|---|",
+        ]
+        if with_whole
+        else ["| difference | these folds | paper's code release |", "|---|---|---|"]
+    )
     return [
-        "Paired per-fold differences of final-step m/m (mean ± std/√n over the "
+        "Paired per-fold differences of final-step m/m"
+        + (" and of whole-window m/m" if with_whole else "")
+        + " (mean ± std/√n over the "
         "folds with both rows). `*_one_frame_late`: the trained EKF scored as "
         "the paper's code release scores its EKF (predict before correct over "
         "all T observations: the belief compared with the last pose is the one "
@@ -335,8 +351,7 @@ def derived_lines(results: list[dict]) -> list[str]:
         "the surrogate loss on the velocities instead of the positions. The "
         "code release's column pairs its own rows (its EKF as it scored it).",
         "",
-        "| difference | these folds | paper's code release |",
-        "|---|---|---|",
+        *head,
         *rows,
         *notes,
     ]
