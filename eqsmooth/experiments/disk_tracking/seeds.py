@@ -81,7 +81,9 @@ def _spread(values: dict[str, dict[int, float]], folds: list[int]) -> dict:
         values=table.tolist(),
         mean_per_run=table.mean(axis=1).tolist(),
         within_fold_seed_std=within,
-        between_fold_std_seed0=float(table[0].std(ddof=1)),
+        between_fold_std_seed0=(
+            float(table[0].std(ddof=1)) if len(folds) > 1 else None
+        ),
     )
 
 
@@ -98,8 +100,11 @@ def summarise(base: Path, root: Path) -> tuple[dict, str]:
     folds = sorted(set.intersection(*(set(r) for r in runs.values())))
     if not folds:
         raise FileNotFoundError(f"no fold is finished in every run under {root}")
+    # The sensor is the same in every run (not a head): left out.
     methods = [
-        m for m in report.LABELS if all(m in runs[n][k] for n in runs for k in folds)
+        m
+        for m in report.LABELS
+        if m != "virtual_sensor" and all(m in runs[n][k] for n in runs for k in folds)
     ]
     rows = {
         m: _spread({n: {k: runs[n][k][m] for k in folds} for n in runs}, folds)
