@@ -374,10 +374,10 @@ class LstmOdometry(eqx.Module):
     hidden: int = eqx.field(static=True)
 
     def __init__(self, key: PRNGKeyArray, hidden: int = 64, bidirectional=False):
-        # Three keys for the unidirectional LSTM, as before the backward cell
-        # existed (its committed rows were trained with them); a fourth for
-        # the backward cell.
-        k = jax.random.split(key, 4 if bidirectional else 3)
+        # (With JAX's partitionable threefry, split(key, 4)[:3] equals
+        # split(key, 3): the backward cell's key leaves the others as they
+        # were before it existed.)
+        k = jax.random.split(key, 4)
         self.inp = eqx.nn.Linear(FEATURES + 4, hidden, key=k[0])
         self.cell = eqx.nn.LSTMCell(hidden, hidden, key=k[1])
         self.backward = (
