@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Small-graph batches on a lent GPU, GTSAM on the same host's CPU, in one
+# command (session 32). Run from the repository root on the device machine,
+# with the GTSAM wheel in .whl/ (see docs/performance.md):
+#     bash benchmarks/run_gpu.sh
+# Writes its JSON to $OUT (the device tool's output folder) or benchmarks/results.
+set -u
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+    --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
+python3 -c "import jax, equinox, lineax, optimistix, gtsam, eqsmooth; print(jax.devices(), jax.__version__, equinox.__version__, lineax.__version__, optimistix.__version__, gtsam.__file__)" || exit 1
+out=${OUT:-$PWD/benchmarks/results}
+cd benchmarks
+if [ "${1:-}" != "second" ]; then
+  timeout 120 python3 small_graph.py --batch 1000 --floor --repeats 5 --json $out/small_graph_batch_gpu.json
+  timeout 60 python3 small_graph.py --repeats 100 --json $out/small_graph_gpu.json
+  JAX_PLATFORMS=cpu timeout 90 python3 small_graph.py --batch 1000 --floor --repeats 5 --json $out/small_graph_batch_devcpu.json
+fi
+# The first call ran the three above; its 10,000-graph and mixed runs hit
+# their time limits in `stack_trees` (now stacked on the host): `second`.
+timeout 190 python3 small_graph.py --batch 10000 --floor --repeats 5 --json $out/small_graph_batch_10000_gpu.json
+timeout 150 python3 small_graph.py --batch 1000 --mixed --repeats 5 --json $out/small_graph_batch_mixed_gpu.json
