@@ -30,6 +30,8 @@ class Evaluation(eqx.Module):
     # iteration limit. Its numbers are then the best point reached, not an
     # optimum.
     converged: bool = True
+    # The indices of `z` whose block of `hessian` was computed (None: none).
+    hessian_of: np.ndarray | None = None
 
 
 def feature_scales(model: ChainModel, data: Sequences, xhat: np.ndarray) -> np.ndarray:
@@ -124,7 +126,49 @@ def evaluate(
         scores=np.asarray(scores),
         hessian=H,
         xhat=np.asarray(xh).copy(),
+        hessian_of=(
+            None
+            if hessian_of is None or not len(hessian_of)
+            else np.asarray(hessian_of, int)
+        ),
     )
+
+
+def covers(ev: Evaluation, indices) -> bool:
+    """Whether `ev`'s Hessian block holds every index of `indices`."""
+    return ev.hessian_of is not None and set(np.asarray(indices, int).tolist()) <= set(
+        ev.hessian_of.tolist()
+    )
+
+
+def restricted(ev: Evaluation, free) -> Evaluation:
+    """`ev` with its Hessian kept on the block `free` only (zero elsewhere),
+    as `evaluate(..., hessian_of=free)` gives it."""
+    free = np.asarray(free, int)
+    if not covers(ev, free):
+        raise ValueError("restricted: the evaluation's Hessian does not cover `free`")
+    H = np.zeros_like(ev.hessian)
+    H[np.ix_(free, free)] = ev.hessian[np.ix_(free, free)]
+    return eqx.tree_at(
+        lambda e: (e.hessian, e.hessian_of), ev, (H, free), is_leaf=lambda x: x is None
+    )
+
+
+def with_hessian(model, data, ev: Evaluation, scales, free) -> Evaluation:
+    """`ev` (at its MAP) with the Hessian block over `free` computed, unless
+    it already has it; keeps `converged`."""
+    if covers(ev, free):
+        return restricted(ev, free)
+    new = evaluate(model, data, ev.z, ev.xhat, scales, free, at_map=True)
+    return eqx.tree_at(lambda e: e.converged, new, ev.converged)
+
+
+def _trial(model, data, z, init, scales) -> Evaluation:
+    # A trial point of the Newton iterations: its MAP (solved from `init`),
+    # evidence and scores, from the one score program (an evidence-only
+    # program would be a second compilation per model structure, and an
+    # accepted trial needs the scores anyway).
+    return evaluate(model, data, z, init, scales)
 
 
 def log_marginal_at(model, data, z, init) -> tuple[float, np.ndarray]:
@@ -190,6 +234,8 @@ def fit(
     *,
     max_iter: int = 25,
     tol: float = 1e-7,
+    start: Evaluation | None = None,
+    final_hessian: bool = True,
 ) -> Evaluation:
     """Maximise the Laplace evidence over the parameters `free` (indices of z).
 
@@ -204,11 +250,22 @@ def fit(
     log noise multipliers (the returned `log_marginal` is still the data's
     evidence). Returns the evaluation at the optimum, with the Hessian over
     `free` (for confidence intervals).
+
+    `start`: an evaluation at `z0` (its MAP solved) whose Hessian covers
+    `free`, used instead of a new one: fits of several candidates from one
+    point share its Hessian columns. `final_hessian=False` skips the
+    Hessian at the optimum (the returned evaluation then may lack it; see
+    `with_hessian`), for fits of which only the evidence is kept.
     """
     free = np.asarray(free, dtype=int)
     log_prior, prior_grad, prior_negH = _scale_prior(model, free)
     objective = (log_prior, prior_grad, prior_negH)
-    ev = evaluate(model, data, np.asarray(z0, dtype=float).copy(), init, scales, free)
+    if start is None:
+        ev = evaluate(
+            model, data, np.asarray(z0, dtype=float).copy(), init, scales, free
+        )
+    else:
+        ev = restricted(start, free)
     ev, converged, fresh = _newton(
         model, data, free, ev, scales, objective, max_iter, tol
     )
@@ -227,7 +284,7 @@ def fit(
             ev, converged, fresh = _newton(
                 model, data, free, restart, scales, objective, max_iter, tol
             )
-    if not fresh:
+    if not fresh and final_hessian:
         try:
             ev = evaluate(model, data, ev.z, ev.xhat, scales, free, at_map=True)
         except EVALUATION_ERRORS:
@@ -269,8 +326,8 @@ def _newton(model, data, free, ev, scales, objective_terms, max_iter, tol):
             z_new = z.copy()
             z_new[free] += step
             try:
-                ll_new, xh_new = log_marginal_at(model, data, z_new, ev.xhat)
-                ll_new += log_prior(z_new)
+                trial = _trial(model, data, z_new, ev.xhat, scales)
+                ll_new = trial.log_marginal + log_prior(z_new)
             except EVALUATION_ERRORS:
                 ll_new = -np.inf
             if np.isfinite(ll_new) and ll_new >= objective - 1e-9:
@@ -286,11 +343,7 @@ def _newton(model, data, free, ev, scales, objective_terms, max_iter, tol):
         lam = max(lam / 10.0, 1e-9)
         radius = min(2.0 * radius, _TRUST_RADIUS[1])
         gain = ll_new - objective
-        try:
-            # The trial's MAP is the one just solved (same start, same z).
-            new_ev = evaluate(model, data, z_new, xh_new, scales, at_map=True)
-        except EVALUATION_ERRORS:
-            break
+        new_ev = trial
         g_new = np.sum(new_ev.scores, axis=0)[free] + prior_grad(z_new)
         negH = _bfgs(negH, step, g - g_new)
         z, ev, fresh = z_new, new_ev, False

@@ -3,13 +3,18 @@ choice is under resampling."""
 
 import math
 
+import equinox as eqx
 import numpy as np
 
 from ._adequacy import adequacy_test, describe_region
 from ._find import _diagnostics_significant, _safe_innovation_tests, find
 from ._fit import (
+    EVALUATION_ERRORS,
+    covers,
+    evaluate,
     fit,
     fitted_model,
+    with_hessian,
 )
 from ._model import (
     Sequences,
@@ -38,11 +43,36 @@ def _forward_step(model, data, st, current, active, remaining, out):
     runner-ups within ln 20)` of the best one if it passes the Bonferroni
     gate, else None."""
     names = [c.name for c in model.candidates]
+    scales = st["scales"]
+    # Every trial starts at `current`: one Hessian over all their parameters
+    # serves them all (a column per parameter, not per parameter and trial),
+    # and only the chosen fit gets a Hessian at its optimum (below).
+    union = np.unique(np.concatenate([active, remaining, st["nuisance"]]).astype(int))
+    start = None
+    if covers(current, union):
+        start = current
+    else:
+        try:
+            start = evaluate(model, data, current.z, current.xhat, scales, union)
+        except EVALUATION_ERRORS:
+            start = None  # each fit then tries its own start (and flags it)
     trials = []
     for k in remaining:
         free = np.concatenate([np.asarray(active + [k], int), st["nuisance"]])
         trials.append(
-            (k, fit(model, data, free, current.z, current.xhat, st["scales"]))
+            (
+                k,
+                fit(
+                    model,
+                    data,
+                    free,
+                    current.z,
+                    current.xhat,
+                    scales,
+                    start=start,
+                    final_hessian=False,
+                ),
+            )
         )
     unconverged = [names[k] for k, e in trials if not e.converged]
     if unconverged:
@@ -71,6 +101,15 @@ def _forward_step(model, data, st, current, active, remaining, out):
     out["steps"].append(step)
     if p >= gate:
         return None
+    free = np.concatenate([np.asarray(active + [best_k], int), st["nuisance"]])
+    try:
+        best = with_hessian(model, data, best, scales, free)
+    except EVALUATION_ERRORS:
+        best = eqx.tree_at(lambda e: e.converged, best, False)
+        out["flags"].append(
+            f"step {len(out['steps'])}: no information matrix at the fit of "
+            f"{names[best_k]}"
+        )
     family = _family(model, best_k)
     if family is not None:
         step["profile"] = _profile(model, trials, family, current.log_marginal)
