@@ -9,9 +9,9 @@ import numpy as np
 from ._adequacy import adequacy_test, describe_region
 from ._find import _diagnostics_significant, _safe_innovation_tests, find
 from ._fit import (
-    EVALUATION_ERRORS,
     covers,
     evaluate,
+    EVALUATION_ERRORS,
     fit,
     fitted_model,
     with_hessian,
