@@ -889,3 +889,37 @@ def test_indefinite_information_claims_no_data_size():
     assert out["equivalence_sets"] == [["a", "b"]]
     assert not out["steps"][0]["rivals"][0]["information_indefinite"]
     assert "no amount of data" in _verdict(out, leftover=False)
+
+
+def test_tail_probabilities_match_scipy():
+    """The discover tests' chi-square and normal tails (plain Python, no
+    compiled special functions) against SciPy, far into the tails."""
+    stats = pytest.importorskip("scipy.stats")
+    from eqsmooth.discover._stats import (
+        chi2_sf,
+        chi2_two_sided,
+        normal_quantile,
+        normal_two_sided,
+    )
+
+    for df in (1, 2, 3, 7, 24, 960):
+        for x in np.concatenate([np.linspace(0.0, 4.0 * df + 60.0, 41), [1e-9]]):
+            want = stats.chi2.sf(x, df)
+            np.testing.assert_allclose(chi2_sf(x, df), want, rtol=1e-10, atol=1e-300)
+        p = chi2_two_sided(0.5 * df, df)
+        assert p == pytest.approx(
+            2 * min(stats.chi2.sf(0.5 * df, df), stats.chi2.cdf(0.5 * df, df)),
+            rel=1e-10,
+        )
+    for z in (0.0, 1.3, -2.5, 9.0):
+        assert normal_two_sided(z) == pytest.approx(
+            2 * stats.norm.sf(abs(z)), rel=1e-12
+        )
+    for p in (1e-12, 0.025, 0.5, 0.975):
+        assert normal_quantile(p) == pytest.approx(
+            stats.norm.ppf(p), rel=1e-12, abs=1e-14
+        )
+    assert normal_quantile(0.0) == -np.inf and normal_quantile(1.0) == np.inf
+    assert (
+        chi2_sf(np.inf, 3) == 0.0 and chi2_sf(-1.0, 3) == 1.0 and chi2_sf(5.0, 0) == 1.0
+    )

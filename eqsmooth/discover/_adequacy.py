@@ -24,7 +24,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ._fit import _eval_feature, Evaluation, EVALUATION_ERRORS
+from ._fit import Evaluation, EVALUATION_ERRORS, feature_values
 from ._model import batch_scores, ChainModel, Offsets, Sequences
 from ._score import score_test
 from ._stats import normal_quantile
@@ -81,9 +81,9 @@ def _named_equations(model, data, xhat, acting) -> list[tuple[str, int, int]]:
     x = np.asarray(xhat).reshape(-1, n)
     u = np.asarray(data.inputs).reshape(-1, data.inputs.shape[-1])
     rows = set()
+    values = feature_values(model, x, u)
     for j in acting:
-        c = model.candidates[j]
-        f = np.asarray(_eval_feature(c.feature, x, u))
+        c, f = model.candidates[j], values[j]
         nonzero = np.flatnonzero(np.any(f != 0, axis=0))
         target = "measurement" if c.target == "measurement" else "dynamics"
         rows.update((target, int(r)) for r in nonzero)
