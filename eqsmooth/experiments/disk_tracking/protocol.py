@@ -23,6 +23,7 @@ import numpy as np
 
 import eqsmooth as eqs
 
+from .._provenance import git_hash
 from . import data as D, report, train as T
 
 
@@ -168,7 +169,7 @@ def run_fold(
     """
     fold_dir = Path(work) / f"fold_{test_fold}"
     fold_dir.mkdir(parents=True, exist_ok=True)
-    code_version = report.git_hash()  # the code this process runs
+    code_version = git_hash()  # the code this process runs
     timer = StageTimer(fold_dir / "timings.json")
     with timer("data"):
         train, val, test = T.make_splits(cfg, test_fold, cache_dir)

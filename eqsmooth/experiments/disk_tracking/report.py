@@ -3,7 +3,6 @@
 import json
 import math
 import platform
-import subprocess
 from pathlib import Path
 
 import jax
@@ -71,25 +70,6 @@ LABELS = {
     "lstm_bi": "LSTM, bidirectional",
     "virtual_sensor": "virtual sensor alone",
 }
-
-
-def git_hash() -> str:
-    """The commit this code runs from, with `+dirty` when the package or the
-    example scripts have uncommitted changes (results written by a run do
-    not count); "unknown" outside a git checkout."""
-    here = Path(__file__).parent
-
-    def git(*args):
-        return subprocess.run(
-            ["git", *args], capture_output=True, text=True, cwd=here, check=True
-        ).stdout.strip()
-
-    try:
-        root = git("rev-parse", "--show-toplevel")
-        dirty = git("-C", root, "status", "--porcelain", "--", "eqsmooth", "examples")
-        return git("rev-parse", "HEAD") + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def machine() -> dict:

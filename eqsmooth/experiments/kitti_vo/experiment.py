@@ -16,7 +16,6 @@ import dataclasses
 import functools
 import json
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from tqdm.auto import tqdm
 
 import eqsmooth as eqs
 
+from .._provenance import git_hash
 from . import data as D, models as M
 
 
@@ -132,22 +132,6 @@ def train_sequences(cfg: Config, spec: D.FoldSpec) -> tuple[int, ...]:
         return spec.train
     shortest = sorted(spec.train, key=lambda s: D.FRAME_COUNTS[s])
     return tuple(sorted(shortest[: cfg.max_train_sequences]))
-
-
-@functools.cache
-def _git_hash() -> str:
-    """The commit this process started from (read once: a commit made while
-    a long run goes on does not describe the code it runs)."""
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
-    except Exception:
-        return "unknown"
 
 
 def _machine() -> dict:
@@ -460,7 +444,7 @@ def _fold_record(cfg: Config, fold: int, result_path: Path) -> dict:
         valid_sequence=spec.valid,
         train_sequences=list(train_sequences(cfg, spec)),
         config=dataclasses.asdict(cfg),
-        git=_git_hash(),
+        git=git_hash(),
         machine=_machine(),
     )
     result.setdefault("rows", {})
