@@ -21,6 +21,7 @@ augmented model's: `tests/test_discover_adequacy.py`).
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -146,32 +147,41 @@ class _HatTerm:
     slope: np.ndarray
 
     def offsets(self, zero: Offsets, c: float) -> Offsets:
-        """`zero` with this term at coefficient `c` added."""
+        """`zero` with this term at coefficient `c` added (built in NumPy:
+        eager `.at[]` updates each compiled a small program on first use)."""
         w, dw = c * self.value, c * self.slope
         if self.target == "dynamics":
-            d = zero.dynamics.at[:, :, self.row].add(w[:, :-1])
-            jac = zero.dynamics_jacobian
+            d = np.array(zero.dynamics)
+            d[:, :, self.row] += w[:, :-1]
+            changed = {"dynamics": d}
             if self.source == "x":
-                jac = jac.at[:, :, self.row, self.index].add(dw[:, :-1])
-            return dataclasses.replace(zero, dynamics=d, dynamics_jacobian=jac)
-        d = zero.measurement.at[:, :, self.row].add(w)
-        jac = zero.measurement_jacobian
-        if self.source == "x":
-            jac = jac.at[:, :, self.row, self.index].add(dw)
-        return dataclasses.replace(zero, measurement=d, measurement_jacobian=jac)
+                jac = np.array(zero.dynamics_jacobian)
+                jac[:, :, self.row, self.index] += dw[:, :-1]
+                changed["dynamics_jacobian"] = jac
+        else:
+            d = np.array(zero.measurement)
+            d[:, :, self.row] += w
+            changed = {"measurement": d}
+            if self.source == "x":
+                jac = np.array(zero.measurement_jacobian)
+                jac[:, :, self.row, self.index] += dw
+                changed["measurement_jacobian"] = jac
+        changed = {k: jnp.asarray(v) for k, v in changed.items()}
+        return dataclasses.replace(zero, **changed)
 
     def score(self, g: Offsets) -> np.ndarray:
         """Per-sequence score `(B,)` of this term's coefficient at 0, from the
-        gradients `g` of the evidences with respect to the offsets."""
+        gradients `g` (NumPy arrays) of the evidences with respect to the
+        offsets."""
         if self.target == "dynamics":
             d, jac, w, dw = g.dynamics, g.dynamics_jacobian, self.value, self.slope
             w, dw = w[:, :-1], dw[:, :-1]
         else:
             d, jac = g.measurement, g.measurement_jacobian
             w, dw = self.value, self.slope
-        out = np.sum(np.asarray(d)[:, :, self.row] * w, axis=1)
+        out = np.sum(d[:, :, self.row] * w, axis=1)
         if self.source == "x":
-            out = out + np.sum(np.asarray(jac)[:, :, self.row, self.index] * dw, axis=1)
+            out = out + np.sum(jac[:, :, self.row, self.index] * dw, axis=1)
         return out
 
 
@@ -217,6 +227,7 @@ def _hat_evaluation(model, data, z, xhat, terms) -> Evaluation:
 
     def hat_scores(offsets):
         vals, _, g = batch_scores(model, zj, data, xj, offsets)
+        g = jax.tree_util.tree_map(np.asarray, g)  # once, not once per hat
         return np.asarray(vals), np.stack([t.score(g) for t in terms], axis=1)
 
     vals, scores = hat_scores(zero)
