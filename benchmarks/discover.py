@@ -209,6 +209,9 @@ def run_workflow(data: dc.Sequences, model: dc.ChainModel = MODEL) -> dict:
         "flags": list(found["flags"]) + list(named["flags"]) + list(added["flags"]),
         "alarms": dict(named["alarms"]),
         "tentative": bool(named["tentative"]),
+        "shape_unchecked": bool(
+            named.get("shape_check") and not named["shape_check"]["checked"]
+        ),
         "partial": bool(named["alarms"].get("partial", False)),
         "detected": bool(found["detected"]),
         "p_value": float(found["score_test"]["p_value"]),

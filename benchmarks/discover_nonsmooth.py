@@ -293,6 +293,7 @@ def tally(out: dict, truth: str | None, c: Counter, names, alarms) -> str | None
     c["named"] += bool(out["named"])
     c["partial"] += out["partial"]
     c["tentative"] += out["tentative"]
+    c["shape_unchecked"] += out.get("shape_unchecked", False)
     confident = bool(out["named"]) and not (out["tentative"] or out["partial"])
     c["confident"] += confident
     c["alarm"] += any(out["alarms"].values())
@@ -314,6 +315,7 @@ def outcome_rates(c: Counter, n: int, names, alarms, truth: str | None) -> dict:
         "named_confidently": rate(c["confident"], n),
         "partial": rate(c["partial"], n),
         "tentative": rate(c["tentative"], n),
+        "shape_unchecked": rate(c["shape_unchecked"], n),
         "any_alarm": rate(c["alarm"], n),
         "alarms": {k: rate(alarms[k], n) for k in sorted(alarms)},
         "names": dict(names),
@@ -341,16 +343,18 @@ def report(records: list[dict], info: dict) -> str:
         f"- git: {info['git']}",
         f"- wall time {info['total_s'] / 60:.1f} min",
         "- `confident` = a name the verdict marks neither tentative nor partial; "
-        "for an out-of-library effect every such name is wrong.",
+        "for an out-of-library effect every such name is wrong. `shape unchecked` "
+        "= tentative because the named term is too weak for the adequacy test to "
+        "see a 30% departure from its shape (`name`'s shape check).",
         "",
         "## Out-of-library effects (the right answer: no confident name)",
         "",
         "| system | effect | parameter | SNR total / beyond the library | "
         "sequences | n | "
         "detected | anything named "
-        "| named confidently | partial | tentative | names given (alone or in sets) "
-        "| median s |",
-        "|" + "---|" * 13,
+        "| named confidently | partial | tentative | of which shape unchecked "
+        "| names given (alone or in sets) | median s |",
+        "|" + "---|" * 14,
     ]
     for r in records:
         if r["out_of_library"]:
@@ -368,6 +372,7 @@ def report(records: list[dict], info: dict) -> str:
                         "tentative",
                     )
                 )
+                + f" | {fmt_rate(r['shape_unchecked']) if 'shape_unchecked' in r else '–'}"
                 + f" | {r['names'] or '–'} | {r['median_s']:.2f} |"
             )
     lines += [
@@ -375,9 +380,9 @@ def report(records: list[dict], info: dict) -> str:
         "## In-library effects (the right answer: the truth alone, confidently)",
         "",
         "| system | effect | SNR | n | detected | truth alone | truth alone, "
-        "confident | truth in a set | truth + extra | wrong name | partial "
-        "(false) | median s |",
-        "|" + "---|" * 12,
+        "confident | shape unchecked | truth in a set | truth + extra | wrong name "
+        "| partial (false) | median s |",
+        "|" + "---|" * 13,
     ]
     for r in records:
         if r["truth"] is not None:
@@ -389,6 +394,7 @@ def report(records: list[dict], info: dict) -> str:
                         "detected",
                         "truth_alone",
                         "truth_alone_confident",
+                        "shape_unchecked",
                         "truth_in_set",
                         "truth_plus_extra",
                         "wrong_name",

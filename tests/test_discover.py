@@ -923,3 +923,83 @@ def test_tail_probabilities_match_scipy():
     assert (
         chi2_sf(np.inf, 3) == 0.0 and chi2_sf(-1.0, 3) == 1.0 and chi2_sf(5.0, 0) == 1.0
     )
+
+
+def test_noncentral_tail_and_detectable_noncentrality_match_scipy():
+    """The shape check's power calculation (plain Python) against SciPy."""
+    stats = pytest.importorskip("scipy.stats")
+    from eqsmooth.discover._stats import (
+        chi2_quantile,
+        detectable_noncentrality,
+        noncentral_chi2_sf,
+    )
+
+    for df in (1, 4, 5, 12):
+        for lam in (1e-3, 0.7, 22.6, 300.0):
+            for x in (0.5, float(df), 15.5, 80.0, 400.0):
+                np.testing.assert_allclose(
+                    noncentral_chi2_sf(x, df, lam),
+                    stats.ncx2.sf(x, df, lam),
+                    rtol=1e-9,
+                    atol=1e-15,
+                )
+        for p in (0.5, 0.95, 1 - 0.05 / 6):
+            assert chi2_quantile(p, df) == pytest.approx(stats.chi2.ppf(p, df), rel=1e-9)
+        for level, power in ((0.05, 0.8), (0.05 / 6, 0.9)):
+            lam = detectable_noncentrality(df, level, power)
+            crit = stats.chi2.ppf(1 - level, df)
+            assert stats.ncx2.sf(crit, df, lam) == pytest.approx(power, abs=1e-8)
+    assert noncentral_chi2_sf(3.0, 2, 0.0) == pytest.approx(stats.chi2.sf(3.0, 2))
+    with pytest.raises(ValueError, match="noncentrality"):
+        noncentral_chi2_sf(1.0, 2, -1.0)
+
+
+def test_shape_check_marks_a_term_too_weak_to_check():
+    """The shape check on a hand-made report: a term whose likelihood ratio
+    cannot reveal a 30% departure from its shape is named tentatively, with
+    the power of the adequacy test against such a departure and the data size
+    that would check it; a strong term passes; a failed adequacy test is left
+    to the "partial" verdict."""
+    from types import SimpleNamespace
+
+    from eqsmooth.discover._name import _shape_check, _verdict
+    from eqsmooth.discover._stats import (
+        chi2_quantile,
+        detectable_noncentrality,
+        noncentral_chi2_sf,
+    )
+
+    data = SimpleNamespace(num_sequences=24, length=40)
+    blocks = [{"df": 5}, {"df": 4}, {"df": 5}]
+
+    def report(lr, significant=False):
+        return {
+            "named": ["a"],
+            "steps": [{"best": "a", "likelihood_ratio": lr}],
+            "equivalence_sets": [],
+            "ambiguous": [],
+            "tentative": False,
+            "adequacy": {"tested": True, "significant": significant, "blocks": blocks},
+        }
+
+    needed = detectable_noncentrality(5, 0.05 / 3, 0.9) / 0.3**2
+    weak, strong = report(0.5 * needed), report(2.0 * needed)
+    sc = _shape_check(weak, 0.05, data, 0.3, 0.9)
+    assert sc["needed_likelihood_ratio"] == pytest.approx(needed)
+    (term,) = sc["terms"]
+    assert not sc["checked"] and not term["checked"]
+    assert term["sequences_needed"] == 48
+    crit = chi2_quantile(1 - 0.05 / 3, 5)
+    assert term["power"] == pytest.approx(
+        noncentral_chi2_sf(crit, 5, 0.09 * 0.5 * needed)
+    )
+    assert term["power"] < 0.9
+    weak["shape_check"], weak["tentative"] = sc, True
+    verdict = _verdict(weak, leftover=False)
+    assert verdict.startswith("tentative: a (a: too weak for its shape to be checked")
+    assert "about 48 sequences of length 40 would check it" in verdict
+    sc = _shape_check(strong, 0.05, data, 0.3, 0.9)
+    assert sc["checked"] and sc["terms"][0]["power"] > 0.9
+    strong["shape_check"] = sc
+    assert _verdict(strong, leftover=False) == "a"
+    assert _shape_check(report(0.1, significant=True), 0.05, data, 0.3, 0.9) is None

@@ -21,7 +21,10 @@ from ._model import (
 )
 from ._report import StepReport
 from ._stats import (
+    chi2_quantile,
     chi2_sf,
+    detectable_noncentrality,
+    noncentral_chi2_sf,
 )
 
 
@@ -269,6 +272,72 @@ def _profile_note(out: dict, nm: str) -> str:
     return ""
 
 
+def _shape_check(out: dict, alpha: float, data, tolerance: float, power: float):
+    """Whether the adequacy test could have seen the named terms' shapes be
+    wrong by `tolerance` of their size; records `out["shape_check"]`.
+
+    A departure carrying the fraction `tolerance` of a named term's size
+    carries about `tolerance²` of its evidence: noncentrality
+    `tolerance² · LR` in the adequacy test, whose blocks are `χ²` tests at
+    `alpha / blocks`. The term's shape is checked when that noncentrality
+    reaches the one the test detects with probability `power`; a weaker
+    term may be a smooth stand-in for an effect the library lacks (an input
+    saturation fitted as a gain leaves a 30% remainder) that no test at
+    this data size can see, so its name is tentative. The likelihood
+    ratio grows in proportion to the number of sequences, which gives the
+    data size that would check it.
+    """
+    ad = out.get("adequacy", {})
+    if not ad.get("tested") or ad.get("significant"):
+        return None
+    blocks = ad["blocks"]
+    df = max(b["df"] for b in blocks)
+    level = alpha / len(blocks)
+    needed = detectable_noncentrality(df, level, power) / tolerance**2
+    crit = chi2_quantile(1.0 - level, df)
+    terms = []
+    for step in out["steps"][: len(out["named"])]:
+        lr = float(step["likelihood_ratio"])
+        terms.append(
+            {
+                "name": step["best"],
+                "likelihood_ratio": lr,
+                "power": noncentral_chi2_sf(crit, df, tolerance**2 * max(lr, 0.0)),
+                "checked": bool(lr >= needed),
+                "sequences_needed": int(
+                    math.ceil(data.num_sequences * needed / max(lr, 1e-12))
+                ),
+            }
+        )
+    return {
+        "tolerance": tolerance,
+        "power": power,
+        "needed_likelihood_ratio": needed,
+        "sequence_length": int(data.length),
+        "terms": terms,
+        "checked": all(t["checked"] for t in terms),
+    }
+
+
+def _shape_note(out: dict) -> str:
+    """ " (too weak for its shape to be checked: ...)" when a named term's
+    shape was not checkable."""
+    sc = out.get("shape_check")
+    if not sc or sc["checked"]:
+        return ""
+    weak = [t for t in sc["terms"] if not t["checked"]]
+    pct = round(100 * sc["tolerance"])
+    names = ", ".join(t["name"] for t in weak)
+    power = min(t["power"] for t in weak)
+    need = max(t["sequences_needed"] for t in weak)
+    return (
+        f" ({names}: too weak for its shape to be checked; a departure of "
+        f"{pct}% of it would be seen with probability "
+        f"{math.floor(100 * power) / 100:.2f}; about "
+        f"{need} sequences of length {sc['sequence_length']} would check it)"
+    )
+
+
 def _verdict(out: dict, leftover: bool) -> str:
     """The sentence that sums up a `name` report."""
     parts = []
@@ -296,7 +365,7 @@ def _verdict(out: dict, leftover: bool) -> str:
             f"(largest near {w['variable']} = {w['near']:.3g})"
         ]
     elif out["tentative"]:
-        parts = ["tentative: " + "; ".join(parts)]
+        parts = ["tentative: " + "; ".join(parts) + _shape_note(out)]
     if leftover:
         parts.append("unnamed residual structure")
     elif not out["named"]:
@@ -340,6 +409,8 @@ def name(
     max_terms: int = 3,
     equivalence_corr: float = 0.95,
     adequacy: bool = True,
+    shape_tolerance: float = 0.3,
+    shape_power: float = 0.9,
 ) -> dict:
     """Name the missing effect(s) by forward selection on the Laplace evidence.
 
@@ -375,6 +446,22 @@ def name(
     `y{j}` (measurement channel `j`); variables `x{i}` and `u{k}` (input
     `k`).
 
+    **Shape check.** Passing the adequacy test says little when the test
+    could not have failed: a weak term's shape cannot be checked, and a
+    smooth candidate standing in for an effect the library lacks (an input
+    saturation fitted as an actuator gain leaves about a third of the
+    effect unexplained) passes it at realistic data sizes. So a named term
+    is confident only when the adequacy test would have detected a
+    departure of `shape_tolerance` (30%) of its size with probability
+    `shape_power` (0.9): taking such a departure to carry
+    `shape_tolerance²` of the term's evidence, its likelihood ratio must
+    reach `λ / shape_tolerance²`, with `λ` the noncentrality at which the
+    adequacy test's largest block (a `χ²` test at `alpha / blocks`) has that
+    power. A weaker term is named tentatively, with the probability that
+    such a departure would have been seen and the number of sequences
+    (the likelihood ratio grows in proportion) that would check it
+    (`shape_check`).
+
     Never raises on a numerical failure: a fit that did not converge is
     listed in `flags`, and a failed `find` gives the verdict "no decision".
 
@@ -387,15 +474,28 @@ def name(
     - `adequacy`: run the adequacy test of the named model. Its hats are
         scored through the model's own score program, as additive terms
         linear in the state about the MAP (no extra compilation).
+    - `shape_tolerance`: the fraction of a named term's size that a
+        departure from its shape must reach to count (in `(0, 1]`).
+    - `shape_power`: the probability with which the adequacy test must
+        detect such a departure for the name to be confident (in `(0, 1)`).
 
     **Returns:** a [`eqsmooth.discover.StepReport`][] with `verdict` (a
     sentence), `named` (list of names),
     `steps` (the selection table), `equivalence_sets`, `ambiguous`,
     `tentative`, `adequacy` (when something was named: `significant`,
-    `p_value`, `where` and the per-block tests), `flags` and `alarms`
+    `p_value`, `where` and the per-block tests), `shape_check` (when the
+    adequacy test passed: per named term its likelihood ratio, the power to
+    see a departure of `shape_tolerance`, whether that was enough, and the
+    sequences that would make it so), `flags` and `alarms`
     (which of "detected", "unnamed_structure", "ambiguous",
     "leftover_structure" and "partial" were raised).
     """
+    if not 0.0 < shape_tolerance <= 1.0:
+        raise ValueError(
+            f"name: shape_tolerance must lie in (0, 1], got {shape_tolerance}"
+        )
+    if not 0.0 < shape_power < 1.0:
+        raise ValueError(f"name: shape_power must lie in (0, 1), got {shape_power}")
     st = found.state
     out = {
         "named": [],
@@ -404,6 +504,7 @@ def name(
         "ambiguous": [],
         "unnamed_residual_structure": False,
         "tentative": False,
+        "shape_check": None,
         "flags": [],
         "alarms": dict.fromkeys(_ALARMS, False),
     }
@@ -464,6 +565,11 @@ def name(
             model, data, current.z, current.xhat, st["nuisance"], alpha, sorted(acting)
         )
         out["alarms"]["partial"] = out["adequacy"]["significant"]
+        out["shape_check"] = _shape_check(
+            out, alpha, data, shape_tolerance, shape_power
+        )
+        if out["shape_check"] is not None and not out["shape_check"]["checked"]:
+            out["tentative"] = True
     out["verdict"] = _verdict(out, leftover)
     return StepReport(out, {"evaluation": current, "active": active})
 

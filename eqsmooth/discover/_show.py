@@ -95,6 +95,7 @@ def discover(
     fit_noise: bool = True,
     covariance: str = "auto",
     max_terms: int = 3,
+    shape_tolerance: float = 0.3,
     horizon: int = 10,
     burn_in: int = 0,
     bootstrap_resamples: int = 0,
@@ -108,7 +109,7 @@ def discover(
     - `heldout`: validation sequences for the before/after comparison, or
         `None`.
     - `alpha`, `fit_noise`, `covariance`: see [`eqsmooth.discover.find`][].
-    - `max_terms`: see [`eqsmooth.discover.name`][].
+    - `max_terms`, `shape_tolerance`: see [`eqsmooth.discover.name`][].
     - `horizon`, `burn_in`: see [`eqsmooth.discover.show`][].
     - `bootstrap_resamples`: if positive, also run
         [`eqsmooth.discover.bootstrap`][] with this many resamples (each
@@ -120,7 +121,7 @@ def discover(
     or use [`eqsmooth.discover.to_json`][]).
     """
     found = find(model, data, alpha=alpha, fit_noise=fit_noise, covariance=covariance)
-    named = name(found, data, max_terms=max_terms)
+    named = name(found, data, max_terms=max_terms, shape_tolerance=shape_tolerance)
     added = add(found, named, data)
     report = {
         "verdict": named["verdict"],

@@ -69,6 +69,77 @@ def chi2_sf(x, df) -> float:
     return gamma_q(df / 2.0, max(x, 0.0) / 2.0)
 
 
+def noncentral_chi2_sf(x, df, noncentrality) -> float:
+    """Upper tail `P(χ²_df(λ) > x)` of the noncentral chi-square, as the
+    Poisson(λ/2) mixture of central tails (summed out from the mixture's
+    mode, where its weights are largest, until they stop counting)."""
+    lam = float(noncentrality)
+    if lam < 0 or df <= 0:
+        raise ValueError(
+            f"noncentral_chi2_sf: need df > 0 and noncentrality >= 0, got "
+            f"df={df}, noncentrality={lam}"
+        )
+    if lam == 0.0:
+        return chi2_sf(x, df)
+    half = 0.5 * lam
+    mode = int(half)
+
+    def weight(j: int) -> float:
+        return math.exp(-half + j * math.log(half) - math.lgamma(j + 1.0))
+
+    total = 0.0
+    for direction in (1, -1):
+        j = mode if direction == 1 else mode - 1
+        while j >= 0:
+            w = weight(j)
+            total += w * chi2_sf(x, df + 2 * j)
+            if w < 1e-17 and abs(j - mode) > 5:
+                break
+            j += direction
+    return min(1.0, max(0.0, total))
+
+
+def detectable_noncentrality(df, level: float, power: float) -> float:
+    """The noncentrality `λ` at which a `χ²_df` test at `level` rejects with
+    probability `power` (bisection on [`noncentral_chi2_sf`][])."""
+    if not (0.0 < level < 1.0 and 0.0 < power < 1.0):
+        raise ValueError(
+            f"detectable_noncentrality: level and power must lie in (0, 1), got "
+            f"{level}, {power}"
+        )
+    crit = chi2_quantile(1.0 - level, df)
+    lo, hi = 0.0, 1.0
+    while noncentral_chi2_sf(crit, df, hi) < power:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if noncentral_chi2_sf(crit, df, mid) < power:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-10 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
+def chi2_quantile(p: float, df) -> float:
+    """`x` with `P(χ²_df ≤ x) = p` (bisection on [`chi2_sf`][])."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"chi2_quantile: p must lie in (0, 1), got {p}")
+    lo, hi = 0.0, max(1.0, float(df))
+    while 1.0 - chi2_sf(hi, df) < p:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if 1.0 - chi2_sf(mid, df) < p:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-12 * hi:
+            break
+    return 0.5 * (lo + hi)
+
+
 def chi2_two_sided(x, df) -> float:
     """Two-sided p-value of a chi-square statistic (too small or too large)."""
     upper = chi2_sf(x, df)
