@@ -17,6 +17,11 @@ if [ "${1:-}" != "second" ]; then
   timeout 60 python3 small_graph.py --repeats 100 --json $out/small_graph_gpu.json
   JAX_PLATFORMS=cpu timeout 90 python3 small_graph.py --batch 1000 --floor --repeats 5 --json $out/small_graph_batch_devcpu.json
 fi
+if [ "${1:-}" = "tenk" ]; then
+  # Session 33: the 10,000-graph batch alone, its graphs built on the host.
+  timeout 400 python3 small_graph.py --batch 10000 --floor --repeats 5 --json $out/small_graph_batch_10000_gpu.json
+  exit
+fi
 # The first call ran the three above; its 10,000-graph and mixed runs hit
 # their time limits in `stack_trees` (now stacked on the host): `second`.
 timeout 190 python3 small_graph.py --batch 10000 --floor --repeats 5 --json $out/small_graph_batch_10000_gpu.json

@@ -252,19 +252,32 @@ def _simulated_run(seed, effect, coef, spring=SPRING):
 
 
 @pytest.mark.parametrize(
-    "effect, coef, spring, expected",
+    "effect, coef, spring, expected, shape_checked",
     [
-        ("drag", 0.02, SPRING, "quadratic drag"),
-        ("viscous", 0.1, SPRING, "viscous damping"),
-        ("coulomb", 0.3, SPRING, "Coulomb friction"),
-        ("force", 0.3, 0.0, "constant force"),
+        # Likelihood ratios 166, 144 and 182 against the 210 the shape check
+        # needs here; the viscous damping is strong enough (about 400).
+        ("drag", 0.02, SPRING, "quadratic drag", False),
+        ("viscous", 0.15, SPRING, "viscous damping", True),
+        ("coulomb", 0.3, SPRING, "Coulomb friction", False),
+        ("force", 0.3, 0.0, "constant force", False),
     ],
 )
-def test_hidden_effect_is_named(effect, coef, spring, expected):
+def test_hidden_effect_is_named(effect, coef, spring, expected, shape_checked):
     data, found, named, added = _simulated_run(1, effect, coef, spring)
     assert found["detected"]
     assert named["named"][:1] == [expected], named["verdict"]
-    assert named["verdict"] == expected
+    # Confident when the term is strong enough for the adequacy test to see a
+    # 30% departure from its shape; otherwise tentative for that reason only.
+    sc = named["shape_check"]
+    assert [t["name"] for t in sc["terms"]] == [expected]
+    assert sc["checked"] == shape_checked, sc
+    if shape_checked:
+        assert named["verdict"] == expected
+    else:
+        assert named["verdict"].startswith(
+            f"tentative: {expected} ({expected}: too weak for its shape"
+        ), named["verdict"]
+        assert not named["unnamed_residual_structure"]
     assert named["adequacy"]["tested"] and not named["alarms"]["partial"]
     (c,) = added["coefficients"]
     assert abs(c["value"] - coef) < 0.1 * coef, c
@@ -348,7 +361,7 @@ def test_bootstrap_stability_of_a_strong_effect():
     import eqsmooth.discover as dc
 
     # The same data and run as test_hidden_effect_is_named's viscous case.
-    data, found, named, _ = _simulated_run(1, "viscous", 0.1)
+    data, found, named, _ = _simulated_run(1, "viscous", 0.15)
     stab = dc.bootstrap(found, data, named=named, num_resamples=2, seed=0)
     assert stab["num_resamples"] == 2
     assert stab["detected_rate"] == 1.0
