@@ -209,6 +209,17 @@ def run_workflow(data: dc.Sequences, model: dc.ChainModel = MODEL) -> dict:
         "flags": list(found["flags"]) + list(named["flags"]) + list(added["flags"]),
         "alarms": dict(named["alarms"]),
         "tentative": bool(named["tentative"]),
+        # The data size each reported set's verdict says would separate it
+        # (None where the information gives none).
+        "sequences_to_separate": [
+            max(
+                (r["sequences_to_separate"] or math.inf)
+                for r in step.get("rivals", [])
+                if not r["separable"]
+            )
+            for step in named["steps"][: len(named["named"])]
+            if any(not r["separable"] for r in step.get("rivals", []))
+        ],
         "shape_unchecked": bool(
             named.get("shape_check") and not named["shape_check"]["checked"]
         ),

@@ -244,6 +244,7 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
     snr_total, snr_beyond = plant.beyond_library(effect, coef) if effect else (0, 0)
     truth = None if (effect is None or out_of_library) else effect
     c, names, alarms, times, snrs = Counter(), Counter(), Counter(), [], []
+    separate: list[float] = []
     key = [2026, 37, plant.tag, _TAGS.get(effect, 0)]
     key += [int(round(level * 1000)), int(round(noise * 10))]
     if num != B:  # the default size keeps the streams it always had
@@ -257,7 +258,9 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
             continue
         snrs.append(snr)
         times.append(out["seconds"])
-        tally(out, truth, c, names, alarms)
+        kind = tally(out, truth, c, names, alarms)
+        if kind == "set":
+            separate += out.get("sequences_to_separate", [])
         if effect is None or out_of_library:
             if out["named"]:
                 log(f"  {plant.name} {effect} seed {s}: {out['verdict']}")
@@ -280,6 +283,11 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
         "flagged": c["flagged"],
         **outcome_rates(c, n, names, alarms, truth),
         "median_s": float(np.median(times)) if times else None,
+        # Where the truth was reported in a set: the sequences (of this
+        # length) its verdict said would separate the set (inf: none given).
+        "sets_sequences_to_separate": [
+            v if np.isfinite(v) else None for v in separate
+        ],
     }
     return rec
 
