@@ -353,7 +353,7 @@ def report(records: list[dict], info: dict) -> str:
         "- `confident` = a name the verdict marks neither tentative nor partial; "
         "for an out-of-library effect every such name is wrong. `shape unchecked` "
         "= tentative because the named term is too weak for the adequacy test to "
-        "see a 30% departure from its shape (`name`'s shape check).",
+        "see a 20% departure from its shape (`name`'s shape check).",
         "",
         "## Out-of-library effects (the right answer: no confident name)",
         "",

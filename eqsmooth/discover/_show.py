@@ -95,7 +95,7 @@ def discover(
     fit_noise: bool = True,
     covariance: str = "auto",
     max_terms: int = 3,
-    shape_tolerance: float = 0.3,
+    shape_tolerance: float = 0.2,
     horizon: int = 10,
     burn_in: int = 0,
     bootstrap_resamples: int = 0,
