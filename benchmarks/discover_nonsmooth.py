@@ -285,9 +285,7 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
         "median_s": float(np.median(times)) if times else None,
         # Where the truth was reported in a set: the sequences (of this
         # length) its verdict said would separate the set (inf: none given).
-        "sets_sequences_to_separate": [
-            v if np.isfinite(v) else None for v in separate
-        ],
+        "sets_sequences_to_separate": [v if np.isfinite(v) else None for v in separate],
     }
     return rec
 
@@ -380,7 +378,8 @@ def report(records: list[dict], info: dict) -> str:
                         "tentative",
                     )
                 )
-                + f" | {fmt_rate(r['shape_unchecked']) if 'shape_unchecked' in r else '–'}"
+                + " | "
+                + (fmt_rate(r["shape_unchecked"]) if "shape_unchecked" in r else "–")
                 + f" | {r['names'] or '–'} | {r['median_s']:.2f} |"
             )
     lines += [

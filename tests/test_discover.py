@@ -963,7 +963,9 @@ def test_noncentral_tail_and_detectable_noncentrality_match_scipy():
                     atol=1e-15,
                 )
         for p in (0.5, 0.95, 1 - 0.05 / 6):
-            assert chi2_quantile(p, df) == pytest.approx(stats.chi2.ppf(p, df), rel=1e-9)
+            assert chi2_quantile(p, df) == pytest.approx(
+                stats.chi2.ppf(p, df), rel=1e-9
+            )
         for level, power in ((0.05, 0.8), (0.05 / 6, 0.9)):
             lam = detectable_noncentrality(df, level, power)
             crit = stats.chi2.ppf(1 - level, df)

@@ -278,9 +278,10 @@ def _shape_check(out: dict, alpha: float, data, tolerance: float, power: float):
 
     A departure carrying the fraction `tolerance` of a named term's size
     carries about `tolerance²` of its evidence: noncentrality
-    `tolerance² · LR` in the adequacy test, whose blocks are `χ²` tests at
-    `alpha / blocks`. The term's shape is checked when that noncentrality
-    reaches the one the test detects with probability `power`; a weaker
+    `tolerance² · LR` in the adequacy test, whose blocks' joint tests are
+    `χ²` tests at `alpha / (2 · blocks)`. The term's shape is checked when
+    that noncentrality reaches the one the test detects with probability
+    `power`; a weaker
     term may be a smooth stand-in for an effect the library lacks (an input
     saturation fitted as a gain leaves a third of it unexplained) that no
     test at this data size can see, so its name is tentative. The likelihood
@@ -463,10 +464,10 @@ def name(
     `alpha / (2 · blocks)`) has that power. (At 30%, an input saturation
     whose remainder is a third of the effect was still named confidently in
     5 of 20 data sets of 48 sequences: the hats see roughly half the
-    noncentrality this share gives it.) A weaker term is named tentatively, with the probability that
-    such a departure would have been seen and the number of sequences
-    (the likelihood ratio grows in proportion) that would check it
-    (`shape_check`).
+    noncentrality this share gives it.) A weaker term is named
+    tentatively, with the probability that such a departure would have been
+    seen and the number of sequences (the likelihood ratio grows in
+    proportion) that would check it (`shape_check`).
 
     Never raises on a numerical failure: a fit that did not converge is
     listed in `flags`, and a failed `find` gives the verdict "no decision".
