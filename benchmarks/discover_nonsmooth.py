@@ -41,6 +41,7 @@ already there (it can be stopped and resumed).
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections import Counter
@@ -386,15 +387,16 @@ def report(records: list[dict], info: dict) -> str:
         "",
         "## In-library effects (the right answer: the truth alone, confidently)",
         "",
-        "| system | effect | SNR | n | detected | truth alone | truth alone, "
-        "confident | shape unchecked | truth in a set | truth + extra | wrong name "
-        "| partial (false) | median s |",
-        "|" + "---|" * 13,
+        "| system | effect | SNR | sequences | n | detected | truth alone | truth "
+        "alone, confident | shape unchecked | truth in a set | truth + extra | "
+        "wrong name | partial (false) | sets: sequences to separate | median s |",
+        "|" + "---|" * 15,
     ]
     for r in records:
         if r["truth"] is not None:
             lines.append(
-                f"| {r['system']} | {r['effect']} | {r['snr_target']} | {r['n']} | "
+                f"| {r['system']} | {r['effect']} | {r['snr_target']} | "
+                f"{r.get('sequences', B)} | {r['n']} | "
                 + " | ".join(
                     fmt_rate(r[k])
                     for k in (
@@ -408,7 +410,7 @@ def report(records: list[dict], info: dict) -> str:
                         "partial",
                     )
                 )
-                + f" | {r['median_s']:.2f} |"
+                + f" | {_separate(r)} | {r['median_s']:.2f} |"
             )
     lines += [
         "",
@@ -418,6 +420,17 @@ def report(records: list[dict], info: dict) -> str:
         *null_table(records, "system"),
     ]
     return "\n".join(lines) + "\n"
+
+
+def _separate(r: dict) -> str:
+    """The data sizes the verdicts of the runs with the truth in a set gave
+    for separating it (`none` where the information gave none)."""
+    sizes = r.get("sets_sequences_to_separate")
+    if not sizes:
+        return "–"
+    given = sorted(math.ceil(v) for v in sizes if v is not None)
+    none = sum(v is None for v in sizes)
+    return ", ".join([str(v) for v in given] + ([f"none ×{none}"] if none else []))
 
 
 def null_table(records: list[dict], key: str, median_s: bool = False) -> list[str]:
