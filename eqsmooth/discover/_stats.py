@@ -108,30 +108,25 @@ def detectable_noncentrality(df, level: float, power: float) -> float:
             f"{level}, {power}"
         )
     crit = chi2_quantile(1.0 - level, df)
-    lo, hi = 0.0, 1.0
-    while noncentral_chi2_sf(crit, df, hi) < power:
-        lo, hi = hi, 2.0 * hi
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        if noncentral_chi2_sf(crit, df, mid) < power:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-10 * hi:
-            break
-    return 0.5 * (lo + hi)
+    return _solve_increasing(lambda lam: noncentral_chi2_sf(crit, df, lam), power, 1.0)
 
 
 def chi2_quantile(p: float, df) -> float:
     """`x` with `P(χ²_df ≤ x) = p` (bisection on [`chi2_sf`][])."""
     if not 0.0 < p < 1.0:
         raise ValueError(f"chi2_quantile: p must lie in (0, 1), got {p}")
-    lo, hi = 0.0, max(1.0, float(df))
-    while 1.0 - chi2_sf(hi, df) < p:
+    return _solve_increasing(lambda x: 1.0 - chi2_sf(x, df), p, max(1.0, float(df)))
+
+
+def _solve_increasing(f, target: float, start: float) -> float:
+    """`x ≥ 0` with `f(x) = target` for an increasing `f`: doubling from
+    `start` until bracketed, then bisection to a relative 1e-12."""
+    lo, hi = 0.0, start
+    while f(hi) < target:
         lo, hi = hi, 2.0 * hi
     for _ in range(200):
         mid = 0.5 * (lo + hi)
-        if 1.0 - chi2_sf(mid, df) < p:
+        if f(mid) < target:
             lo = mid
         else:
             hi = mid
