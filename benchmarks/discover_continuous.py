@@ -152,18 +152,21 @@ def coefficient(effect: str, level: float) -> float:
     return level / _snr(effect, 1.0, xs)
 
 
-def cell(library, effect, level, seeds, log, noise=1.0) -> dict:
-    """`seeds` data sets of one (library, effect, level) or null cell. Both
-    libraries see the same data sets (the streams do not depend on it)."""
+def cell(library, effect, level, seeds, log, noise=1.0, num=B, first_seed=0) -> dict:
+    """`seeds` data sets (streams `first_seed`, ...) of `num` sequences of one
+    (library, effect, level) or null cell. Both libraries see the same data
+    sets (the streams do not depend on it)."""
     model = MODELS[library]
     coef = coefficient(effect, level) if effect else 0.0
     truth = effect
     c, names, alarms, times, snrs, rel = Counter(), Counter(), Counter(), [], [], []
     key = [2026, 37, 3, _TAGS.get(effect, 0), int(round(level * 1000))]
     key += [int(round(noise * 10))]
-    for s in range(seeds):
+    if num != B:  # the default size keeps the streams it always had
+        key.append(num)
+    for s in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(np.random.SeedSequence(key + [s]))
-        data, snr = simulate(rng, effect, coef, noise)
+        data, snr = simulate(rng, effect, coef, noise, num)
         out = guarded_run(data, model, log, f"{library} {effect} seed {s}")
         if out is None:
             c["crashes"] += 1
@@ -187,6 +190,8 @@ def cell(library, effect, level, seeds, log, noise=1.0) -> dict:
         "snr_target": level if effect else None,
         "snr_realised_median": float(np.median(snrs)) if snrs else None,
         "measurement_noise_factor": noise,
+        "sequences": num,
+        "first_seed": first_seed,
         "coefficient": coef,
         "n": n,
         "crashes": c["crashes"],
@@ -216,6 +221,9 @@ def report(records: list[dict], info: dict) -> str:
         f"- machine: {m.get('cores')} cores, {m.get('cpu')}; JAX {m.get('jax')}",
         f"- git: {info['git']}",
         f"- wall time {info['total_s'] / 60:.1f} min",
+        "- sequences per data set: "
+        + ", ".join(str(v) for v in sorted({r.get("sequences", B) for r in records}))
+        + f" (× {T} samples)",
         "- `rate`: candidates inside the integrator (the default for an "
         "`Integrator` model); `kick`: the discrete-time library.",
         "- coverage: the true coefficient inside `add`'s 95% interval, over the "
@@ -266,6 +274,12 @@ def main(argv=None):
     parser.add_argument("--effects", nargs="+", default=list(EFFECTS))
     parser.add_argument("--null", type=int, default=60)
     parser.add_argument("--null-noises", type=float, nargs="+", default=[1.0, 2.0])
+    parser.add_argument(
+        "--sequences", type=int, default=B, help="sequences per data set"
+    )
+    parser.add_argument(
+        "--first-seed", type=int, default=0, help="first data set's stream"
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
@@ -279,7 +293,14 @@ def main(argv=None):
         earlier = json.loads(Path(args.json).read_text())
         records, commands = earlier["records"], earlier["info"]["commands"]
     done = {
-        (r["library"], r["effect"], r["snr_target"], r["measurement_noise_factor"])
+        (
+            r["library"],
+            r["effect"],
+            r["snr_target"],
+            r["measurement_noise_factor"],
+            r.get("sequences", B),
+            r.get("first_seed", 0),
+        )
         for r in records
     }
     command = "python " + " ".join(["discover_continuous.py", *sys.argv[1:]])
@@ -298,10 +319,20 @@ def main(argv=None):
     plan += [("rate", None, None, args.null, nz) for nz in args.null_noises]
     plan += [("kick", e, args.level, args.kick_seeds, 1.0) for e in args.effects]
     for library, effect, level, seeds, noise in plan:
-        if (library, effect or "none", level, noise) in done or seeds <= 0:
+        cell_key = (library, effect or "none", level, noise)
+        if cell_key + (args.sequences, args.first_seed) in done or seeds <= 0:
             continue
         t = time.perf_counter()
-        rec = cell(library, effect, level or 0.0, seeds, log, noise)
+        rec = cell(
+            library,
+            effect,
+            level or 0.0,
+            seeds,
+            log,
+            noise,
+            args.sequences,
+            args.first_seed,
+        )
         records.append(rec)
         save()
         head = f"{library} {effect or 'null'} ×{noise:g}: n={rec['n']}"
