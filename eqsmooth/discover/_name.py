@@ -274,19 +274,19 @@ def _profile_note(out: dict, nm: str) -> str:
 
 def _shape_check(out: dict, alpha: float, data, tolerance: float, power: float):
     """Whether the adequacy test could have seen the named terms' shapes be
-    wrong by `tolerance` of their size; records `out["shape_check"]`.
+    wrong by `tolerance` of their size: the `shape_check` report, or None
+    when the test did not run or already failed (the verdict is then partial).
 
     A departure carrying the fraction `tolerance` of a named term's size
     carries about `tolerance²` of its evidence: noncentrality
     `tolerance² · LR` in the adequacy test, whose blocks' joint tests are
     `χ²` tests at `alpha / (2 · blocks)`. The term's shape is checked when
     that noncentrality reaches the one the test detects with probability
-    `power`; a weaker
-    term may be a smooth stand-in for an effect the library lacks (an input
-    saturation fitted as a gain leaves a third of it unexplained) that no
-    test at this data size can see, so its name is tentative. The likelihood
-    ratio grows in proportion to the number of sequences, which gives the
-    data size that would check it.
+    `power`; a weaker term may be a smooth stand-in for an effect the library
+    lacks (an input saturation fitted as a gain leaves a third of it
+    unexplained) that no test at this data size can see, so its name is
+    tentative. The likelihood ratio grows in proportion to the number of
+    sequences, which gives the data size that would check it.
     """
     ad = out.get("adequacy", {})
     if not ad.get("tested") or ad.get("significant"):
