@@ -354,6 +354,59 @@ def test_graph_routes_on_se2_landmarks():
     assert any("['values']['pose']" in n for n in names)
 
 
+# ------------------------------------------------- planar vehicle dynamics
+
+
+def _vehicle_theta():
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(11)
+    poses = eqs.SE2.exp(jnp.asarray(rng.normal(size=(4, 3))))
+    vel = jnp.asarray(rng.normal(size=(4, 2)))
+    truth = eqs.factors.VehicleState(poses, vel)
+    values = eqs.retract(truth, jnp.asarray(0.2 * rng.normal(size=(4, 5))))
+    return {"x": truth}, {
+        "values": {"x": values},
+        "data": {"vel": jnp.asarray(rng.normal(size=(4, 2)))},
+        "noise": {
+            "dyn_log_sp": jnp.asarray([0.3, -0.2, 0.5, 0.1, -0.4]),
+            "vel_sp": jnp.asarray(rng.uniform(0.5, 2.0, size=(4, 2))),
+        },
+    }
+
+
+def _vehicle_route(theta):
+    import eqsmooth as eqs
+
+    t = np.arange(4)
+    nz = theta["noise"]
+    graph = eqs.FactorGraph(
+        [
+            eqs.factors.VehicleDynamicsFactor(
+                eqs.Var("x", t[:-1]),
+                eqs.Var("x", t[1:]),
+                eqs.DiagonalNoise(sqrt_precision=jnp.exp(nz["dyn_log_sp"])),
+                dt=0.8,
+            ),
+            eqs.factors.VelocityMeasurementFactor(
+                eqs.Var("x", t),
+                theta["data"]["vel"],
+                eqs.DiagonalNoise(sqrt_precision=nz["vel_sp"]),
+            ),
+        ]
+    )
+    return _graph_outputs(graph, theta["values"], _vehicle_theta()[0])
+
+
+def test_graph_routes_on_vehicle_dynamics():
+    """The graph routes through `VehicleDynamicsFactor`'s closed-form
+    Jacobians (and the velocity factor's autodiff ones): w.r.t. the states
+    (SE(2) poses in tangent coordinates, velocities), the measurements and
+    the noise parameters."""
+    _, _, _, names = check_gradients(_vehicle_route, _vehicle_theta()[1], GRAPH_OUTPUTS)
+    assert any("['values']['x']" in n for n in names)
+
+
 # --------------------------------------------------------- SE(3) landmarks
 
 

@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..lie import SE2, SO2
 from ..manifold import local
-from ._factor import AbstractFactor
+from ._factor import AbstractAnalyticFactor, AbstractFactor
 from ._noise import AbstractNoiseModel
 from ._variables import Var
 
@@ -90,19 +90,32 @@ def vehicle_motion(state: VehicleState, dt: float | Float[Array, ""] = 1.0):
 
     **Returns:** the predicted `VehicleState`.
     """
-    v, w = state.velocity[..., 0], state.velocity[..., 1]
-    step = SE2.from_rotation_and_translation(
+    return VehicleState(state.pose @ _step(state.velocity, dt), state.velocity)
+
+
+def _step(velocity: Float[Array, "*batch 2"], dt) -> SE2:
+    """The motion `S(v, ω)` over one step: turn by `ω dt`, move `[v dt, 0]`."""
+    v, w = velocity[..., 0], velocity[..., 1]
+    return SE2.from_rotation_and_translation(
         SO2.from_radians(w * dt), jnp.stack([v * dt, jnp.zeros_like(v)], axis=-1)
     )
-    return VehicleState(state.pose @ step, state.velocity)
 
 
-class VehicleDynamicsFactor(AbstractFactor):
+class VehicleDynamicsFactor(AbstractAnalyticFactor):
     """Constant-velocity unicycle dynamics between `x_t` and `x_{t+1}`.
 
     Residual `x_{t+1} ⊖ f(x_t)` in tangent coordinates (5-D), with `f`
     [`eqsmooth.factors.vehicle_motion`][]. Its noise is normally one learnable
     [`eqsmooth.factors.DiagonalNoise`][] of shape `(5,)` shared by every step.
+
+    Its Jacobians are given in closed form. With the step `S = S(v_t, ω_t)`,
+    `X = T_t⁻¹ T_{t+1}`, `E = S⁻¹ X` and the pose residual `e = log(E)`:
+    `∂e/∂δT_{t+1} = Jr⁻¹(e)`, `∂e/∂δT_t = −Jr⁻¹(e) Ad(X⁻¹)` and
+    `∂e/∂(δv, δω) = −Jr⁻¹(e) Ad(E⁻¹) J_S`, where `J_S = [[c dt, 0], [−s dt, 0],
+    [0, dt]]` (`c, s = cos ω dt, sin ω dt`) moves `S` in its own tangent
+    space; the velocity residual has `−I` and `I`. The linearisation uses them
+    instead of forward-mode autodiff through `residual` (the same values, in
+    a fraction of the time: see the performance page).
 
     **Arguments:**
 
@@ -125,6 +138,35 @@ class VehicleDynamicsFactor(AbstractFactor):
 
     def residual(self, prev: VehicleState, next: VehicleState) -> Float[Array, " 5"]:
         return local(vehicle_motion(prev, self.dt), next)
+
+    def residual_and_jacobians(
+        self, prev: VehicleState, next: VehicleState
+    ) -> tuple[Float[Array, " 5"], tuple[Float[Array, "5 5"], Float[Array, "5 5"]]]:
+        dt = self.dt
+        step = _step(prev.velocity, dt)
+        # The same arithmetic as `residual`: E = (T_t S)⁻¹ T_{t+1}.
+        err = (prev.pose @ step).inverse() @ next.pose
+        e = err.log()
+        jr_inv = SE2.right_jacobian_inv(e)
+        a = jr_inv @ err.inverse().adjoint()
+        c, s = step.unit_complex_xy[0], step.unit_complex_xy[1]
+        zero = jnp.zeros_like(c)
+        j_step = jnp.stack(
+            [
+                jnp.stack([c * dt, zero]),
+                jnp.stack([-s * dt, zero]),
+                jnp.stack([zero, zero + dt]),
+            ]
+        )
+        # Ad(E⁻¹) Ad(S⁻¹) = Ad(X⁻¹).
+        d_pose_prev = -(a @ step.inverse().adjoint())
+        d_vel_prev = -(a @ j_step)
+        eye2 = jnp.eye(2, dtype=e.dtype)
+        zeros32 = jnp.zeros((3, 2), e.dtype)
+        j_prev = jnp.block([[d_pose_prev, d_vel_prev], [zeros32.T, -eye2]])
+        j_next = jnp.block([[jr_inv, zeros32], [zeros32.T, eye2]])
+        r = jnp.concatenate([e, next.velocity - prev.velocity])
+        return r, (j_prev, j_next)
 
 
 class VelocityMeasurementFactor(AbstractFactor):
