@@ -1,9 +1,15 @@
 """Time per Gauss-Newton iteration on smoothing chains, per linear solver.
 
-Two problems: `disk` (the paper's disk dynamics with drag, 4-D Euclidean
-state, position measurements) and `se2vel` (a planar car: SE(2) pose and 2-D
-body velocity as two variable groups, constant-velocity dynamics, velocity
-and GPS-like position measurements, a prior on the first pose; block size 5).
+Problems: `disk` (the paper's disk dynamics with drag, 4-D Euclidean
+state, position measurements), `se2vel` (a planar car: SE(2) pose and 2-D
+body velocity as two variable groups, constant-velocity dynamics written as
+a `FunctionFactor`, velocity and GPS-like position measurements, a prior on
+the first pose; block size 5), and `vehicle` (the library's
+`VehicleState` with `VehicleDynamicsFactor`, whose Jacobians are in closed
+form, and the same measurements; block size 5). `vehicle_autodiff` is
+`vehicle` with the same dynamics residual as a `FunctionFactor`, linearised
+by forward-mode autodiff: run both in one command to compare the two
+linearisations. The default is `disk` and `se2vel`.
 
 One "iteration" = linearise every factor + solve the normal equations +
 retract, jitted. `median_s` is the median over repeats after warm-up,
@@ -118,6 +124,48 @@ def se2vel_problem(T: int, seed: int = 0):
     return graph, {"pose": poses, "vel": vel}
 
 
+def _vehicle_motion_residual(prev, next, data, params):
+    return eqs.local(eqs.factors.vehicle_motion(prev, DT), next)
+
+
+def _vehicle_gps(x, data, params):
+    return x.pose.translation() - data
+
+
+def vehicle_problem(T: int, seed: int = 0, closed_form: bool = True):
+    """The library's planar vehicle (`VehicleState`: SE(2) pose and `(v, ω)`
+    in one variable, block size 5): `VehicleDynamicsFactor` (closed-form
+    Jacobians; with `closed_form=False` the same residual as a
+    `FunctionFactor`, linearised by forward-mode autodiff),
+    `VelocityMeasurementFactor`, GPS-like positions, a prior on the first
+    state."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)
+    vel = np.stack([5 + rng.normal(size=T), 0.3 * np.sin(t / 50)], 1)
+    gps = rng.normal(scale=1.0, size=(T, 2)) + np.cumsum(vel[:, :1], 0) * DT
+    x = eqs.Var("x", t)
+    prev, next = eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])
+    dyn_noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.05, 0.05, 0.01, 0.5, 0.1]))
+    if closed_form:
+        dyn = eqs.factors.VehicleDynamicsFactor(prev, next, dyn_noise, dt=DT)
+    else:
+        dyn = eqs.FunctionFactor(_vehicle_motion_residual, (prev, next), dyn_noise)
+    iso = eqs.IsotropicNoise.from_sigma
+    first = eqs.factors.VehicleState(eqs.SE2.identity((1,)), jnp.asarray(vel[:1]))
+    graph = eqs.FactorGraph(
+        [
+            dyn,
+            eqs.factors.VelocityMeasurementFactor(x, vel, iso(0.5)),
+            eqs.FunctionFactor(_vehicle_gps, (x,), iso(2.0), data=jnp.asarray(gps)),
+            eqs.PriorFactor(
+                eqs.Var("x", [0]), first, eqs.IsotropicNoise(sqrt_precision=100.0)
+            ),
+        ]
+    )
+    poses = eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3))))
+    return graph, {"x": eqs.factors.VehicleState(poses, jnp.asarray(vel))}
+
+
 def make_iteration(linear_solver):
     @jax.jit
     def iteration(graph, values):
@@ -189,7 +237,7 @@ def measure(problem, T, graph, values, name, ls, solve_steps) -> dict:
 
 def scaling(records) -> None:
     """t(1e5) / t(1e4) of BlockTridiagonal, added to the T = 1e5 record."""
-    for problem in ("disk", "se2vel"):
+    for problem in ("disk", "se2vel", "vehicle", "vehicle_autodiff"):
         bt = {r["T"]: r for r in records if r["problem"] == problem}
         bt = {T: r for T, r in bt.items() if r["solver"] == "BlockTridiagonal"}
         if 10_000 not in bt or 100_000 not in bt:
@@ -305,7 +353,12 @@ def main(argv=None):
     parser.add_argument("--stages", action="store_true", help="the parts of a step")
     args = parser.parse_args(argv)
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
-    builders = {"disk": disk_problem, "se2vel": se2vel_problem}
+    builders = {
+        "disk": disk_problem,
+        "se2vel": se2vel_problem,
+        "vehicle": vehicle_problem,
+        "vehicle_autodiff": lambda T: vehicle_problem(T, closed_form=False),
+    }
     if args.stages:
         limits = machine_limits()
         print(limits)
