@@ -23,8 +23,8 @@ from ._report import StepReport
 from ._stats import (
     chi2_quantile,
     chi2_sf,
-    detectable_noncentrality,
     noncentral_chi2_sf,
+    noncentrality_for_power,
 )
 
 
@@ -297,8 +297,8 @@ def _shape_check(out: dict, alpha: float, data, tolerance: float, power: float):
     # single p-values, Bonferroni-corrected over the blocks: the joint test
     # of one block rejects at `alpha / (2 · blocks)`.
     level = alpha / (2 * len(blocks))
-    needed = detectable_noncentrality(df, level, power) / tolerance**2
     crit = chi2_quantile(1.0 - level, df)
+    needed = noncentrality_for_power(crit, df, power) / tolerance**2
     terms = []
     for step in out["steps"][: len(out["named"])]:
         lr = float(step["likelihood_ratio"])
@@ -398,10 +398,6 @@ def _leftover(out: dict, model, data, current, alpha: float) -> bool:
     # detection twice held the alarm at about 2α on null data.
     out["alarms"]["unnamed_structure"] = not out["named"] and leftover
     out["alarms"]["leftover_structure"] = bool(out["named"]) and leftover
-    # Names given while the fitted model still fails its own diagnostics are
-    # tentative: the effect may lie outside the library, and the closest
-    # candidate would otherwise get a confident name.
-    out["tentative"] = bool(out["named"]) and leftover
     out["unnamed_residual_structure"] = bool(leftover)
     return leftover
 
@@ -575,8 +571,12 @@ def name(
         out["shape_check"] = _shape_check(
             out, alpha, data, shape_tolerance, shape_power
         )
-        if out["shape_check"] is not None and not out["shape_check"]["checked"]:
-            out["tentative"] = True
+    # Names are tentative when the fitted model still fails its own
+    # diagnostics (the effect may lie outside the library, and the closest
+    # candidate would otherwise get a confident name), or when the named
+    # terms are too weak for the adequacy test to check their shapes.
+    unchecked = out["shape_check"] is not None and not out["shape_check"]["checked"]
+    out["tentative"] = bool(out["named"]) and (leftover or unchecked)
     out["verdict"] = _verdict(out, leftover)
     return StepReport(out, {"evaluation": current, "active": active})
 

@@ -96,6 +96,7 @@ def discover(
     covariance: str = "auto",
     max_terms: int = 3,
     shape_tolerance: float = 0.2,
+    shape_power: float = 0.9,
     horizon: int = 10,
     burn_in: int = 0,
     bootstrap_resamples: int = 0,
@@ -109,7 +110,8 @@ def discover(
     - `heldout`: validation sequences for the before/after comparison, or
         `None`.
     - `alpha`, `fit_noise`, `covariance`: see [`eqsmooth.discover.find`][].
-    - `max_terms`, `shape_tolerance`: see [`eqsmooth.discover.name`][].
+    - `max_terms`, `shape_tolerance`, `shape_power`: see
+        [`eqsmooth.discover.name`][].
     - `horizon`, `burn_in`: see [`eqsmooth.discover.show`][].
     - `bootstrap_resamples`: if positive, also run
         [`eqsmooth.discover.bootstrap`][] with this many resamples (each
@@ -121,7 +123,13 @@ def discover(
     or use [`eqsmooth.discover.to_json`][]).
     """
     found = find(model, data, alpha=alpha, fit_noise=fit_noise, covariance=covariance)
-    named = name(found, data, max_terms=max_terms, shape_tolerance=shape_tolerance)
+    named = name(
+        found,
+        data,
+        max_terms=max_terms,
+        shape_tolerance=shape_tolerance,
+        shape_power=shape_power,
+    )
     added = add(found, named, data)
     report = {
         "verdict": named["verdict"],

@@ -107,7 +107,11 @@ def detectable_noncentrality(df, level: float, power: float) -> float:
             f"detectable_noncentrality: level and power must lie in (0, 1), got "
             f"{level}, {power}"
         )
-    crit = chi2_quantile(1.0 - level, df)
+    return noncentrality_for_power(chi2_quantile(1.0 - level, df), df, power)
+
+
+def noncentrality_for_power(crit: float, df, power: float) -> float:
+    """The noncentrality `λ` at which `P(χ²_df(λ) > crit) = power`."""
     return _solve_increasing(lambda lam: noncentral_chi2_sf(crit, df, lam), power, 1.0)
 
 
