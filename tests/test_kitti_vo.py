@@ -404,15 +404,18 @@ def _check_session_30_rows():
     step = np.linalg.norm(np.diff(np.asarray(mean.pose.unit_complex_xy)[:, 2:], axis=0))
     assert step > 0  # the toy path moves, so the late scoring differs
     # The velocity loss scores velocities only: a position-only change of the
-    # truth leaves it unchanged, a velocity change does not.
+    # truth leaves it unchanged, a velocity change does not. The change moves
+    # the last position only: a shift of every position is a symmetry of the
+    # problem (the solve starts from dead reckoning from the first pose) and
+    # leaves both losses unchanged up to rounding.
     vel = E.losses("smoother_const_e2e_vel", E.Config())[0]
     pos = E.losses("smoother_const_e2e", E.Config())[0]
-    moved = {**w, "pose": w["pose"].at[..., 2:].add(0.5)}
+    moved = {**w, "pose": w["pose"].at[..., -1, 2:].add(0.5)}
     faster = {**w, "velocity": w["velocity"] + 0.5}
     base = float(vel(model, w))
     np.testing.assert_allclose(float(vel(model, moved)), base, rtol=1e-5)
     assert float(vel(model, faster)) > base + 1e-3
-    assert float(pos(model, moved)) != pytest.approx(float(pos(model, w)))
+    assert float(pos(model, moved)) > float(pos(model, w)) + 1e-3
     assert E.losses("smoother_hetero_nll", E.Config())[0] is M.nll_loss
     with pytest.raises(ValueError, match="target must be one of"):
         M.surrogate_loss(model, w, target="pose")

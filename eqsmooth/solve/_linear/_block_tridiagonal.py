@@ -44,7 +44,7 @@ from ._linear_solver import (
     pivot_tolerance,
     register_symmetric_psd,
 )
-from ._small_blocks import block_cholesky, block_solve_lower
+from ._small_blocks import block_cholesky, block_matmul, block_solve_lower
 
 
 # ---------------------------------------------------------------------------
@@ -278,8 +278,9 @@ def assemble_chain(
         for term in terms:
             key = (term.first, term.second)
             if key not in products:
-                products[key] = jnp.einsum(
-                    "nmd,nme->nde", jacs[term.first], jacs[term.second]
+                # Jᵢᵀ Jⱼ per row.
+                products[key] = block_matmul(
+                    jnp.swapaxes(jacs[term.first], 1, 2), jacs[term.second]
                 )
             p = products[key]
             if term.transpose:

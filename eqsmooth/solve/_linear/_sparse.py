@@ -18,6 +18,7 @@ from ._linear_solver import (
     normal_operator_of,
     NormalOperator,
 )
+from ._small_blocks import block_matmul
 
 
 class _Term(NamedTuple):
@@ -244,7 +245,7 @@ def assemble_sparse(op: NormalOperator) -> SparseNormalState:
         if fl.residual.shape[0] == 0:
             continue
         jac = jnp.concatenate(fl.jacobians, axis=2)
-        products[i] = jnp.einsum("nmi,nmj->nij", jac, jac)
+        products[i] = block_matmul(jnp.swapaxes(jac, 1, 2), jac)
     parts: dict[tuple[int, int], list] = {shape: [] for shape, _ in pattern.shapes}
     for t in pattern.terms:
         prod = products[t.stack]
