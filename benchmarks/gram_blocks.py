@@ -90,9 +90,9 @@ def main(argv=None):
                     flush=True,
                 )
                 records.append(rec)
+            if args.json:  # after every problem, so a stopped run keeps its cells
+                write_json(args.json, records)
     print(markdown_table(records, ["problem", "T", "stage", "product", "min_ms"]))
-    if args.json:
-        write_json(args.json, records)
 
 
 if __name__ == "__main__":
