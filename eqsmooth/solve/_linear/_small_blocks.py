@@ -44,8 +44,8 @@ def block_matmul(
     products of row `k` of `aᵀ` and row `k` of `b`: element-wise operations
     that XLA fuses into one loop over the batch, where its batched `dot`
     took 3.1 ms for 10⁴ products of `5 × 5` blocks against 0.31 ms (one
-    core of the project machine; `benchmarks/results/chain_stages.json` has
-    the effect on a chain step). Larger `K` uses `a @ b`.
+    core of the project machine; `benchmarks/gram_blocks.py` measures the
+    effect on a chain's factorisation). Larger `K` uses `a @ b`.
     """
     K = a.shape[-1]
     if K > SMALL_BLOCK_LIMIT:
