@@ -1,11 +1,13 @@
-"""The `JᵢᵀJⱼ` blocks of the normal matrix: batched `einsum` against `block_matmul`.
+"""The `JᵢᵀJⱼ` blocks of the normal matrix: batched `einsum` against `block_gram`.
 
 The solvers form the Gram blocks of every factor stack with
-`eqsmooth.solve._linear._small_blocks.block_matmul` (a sum of outer
-products, which XLA fuses into one loop over the rows). This script puts
-the batched `einsum` it replaced back in its place (the module attribute
-the chain assembly looks up) and times, in one process, alternating the two
-in `--rounds` rounds:
+`eqsmooth.solve._linear._small_blocks.block_gram` (a sum of outer
+products, which XLA fuses into one loop over the rows; it was called
+`block_matmul`, with its first argument transposed by the caller, when
+`benchmarks/results/gram_blocks.json` was recorded, and the records keep
+that label). This script puts the batched `einsum` it replaced back in its
+place (the module attribute the chain assembly looks up) and times, in one
+process, alternating the two in `--rounds` rounds:
 
 - `factorize`: `eqs.solve.factorize(lin, BlockTridiagonal())` of a chain's
   linearisation, the public call that assembles and factorises (used by
@@ -29,18 +31,18 @@ from chain import make_iteration, se2vel_problem, vehicle_problem
 
 import eqsmooth as eqs
 import eqsmooth.solve._linear._block_tridiagonal as chain_module
-from eqsmooth.solve._linear._small_blocks import block_matmul
+from eqsmooth.solve._linear._small_blocks import block_gram
 
 
 jax.config.update("jax_enable_x64", True)
 
 
-def _einsum(a_transposed, b):
+def _einsum(a, b):
     # What the assembly computed before: Jᵢᵀ Jⱼ per row as one batched einsum.
-    return jnp.einsum("ndm,nme->nde", a_transposed, b)
+    return jnp.einsum("nmd,nme->nde", a, b)
 
 
-PRODUCTS = {"einsum": _einsum, "block_matmul": block_matmul}
+PRODUCTS = {"einsum": _einsum, "block_gram": block_gram}
 
 
 def main(argv=None):
@@ -59,7 +61,7 @@ def main(argv=None):
             rounds: dict = {}
             for _ in range(args.rounds):
                 for name, product in PRODUCTS.items():
-                    chain_module.block_matmul = product
+                    chain_module.block_gram = product
                     ls = eqs.BlockTridiagonal()
                     parts = {
                         "factorize": (
@@ -72,11 +74,16 @@ def main(argv=None):
                         repeats = args.repeats if T < 100_000 else 3
                         _, _, times = time_fn(fn, *fn_args, repeats=repeats)
                         rounds.setdefault((stage, name), []).append(min(times) * 1e3)
-            chain_module.block_matmul = block_matmul
+            chain_module.block_gram = block_gram
             for (stage, name), ms in rounds.items():
                 rec = {
                     "benchmark": "gram_blocks",
-                    "config": {"problem": problem, "T": T, "stage": stage},
+                    "config": {
+                        "problem": problem,
+                        "T": T,
+                        "stage": stage,
+                        "product": name,
+                    },
                     "problem": problem,
                     "T": T,
                     "stage": stage,

@@ -590,19 +590,23 @@ def test_small_blocks_match_numpy(D):
     assert np.all(np.isfinite(np.asarray(block_cholesky(jnp.asarray(a)))[1]))
 
 
-@pytest.mark.parametrize("K", [1, 5, 9])  # 9: above SMALL_BLOCK_LIMIT, a @ b
-def test_block_matmul_matches_matmul(K):
-    """Products of small blocks (the Gram blocks of every assembly), with
-    broadcast batch axes, and their gradients."""
-    from eqsmooth.solve._linear._small_blocks import block_matmul
+@pytest.mark.parametrize("M", [1, 5, 9])  # 9: above SMALL_BLOCK_LIMIT, einsum
+def test_block_gram_matches_matmul(M):
+    """`aᵀ b` of small blocks (the Gram blocks of every assembly), with
+    broadcast batch axes, and its gradients."""
+    from eqsmooth.solve._linear._small_blocks import block_gram
 
-    rng = np.random.default_rng(K)
-    a = jnp.asarray(rng.normal(size=(4, 1, 3, K)))
-    b = jnp.asarray(rng.normal(size=(2, K, 2)))
-    np.testing.assert_allclose(block_matmul(a, b), a @ b, rtol=1e-13, atol=1e-13)
+    rng = np.random.default_rng(M)
+    a = jnp.asarray(rng.normal(size=(4, 1, M, 3)))
+    b = jnp.asarray(rng.normal(size=(2, M, 2)))
+
+    def ref(a, b):
+        return jnp.swapaxes(a, -1, -2) @ b
+
+    np.testing.assert_allclose(block_gram(a, b), ref(a, b), rtol=1e-13, atol=1e-13)
     w = jnp.asarray(rng.normal(size=(4, 2, 3, 2)))
-    grads = jax.grad(lambda a, b: jnp.sum(w * block_matmul(a, b)), (0, 1))(a, b)
-    expected = jax.grad(lambda a, b: jnp.sum(w * (a @ b)), (0, 1))(a, b)
+    grads = jax.grad(lambda a, b: jnp.sum(w * block_gram(a, b)), (0, 1))(a, b)
+    expected = jax.grad(lambda a, b: jnp.sum(w * ref(a, b)), (0, 1))(a, b)
     for g, e in zip(grads, expected):
         np.testing.assert_allclose(g, e, rtol=1e-12, atol=1e-12)
 

@@ -9,7 +9,7 @@ from jaxtyping import Array, Float, PyTree
 from ..factors import FactorGraph, GroupLayout, Var
 from ..factors._factor import linearize_rows
 from ..manifold import retract
-from ._linear._small_blocks import block_matmul
+from ._linear._small_blocks import block_gram
 
 
 Tangent = dict[str, Float[Array, "_N _d"]]
@@ -192,9 +192,7 @@ def block_diagonal(lin: Linearization) -> dict[str, Float[Array, "_N _d _d"]]:
     out = {g.name: jnp.zeros((g.count, g.dim, g.dim), lin.dtype) for g in lin.layout}
     for fl in lin.factors:
         for j, var in zip(fl.jacobians, fl.variables):
-            out[var.group] = (
-                out[var.group].at[var.index].add(block_matmul(jnp.swapaxes(j, 1, 2), j))
-            )
+            out[var.group] = out[var.group].at[var.index].add(block_gram(j, j))
     return out
 
 
@@ -273,7 +271,7 @@ def dense_normal_matrix(
             [_columns(v, offsets, dims) for v in fl.variables], axis=1
         )  # (n, K) absolute coordinates touched by each row
         jac = jnp.concatenate(fl.jacobians, axis=2)  # (n, m, K)
-        values.append(block_matmul(jnp.swapaxes(jac, 1, 2), jac).reshape(-1))
+        values.append(block_gram(jac, jac).reshape(-1))
         indices.append((cols[:, :, None] * N + cols[:, None, :]).reshape(-1))
     flat = jnp.zeros((N * N,), lin.dtype)
     if values:

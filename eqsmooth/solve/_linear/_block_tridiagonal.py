@@ -44,7 +44,7 @@ from ._linear_solver import (
     pivot_tolerance,
     register_symmetric_psd,
 )
-from ._small_blocks import block_cholesky, block_matmul, block_solve_lower
+from ._small_blocks import block_cholesky, block_gram, block_solve_lower
 
 
 # ---------------------------------------------------------------------------
@@ -279,9 +279,7 @@ def assemble_chain(
             key = (term.first, term.second)
             if key not in products:
                 # Jᵢᵀ Jⱼ per row.
-                products[key] = block_matmul(
-                    jnp.swapaxes(jacs[term.first], 1, 2), jacs[term.second]
-                )
+                products[key] = block_gram(jacs[term.first], jacs[term.second])
             p = products[key]
             if term.transpose:
                 p = jnp.swapaxes(p, 1, 2)

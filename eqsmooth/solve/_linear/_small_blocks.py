@@ -22,7 +22,7 @@ and uses these functions only once per level, to form `L⁻¹`.
 Products of small blocks have the same problem in another form: XLA:CPU
 runs a batched `dot` of `5 × 5` blocks about ten times slower than the
 same arithmetic written as a sum of outer products, which it fuses into one
-loop over the batch (`block_matmul`).
+loop over the batch (`block_gram`).
 """
 
 import jax
@@ -35,29 +35,29 @@ SMALL_BLOCK_LIMIT = 8
 """Largest block size handled by unrolled XLA operations instead of LAPACK."""
 
 
-def block_matmul(
-    a: Float[Array, "*#batch D K"], b: Float[Array, "*#batch K E"]
+def block_gram(
+    a: Float[Array, "*#batch M D"], b: Float[Array, "*#batch M E"]
 ) -> Float[Array, "*batch D E"]:
-    """`a @ b` for batches of small blocks (batch axes broadcast).
+    """`aᵀ b` for batches of small blocks (batch axes broadcast): the
+    `JᵢᵀJⱼ` blocks of a normal matrix, one per factor row.
 
-    For `K <= SMALL_BLOCK_LIMIT` the product is the sum over `k` of the outer
-    products of row `k` of `aᵀ` and row `k` of `b`: element-wise operations
+    For `M <= SMALL_BLOCK_LIMIT` the product is the sum over `k` of the outer
+    products of row `k` of `a` and row `k` of `b`: element-wise operations
     that XLA fuses into one loop over the batch, where its batched `dot`
     took 3.1 ms for 10⁴ products of `5 × 5` blocks against 0.31 ms (one
     core of the project machine; `benchmarks/gram_blocks.py` measures the
-    effect on a chain's factorisation). Larger `K` uses `a @ b`.
+    effect on a chain's factorisation). Larger `M` uses a batched `einsum`.
     """
-    K = a.shape[-1]
-    if K > SMALL_BLOCK_LIMIT:
-        return a @ b
+    M = a.shape[-2]
     # Equal ranks, so the batch axes broadcast without rank promotion.
     rank = max(a.ndim, b.ndim)
     a = a.reshape((1,) * (rank - a.ndim) + a.shape)
     b = b.reshape((1,) * (rank - b.ndim) + b.shape)
-    at = jnp.swapaxes(a, -1, -2)
-    out = at[..., 0, :, None] * b[..., 0, None, :]
-    for k in range(1, K):
-        out = out + at[..., k, :, None] * b[..., k, None, :]
+    if M > SMALL_BLOCK_LIMIT:
+        return jnp.einsum("...md,...me->...de", a, b)
+    out = a[..., 0, :, None] * b[..., 0, None, :]
+    for k in range(1, M):
+        out = out + a[..., k, :, None] * b[..., k, None, :]
     return out
 
 

@@ -18,7 +18,7 @@ from ._linear_solver import (
     normal_operator_of,
     NormalOperator,
 )
-from ._small_blocks import block_matmul
+from ._small_blocks import block_gram
 
 
 class _Term(NamedTuple):
@@ -245,7 +245,7 @@ def assemble_sparse(op: NormalOperator) -> SparseNormalState:
         if fl.residual.shape[0] == 0:
             continue
         jac = jnp.concatenate(fl.jacobians, axis=2)
-        products[i] = block_matmul(jnp.swapaxes(jac, 1, 2), jac)
+        products[i] = block_gram(jac, jac)
     parts: dict[tuple[int, int], list] = {shape: [] for shape, _ in pattern.shapes}
     for t in pattern.terms:
         prod = products[t.stack]
