@@ -50,6 +50,19 @@ the runtime costs. `--sync-dispatch` sets JAX's
     done
     python benchmarks/small_graph.py --floor --batch 1000 --repeats 5 \\
         --json benchmarks/results/small_graph_batch_floor.json
+
+`--decompose` splits one solve's time into a fixed part and a part per
+step, for the library's LM inside `jax.jit`, the `floor` and GTSAM, in one
+process: each is timed with its iteration cap at 1, 2, 3 and 4 steps (none
+converges before 5 on this graph), and a straight line through the medians
+gives `fixed_us` (its intercept) and `per_step_us` (its slope). Beside them,
+`round_trip`: a `jax.jit` with the same arguments and outputs as the `jit`
+row that computes nothing (what passing the graph in and the values out
+costs), and `flatten`: `jax.tree_util.tree_flatten` of those arguments
+alone (JAX does it on every call):
+
+    python benchmarks/small_graph.py --decompose --repeats 1000 \\
+        --json benchmarks/results/small_graph_decompose.json
 """
 
 import argparse
@@ -89,13 +102,23 @@ def gtsam_case(gtsam, graph, values):
     init = gtsam.Values()
     for i in range(len(values["x"].x())):
         init.insert(i, pose(values["x"], i))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-8)
+    params = gtsam_params(gtsam)
 
     def solve():
         return gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
 
+    solve.problem = (g, init)
     return solve, g.error
+
+
+def gtsam_params(gtsam, max_iterations: int | None = None):
+    """GTSAM's LM settings of every comparison here (relative tolerance 1e-8),
+    optionally with an iteration cap."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-8)
+    if max_iterations is not None:
+        params.setMaxIterations(max_iterations)
+    return params
 
 
 def _times(fn, repeats: int, warm_up: bool = True) -> tuple[float, float]:
@@ -202,6 +225,108 @@ def single(gtsam, repeats: int, floor: bool = False) -> list[dict]:
     print(markdown_table(rows, columns))
     print("load average", machine()["load_average"])
     return records
+
+
+def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
+    """Least-squares `(intercept, slope)` through `(steps, seconds)` points."""
+    k, t = (np.array(c, dtype=float) for c in zip(*points))
+    slope, intercept = np.polyfit(k, t, 1)
+    return float(intercept), float(slope)
+
+
+def decompose(gtsam, repeats: int) -> list[dict]:
+    """`--decompose`: fixed and per-step time of one 5-pose solve."""
+    graph, values = pose2_problem()
+    solver = eqs.LevenbergMarquardt()
+    dynamic, static = eqx.partition((graph, values), eqx.is_array)
+
+    def library(k):
+        @jax.jit
+        def run(dynamic):
+            g, v = eqx.combine(dynamic, static)
+            sol = eqs.least_squares(g, v, solver, max_steps=k, throw=False)
+            value = eqx.filter(sol.value, eqx.is_array)
+            return value, sol.stats["final_cost"], sol.stats["num_steps"]
+
+        return run
+
+    def floor(k):
+        @jax.jit
+        def run(dynamic):
+            g, v = eqx.combine(dynamic, static)
+            out, cost, steps = _floor_lm(g, v, max_steps=k)
+            return eqx.filter(out, eqx.is_array), cost, steps
+
+        return run
+
+    @jax.jit
+    def round_trip(dynamic):
+        g, v = eqx.combine(dynamic, static)
+        return eqx.filter(v, eqx.is_array), jnp.zeros(()), jnp.zeros((), int)
+
+    caps = (1, 2, 3, 4)
+    cases = {"jit": library, "floor": floor}
+    rows = []
+    for name, make in cases.items():
+        points, steps = [], []
+        for k in caps:
+            fn = make(k)
+            steps.append(int(fn(dynamic)[2]))
+            med = _times(lambda: jax.block_until_ready(fn(dynamic)), repeats)[0]
+            points.append((steps[-1], med))
+        full = make(100)
+        med_full = _times(lambda: jax.block_until_ready(full(dynamic)), repeats)[0]
+        fixed, per_step = _line(points)
+        rows.append(
+            {
+                "method": name,
+                "fixed_us": fixed * 1e6,
+                "per_step_us": per_step * 1e6,
+                "solve_us": med_full * 1e6,
+                "steps": int(full(dynamic)[2]),
+                "capped": [{"steps": s, "median_us": t * 1e6} for s, t in points],
+            }
+        )
+    if gtsam is not None:
+        solve, _ = gtsam_case(gtsam, graph, values)
+        g, init = solve.problem
+        points = []
+        for k in caps:
+            capped = gtsam_params(gtsam, k)
+            opt = gtsam.LevenbergMarquardtOptimizer(g, init, capped)
+            opt.optimize()
+            med = _times(
+                lambda: gtsam.LevenbergMarquardtOptimizer(g, init, capped).optimize(),
+                repeats,
+            )[0]
+            points.append((opt.iterations(), med))
+        opt = gtsam.LevenbergMarquardtOptimizer(g, init, gtsam_params(gtsam))
+        opt.optimize()
+        fixed, per_step = _line(points)
+        rows.append(
+            {
+                "method": "gtsam",
+                "fixed_us": fixed * 1e6,
+                "per_step_us": per_step * 1e6,
+                "solve_us": _times(solve, repeats)[0] * 1e6,
+                "steps": opt.iterations(),
+                "capped": [{"steps": s, "median_us": t * 1e6} for s, t in points],
+            }
+        )
+    trip = _times(lambda: jax.block_until_ready(round_trip(dynamic)), repeats)[0]
+    flat = _times(lambda: jax.tree_util.tree_flatten(dynamic), repeats)[0]
+    rows.append({"method": "round_trip", "solve_us": trip * 1e6})
+    rows.append({"method": "flatten", "solve_us": flat * 1e6})
+    print(
+        markdown_table(rows, ["method", "fixed_us", "per_step_us", "solve_us", "steps"])
+    )
+    print("load average", machine()["load_average"])
+    config = {"graph": "pose2 (5 SE(2) poses)", "dispatch": _dispatch()}
+    return [
+        {"benchmark": "small_graph_decompose", "config": config | {"part": r["method"]}}
+        | {"median_s": r["solve_us"] / 1e6, "compile_s": 0.0, **r}
+        for r in rows
+    ]
 
 
 def _perturbed(graph, values, rng):
@@ -466,6 +591,9 @@ def main(argv=None):
         "--floor", action="store_true", help="add the fewest-operations LM row"
     )
     parser.add_argument(
+        "--decompose", action="store_true", help="fixed and per-step time"
+    )
+    parser.add_argument(
         "--sync-dispatch",
         action="store_true",
         help="jax_cpu_enable_async_dispatch=False (set before any computation)",
@@ -483,6 +611,8 @@ def main(argv=None):
         records = other_graphs(
             gtsam, min(args.other_graphs, 3 if args.quick else 10**6), repeats
         )
+    elif args.decompose:
+        records = decompose(gtsam, repeats)
     elif args.batch:
         records = batch(gtsam, args.batch, repeats, args.mixed, args.floor)
     else:
