@@ -270,3 +270,56 @@ def test_tangent_adapter_gradient_matches_implicit_adjoint():
     g_ours = eqx.filter_jit(jax.grad(loss))(scale, "ours")
     g_optx = eqx.filter_jit(jax.grad(loss))(scale, "optx")
     np.testing.assert_allclose(np.asarray(g_optx), np.asarray(g_ours), rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------
+# Result codes
+# ---------------------------------------------------------------------------
+
+
+def test_result_codes_promote_by_name():
+    """`promote_result` maps every lineax and optimistix code to the eqsmooth
+    code of the same name, as equinox's `RESULTS.promote` does, concrete,
+    traced and batched; its name lists cover both libraries' codes."""
+    import eqsmooth as eqs
+    from eqsmooth.solve._solution import LINEAX_CODES, OPTX_CODES, promote_result
+
+    R = eqs.solve.RESULTS
+    assert len(LINEAX_CODES) == len(lx.RESULTS)
+    assert len(OPTX_CODES) == len(optx.RESULTS)
+    for parent, names in ((lx.RESULTS, LINEAX_CODES), (optx.RESULTS, OPTX_CODES)):
+        for name in names:
+            code = getattr(parent, name)
+            want = getattr(R, name)
+            assert promote_result(code) == want, name
+            assert R.promote(code) == want, name
+            traced = jax.jit(lambda c: promote_result(c) == want)(code)
+            assert bool(traced), name
+        codes = jax.tree_util.tree_map(
+            lambda *x: jnp.stack(x), *[getattr(parent, n) for n in names]
+        )
+        got = jax.vmap(promote_result)(codes)
+        want = jax.tree_util.tree_map(
+            lambda *x: jnp.stack(x), *[getattr(R, n) for n in names]
+        )
+        np.testing.assert_array_equal(
+            jax.tree_util.tree_leaves(got)[0], jax.tree_util.tree_leaves(want)[0]
+        )
+
+
+def test_tracing_a_solve_compiles_no_eager_program():
+    """Tracing a solve runs nothing eagerly: equinox's `RESULTS.promote` built
+    its lookup table inside the trace, which compiled two small programs in
+    every fresh process (the kernel sweep counted them)."""
+    from helpers import compiled_programs
+
+    import eqsmooth as eqs
+
+    graph, init = _problems()["se2"]
+    solver = eqs.LevenbergMarquardt()
+    jax.clear_caches()
+    with compiled_programs() as names:
+        jax.jit(
+            lambda g, v: eqs.least_squares(g, v, solver, throw=False).value
+        ).trace(graph, init)
+    assert names == [], names

@@ -380,3 +380,20 @@ def test_kernel_choice_scale_gradient_matches_finite_differences():
         h = 1e-6
         fd = (cost(jnp.asarray(0.4 + h)) - cost(jnp.asarray(0.4 - h))) / (2 * h)
         np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-9, err_msg=K.name)
+
+
+def test_kernel_choice_compiles_nothing():
+    """Building a `KernelChoice` transfers its index: `jnp.asarray` of a
+    Python int compiled a conversion program in every fresh process."""
+    import jax
+    from helpers import compiled_programs
+
+    import eqsmooth as eqs
+    from eqsmooth.factors._robust_kernels import KERNELS
+
+    jax.clear_caches()
+    with compiled_programs() as names:
+        choices = [eqs.factors.KernelChoice(K) for K in KERNELS]
+    assert names == [], names
+    assert [int(c.index) for c in choices] == list(range(len(KERNELS)))
+    assert all(c.index.dtype == jnp.int32 for c in choices)

@@ -26,6 +26,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._noise import AbstractNoiseModel, AbstractRobustNoise, robust_scale
@@ -489,7 +490,9 @@ class KernelChoice(AbstractKernel):
         key = kernel if isinstance(kernel, str) else kernel.__name__
         if key not in names:
             raise ValueError(f"KernelChoice: unknown kernel {kernel!r}; one of {names}")
-        self.index = jnp.asarray(names.index(key), jnp.int32)
+        # A transfer of a NumPy scalar of the final dtype: `jnp.asarray` of
+        # an int compiles a small conversion program in every fresh process.
+        self.index = jax.device_put(np.int32(names.index(key)))
 
     def rho(self, s, scale):
         branches = [lambda s, k, K=K: K().rho(s, k) for K in KERNELS]

@@ -4,6 +4,7 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import PyTree
@@ -32,6 +33,43 @@ with warnings.catch_warnings():
             "several orders of magnitude can also make it numerically singular: "
             "use float64)."
         )
+
+
+# The codes of optimistix's result enumeration, in its order; the first seven
+# are lineax's (optimistix's enumeration extends lineax's, eqsmooth's
+# extends optimistix's). `tests/test_lineax_optimistix.py` checks that the
+# lists still cover both libraries.
+LINEAX_CODES = (
+    "successful",
+    "max_steps_reached",
+    "singular",
+    "breakdown",
+    "stagnation",
+    "conlim",
+    "nonfinite_input",
+)
+OPTX_CODES = LINEAX_CODES + (
+    "nonlinear_max_steps_reached",
+    "nonlinear_divergence",
+    "nonfinite",
+)
+
+
+def promote_result(result: lx.RESULTS | optx.RESULTS) -> RESULTS:
+    """A lineax or optimistix result code as the eqsmooth code of the same name.
+
+    What `RESULTS.promote` does, written as comparisons with each parent
+    code: equinox's `promote` builds its lookup table eagerly inside the
+    trace, which compiles two tiny XLA programs in every fresh process.
+    """
+    parent = lx.RESULTS if isinstance(result, lx.RESULTS) else optx.RESULTS
+    names = LINEAX_CODES if parent is lx.RESULTS else OPTX_CODES
+    out = RESULTS.successful
+    for name in names[1:]:
+        out = RESULTS.where(
+            result == getattr(parent, name), getattr(RESULTS, name), out
+        )
+    return out
 
 
 class Solution(eqx.Module):

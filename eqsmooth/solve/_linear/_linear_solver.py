@@ -30,7 +30,7 @@ from .._linearization import (
     zeros_tangent,
 )
 from .._misc import nan_derivative_if
-from .._solution import RESULTS
+from .._solution import promote_result, RESULTS
 
 
 class NormalOperator(lx.AbstractLinearOperator):
@@ -262,7 +262,7 @@ def solve_normal(
         for k, v in value.items()
     }
     result = lx.RESULTS.where(finite, lx_result, lx.RESULTS.singular)
-    return value, RESULTS.promote(result)
+    return value, promote_result(result)
 
 
 def normal_operator_of(operator: lx.AbstractLinearOperator, who: str) -> NormalOperator:

@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, PyTree
 from ...factors import FactorGraph
 from ...factors._graph import graph_cost
 from .._linearization import retract_values, Tangent
-from .._solution import raise_unless_successful, RESULTS, Solution
+from .._solution import promote_result, raise_unless_successful, Solution
 from ._graph_solver import manifold_residuals
 
 
@@ -122,7 +122,7 @@ def _tangent_least_squares(
         base = retract_values(base, sol.value)
         num_steps = num_steps + sol.stats["num_steps"]
     assert sol is not None
-    result = RESULTS.promote(sol.result)
+    result = promote_result(sol.result)
     stats = {
         "num_steps": num_steps,
         "initial_cost": initial_cost,
