@@ -319,7 +319,7 @@ def test_tracing_a_solve_compiles_no_eager_program():
     solver = eqs.LevenbergMarquardt()
     jax.clear_caches()
     with compiled_programs() as names:
-        jax.jit(
-            lambda g, v: eqs.least_squares(g, v, solver, throw=False).value
-        ).trace(graph, init)
+        jax.jit(lambda g, v: eqs.least_squares(g, v, solver, throw=False).value).trace(
+            graph, init
+        )
     assert names == [], names
