@@ -67,4 +67,6 @@ def _stack(*xs):
         host = [np.asarray(x) for x in xs]
     except jax.errors.TracerArrayConversionError:
         return jnp.stack(xs)
-    return jnp.asarray(np.stack(host))
+    # `device_put`, not `jnp.asarray`: the latter compiles a small copy
+    # program per shape in every fresh process.
+    return jax.device_put(np.stack(host))

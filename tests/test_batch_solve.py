@@ -116,3 +116,21 @@ def test_stack_trees_stacks_concrete_and_traced_leaves_alike():
         )
     )(3.0)
     np.testing.assert_allclose(mixed_grad, 2 * 3.0 * 4.0 * 2)
+
+
+def test_stack_trees_of_concrete_leaves_compiles_nothing():
+    """Host stacking transfers the result: `jnp.asarray` of the stacked NumPy
+    array compiled a small copy program per shape in every fresh process."""
+    import jax
+    from helpers import compiled_programs
+
+    trees = [
+        {"a": jnp.full((2, 3), float(i)), "n": jnp.asarray([i], jnp.int32)}
+        for i in range(4)
+    ]
+    jax.clear_caches()
+    with compiled_programs() as names:
+        stacked = eqs.learn.stack_trees(trees)
+    assert names == [], names
+    assert stacked["a"].shape == (4, 2, 3) and stacked["n"].dtype == jnp.int32
+    np.testing.assert_array_equal(stacked["n"][:, 0], np.arange(4))
