@@ -141,23 +141,49 @@ _sim_jac = jax.jit(
 )
 
 
+class NonFiniteSimulation(Exception):
+    """The simulation (or its Jacobian) at some parameters is not finite."""
+
+
 def fit_output_error(u, y, model, theta0, extras=(), bounds=None) -> dict:
     """Simulation-error least squares with the exact Jacobian:
     Levenberg-Marquardt, or a trust-region method within `bounds` (a pair of
-    arrays) when given."""
+    arrays) when given.
+
+    A fit whose simulation or Jacobian becomes non-finite on the way (a
+    start, or a trial step, where a tank level runs negative or an exponent
+    overflows) stops there: it is returned with `rmse = inf` and the reason
+    in `failed`, so that a multi-start refit can drop it."""
     from scipy.optimize import least_squares
 
     u, y, extras = jnp.asarray(u), np.asarray(y), tuple(extras)
     theta0 = np.asarray(theta0, float)
     if bounds is not None:
         theta0 = np.clip(theta0, *bounds)
-    res = least_squares(
-        lambda th: np.asarray(_sim(jnp.asarray(th), u, model, extras)[0]) - y,
-        theta0,
-        jac=lambda th: np.asarray(_sim_jac(jnp.asarray(th), u, model, extras)),
-        method="lm" if bounds is None else "trf",
-        **({} if bounds is None else {"bounds": bounds}),
-    )
+
+    def finite(what, value, th):
+        if not np.all(np.isfinite(value)):
+            raise NonFiniteSimulation(f"the {what} at {np.round(th, 4).tolist()}")
+        return value
+
+    def residual(th):
+        out = np.asarray(_sim(jnp.asarray(th), u, model, extras)[0]) - y
+        return finite("simulation", out, th)
+
+    def jacobian(th):
+        out = np.asarray(_sim_jac(jnp.asarray(th), u, model, extras))
+        return finite("simulation's Jacobian", out, th)
+
+    try:
+        res = least_squares(
+            residual,
+            theta0,
+            jac=jacobian,
+            method="lm" if bounds is None else "trf",
+            **({} if bounds is None else {"bounds": bounds}),
+        )
+    except NonFiniteSimulation as err:
+        return {"theta": theta0, "rmse": np.inf, "failed": f"not finite: {err}"}
     return {"theta": res.x, "rmse": float(np.sqrt(np.mean(res.fun**2)))}
 
 
@@ -469,6 +495,12 @@ def add_and_show(theta, d, model, named_candidates, grid) -> dict:
         starts = _starts(theta, cand, grid)
         bounds = refit_bounds(extras, grid)
         fits = [fit_output_error(u, y, model, th0, extras, bounds) for th0 in starts]
+        failed = [f["failed"] for f in fits if "failed" in f]
+        if len(failed) == len(fits):
+            raise RuntimeError(
+                f"refit after adding {cand.name!r}: every one of the {len(fits)} "
+                f"starts failed; the first: {failed[0]}"
+            )
         refit = min(fits, key=lambda f: f["rmse"])
         theta = refit["theta"]
         val = validation_rmse(theta, d["u_val"], d["y_val"], model, extras)
@@ -478,6 +510,7 @@ def add_and_show(theta, d, model, named_candidates, grid) -> dict:
                 "parameters": _describe(theta, extras),
                 "k": np.exp(theta[:3]).tolist(),
                 "starts": len(starts),
+                "failed_starts": failed,
                 "estimation_rmse": refit["rmse"],
                 "validation_rmse": val["rmse"],
             }
@@ -544,6 +577,8 @@ def main() -> int:
     # 1. The nominal model, fitted by simulation error on the estimation record.
     theta0 = np.array([np.log(0.05), np.log(0.05), np.log(0.05), y[0], y[0]])
     nominal = fit_output_error(u, y, model, theta0)
+    if "failed" in nominal:
+        raise RuntimeError(f"the nominal fit failed: {nominal['failed']}")
     theta = nominal["theta"]
     val_before = validation_rmse(theta, d["u_val"], d["y_val"], model)
     print(
@@ -557,10 +592,12 @@ def main() -> int:
     grid = [c.profiled.value for c in wf["library"] if c.profiled is not None]
     after = add_and_show(theta, d, model, wf["named_candidates"], sorted(set(grid)))
     for row in after["stages"]:
+        dropped = len(row["failed_starts"])
         print(
             f"+ {row['added']}: estimation RMSE {row['estimation_rmse']:.3f} V, "
             f"validation RMSE {row['validation_rmse']:.3f} V "
             f"(nominal {val_before['rmse']:.3f} V)"
+            + (f"; {dropped} of {row['starts']} starts not finite" if dropped else "")
         )
     summary = {
         "command": "python " + " ".join(sys.argv),
