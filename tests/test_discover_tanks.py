@@ -65,6 +65,19 @@ def test_user_candidates_have_the_right_shapes(ex):
     assert {c.target for c in library} == {"rate", "measurement"}
 
 
+def test_fit_output_error_drops_a_non_finite_start(ex, data):
+    """A start whose simulation is not finite (here k₁ = e⁸⁰⁰ overflows)
+    comes back as a failed fit with an infinite RMSE and the reason, for the
+    multi-start refit to drop; scipy stopped the whole example on one."""
+    model = ex.tank_model(data["ts"])
+    y0 = float(data["y_est"][0])
+    theta0 = np.array([800.0, np.log(0.05), np.log(0.05), y0, y0])
+    fit = ex.fit_output_error(data["u_est"], data["y_est"], model, theta0)
+    assert fit["rmse"] == math.inf
+    assert fit["failed"].startswith("not finite: the simulation at")
+    np.testing.assert_array_equal(fit["theta"], theta0)
+
+
 @pytest.mark.slow
 def test_quick_example_runs(data, tmp_path):
     out = subprocess.run(
