@@ -83,6 +83,17 @@ jax.config.update("jax_enable_x64", True)
 
 def gtsam_case(gtsam, graph, values):
     """A GTSAM solve of the same factors: `(solve, cost_of_result)`."""
+    g, init = gtsam_problem(gtsam, graph, values)
+    params = gtsam_params(gtsam)
+
+    def solve():
+        return gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
+
+    return solve, g.error
+
+
+def gtsam_problem(gtsam, graph, values):
+    """The same factors and initial values in GTSAM: `(graph, values)`."""
     g = gtsam.NonlinearFactorGraph()
     prior, between = graph.factors
 
@@ -102,13 +113,7 @@ def gtsam_case(gtsam, graph, values):
     init = gtsam.Values()
     for i in range(len(values["x"].x())):
         init.insert(i, pose(values["x"], i))
-    params = gtsam_params(gtsam)
-
-    def solve():
-        return gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
-
-    solve.problem = (g, init)
-    return solve, g.error
+    return g, init
 
 
 def gtsam_params(gtsam, max_iterations: int | None = None):
@@ -268,12 +273,12 @@ def decompose(gtsam, repeats: int) -> list[dict]:
     cases = {"jit": library, "floor": floor}
     rows = []
     for name, make in cases.items():
-        points, steps = [], []
+        points = []
         for k in caps:
             fn = make(k)
-            steps.append(int(fn(dynamic)[2]))
+            steps = int(fn(dynamic)[2])
             med = _times(lambda: jax.block_until_ready(fn(dynamic)), repeats)[0]
-            points.append((steps[-1], med))
+            points.append((steps, med))
         full = make(100)
         med_full = _times(lambda: jax.block_until_ready(full(dynamic)), repeats)[0]
         fixed, per_step = _line(points)
@@ -289,7 +294,7 @@ def decompose(gtsam, repeats: int) -> list[dict]:
         )
     if gtsam is not None:
         solve, _ = gtsam_case(gtsam, graph, values)
-        g, init = solve.problem
+        g, init = gtsam_problem(gtsam, graph, values)
         points = []
         for k in caps:
             capped = gtsam_params(gtsam, k)
