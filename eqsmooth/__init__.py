@@ -85,4 +85,4 @@ from .solve import (
 )
 
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

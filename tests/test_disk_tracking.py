@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eqsmooth.experiments.disk_tracking import data as D
+from experiments.disk_tracking import data as D
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +125,7 @@ def test_model_shapes_and_noise_heads():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.disk_tracking import models as M
+    from experiments.disk_tracking import models as M
 
     @eqx.filter_jit  # one program for the models' set-up and one for their outputs
     def build(key):
@@ -176,7 +176,7 @@ def test_smoother_beats_its_measurements():
     import jax.numpy as jnp
 
     import eqsmooth as eqs
-    from eqsmooth.experiments.disk_tracking import models as M
+    from experiments.disk_tracking import models as M
 
     f = D.generate_fold(seed=0, fold=0, num_sequences=8, num_frames=20)
     truth = jnp.asarray(f.states, jnp.float64)
@@ -200,7 +200,7 @@ def test_out_of_view_factor():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.disk_tracking import models as M, train as T
+    from experiments.disk_tracking import models as M, train as T
 
     # Which factor a method name asks for, and a clear error for others.
     assert T.view_factor("smoother_hetero_surrogate_learndyn") is None
@@ -254,7 +254,7 @@ def test_out_of_view_factor():
 def _simulate(rng, n: int, frames: int, spread: float) -> np.ndarray:
     """`n` disk trajectories `(n, frames, 4)` from the generator's dynamics,
     started uniformly within `±spread` px."""
-    from eqsmooth.experiments.disk_tracking import data as D
+    from experiments.disk_tracking import data as D
 
     states = []
     for _ in range(n):
@@ -279,7 +279,7 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
     import jax.numpy as jnp
 
     import eqsmooth as eqs
-    from eqsmooth.experiments.disk_tracking import models as M, train as T
+    from experiments.disk_tracking import models as M, train as T
 
     class Gate(eqs.learn.AbstractNoiseHead):
         def __call__(self, features):
@@ -315,7 +315,7 @@ def test_out_of_view_smoother_starts_from_the_gaussian_map():
 
 
 def test_method_names_choose_the_surrogate_steps():
-    from eqsmooth.experiments.disk_tracking import train
+    from experiments.disk_tracking import train
 
     cfg = train.Config()
     assert train.surrogate_steps(cfg, "smoother_hetero_surrogate") == 3
@@ -329,7 +329,7 @@ def test_method_names_choose_the_surrogate_steps():
 
 
 def test_splits_keep_the_test_fold_out():
-    from eqsmooth.experiments.disk_tracking import train
+    from experiments.disk_tracking import train
 
     cfg = train.Config(sequences_per_fold=10, num_frames=3, num_folds=4)
     tr, va, te = train.make_splits(cfg, test_fold=2, cache_dir=None)
@@ -373,7 +373,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
     import equinox as eqx
     import jax
 
-    from eqsmooth.experiments.disk_tracking import protocol, report, train
+    from experiments.disk_tracking import protocol, report, train
 
     cfg = train.Config(
         test_folds=(0,),
@@ -472,7 +472,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
 
     # Fresh-data confirmation from the committed sensor: the finished heads
     # are reloaded from `work` (no retraining here), evaluated on fold 10.
-    from eqsmooth.experiments.disk_tracking import fresh
+    from experiments.disk_tracking import fresh
 
     with jax.numpy_dtype_promotion("standard"):
         path = fresh.run(cfg, 0, out, work, cache, log=lambda *a: None)
@@ -490,7 +490,7 @@ def test_tiny_fold_runs_and_resumes(tmp_path):
 def test_docs_table_is_the_committed_results(tmp_path):
     import shutil
 
-    from eqsmooth.experiments.disk_tracking import report
+    from experiments.disk_tracking import report
 
     root = Path(__file__).resolve().parents[1]
     results = root / "results" / "disk"
@@ -524,7 +524,7 @@ def test_online_methods_run_the_fixed_lag_smoother():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.disk_tracking import train as T
+    from experiments.disk_tracking import train as T
 
     assert T.online_lag("online_hetero_lag10") == 10
     with pytest.raises(ValueError, match="not an online method"):
@@ -559,7 +559,7 @@ def test_online_methods_run_the_fixed_lag_smoother():
 def test_online_summary_pairs_folds(tmp_path):
     import json
 
-    from eqsmooth.experiments.disk_tracking import online
+    from experiments.disk_tracking import online
 
     rmse = {  # per fold: EKF, batch smoother, lag 1, lag 10
         0: (3.0, 1.9, 3.1, 2.5),
@@ -591,7 +591,7 @@ def test_online_summary_pairs_folds(tmp_path):
 
 
 def test_ablation_pairs_are_reported():
-    from eqsmooth.experiments.disk_tracking import report
+    from experiments.disk_tracking import report
 
     summary = {
         "smoother_hetero_surrogate": report.mean_se([2.0, 2.2]),
@@ -618,7 +618,7 @@ def test_ablation_pairs_are_reported():
 def test_seed_summary_pools_within_fold_spread(tmp_path):
     import json
 
-    from eqsmooth.experiments.disk_tracking import seeds
+    from experiments.disk_tracking import seeds
 
     base, root = tmp_path / "disk", tmp_path / "seeds"
     # (smoother, LSTM) test RMSE per run and fold; fold 2 only in seed 0.

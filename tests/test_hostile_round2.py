@@ -456,7 +456,7 @@ _ROW = "1 0 0 0 0 1 0 0 0 0 1 0"
 
 
 def _read_poses(tmp_path, text):
-    from eqsmooth.experiments.kitti_vo.data import read_poses
+    from experiments.kitti_vo.data import read_poses
 
     path = tmp_path / "00.txt"
     path.write_text(text)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eqsmooth.experiments.kitti_vo import data as D
+from experiments.kitti_vo import data as D
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
@@ -184,7 +184,7 @@ def test_real_kitti_poses():
 
 
 def _tiny_windows(B=2, T=5):
-    from eqsmooth.experiments.kitti_vo import experiment as E, models as M
+    from experiments.kitti_vo import experiment as E, models as M
 
     rng = np.random.default_rng(0)
     xyt = _toy_path(T + 1)
@@ -203,7 +203,7 @@ def _tiny_windows(B=2, T=5):
 def test_summary_and_docs_table_come_from_fold_json(tmp_path):
     import json
 
-    from eqsmooth.experiments.kitti_vo import report
+    from experiments.kitti_vo import report
 
     def fold(k, trans, rot):
         rows = {
@@ -241,7 +241,7 @@ def test_summary_and_docs_table_come_from_fold_json(tmp_path):
 def test_derived_rows_are_paired_per_fold(tmp_path):
     import json
 
-    from eqsmooth.experiments.kitti_vo import report
+    from experiments.kitti_vo import report
 
     methods = ["smoother_hetero_e2e", "ekf_hetero"]
     for k, late in enumerate([0.02, 0.04, 0.03]):
@@ -275,7 +275,7 @@ def test_rescore_rule_and_method_key():
     method's initialisation key does not depend on the run's method list."""
     import jax
 
-    from eqsmooth.experiments.kitti_vo import experiment as E
+    from experiments.kitti_vo import experiment as E
 
     old = {"trans_m_per_m": 0.2, "rot_deg_per_m": 0.1, "best_step": 100}
     old["trans_m_per_m_windows"] = [0.2]
@@ -294,7 +294,7 @@ def test_rescore_rule_and_method_key():
         "rot_deg_per_m": 0.2,
     }
     assert "trans_m_per_m_whole" not in old  # the earlier record is not mutated
-    from eqsmooth.experiments.kitti_vo import report
+    from experiments.kitti_vo import report
 
     (line,) = report.rescored_lines([{"rows": {"ekf_hetero": row}}])
     assert "ekf_hetero (1 folds; largest |Δ| 0.1000 m/m, 0.1000 deg/m)" in line
@@ -312,7 +312,7 @@ def test_rescore_rule_and_method_key():
 def test_declared_criterion_of_a_variant(tmp_path):
     import json
 
-    from eqsmooth.experiments.kitti_vo import report
+    from experiments.kitti_vo import report
 
     keys = ("trans_m_per_m", "rot_deg_per_m", "trans_m_per_m_whole")
     keys += ("rot_deg_per_m_whole",)
@@ -349,7 +349,7 @@ def _check_losses():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.kitti_vo import models as M
+    from experiments.kitti_vo import models as M
 
     w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
     sig = np.array([1.0, 0.1])
@@ -385,7 +385,7 @@ def _check_session_30_rows():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.kitti_vo import experiment as E, models as M
+    from experiments.kitti_vo import experiment as E, models as M
     from eqsmooth.factors import vehicle_motion
 
     w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
@@ -440,7 +440,7 @@ def test_sensor_shapes():
     import jax
     import jax.numpy as jnp
 
-    from eqsmooth.experiments.kitti_vo import models as M
+    from experiments.kitti_vo import models as M
 
     sensor = M.VelocitySensor(jax.random.key(0))
     pair = jnp.zeros((2,) + D.IMAGE_SHAPE, jnp.uint8)
@@ -479,7 +479,8 @@ def _fake_release(root: Path, num_frames: int) -> None:
 
 
 def test_real_data_dir_runs_end_to_end(tmp_path):
-    """`07_kitti_vo.py --quick --real-data-dir` on a generated release tree:
+    """`python -m experiments.kitti_vo --quick --real-data-dir` on a generated
+    release tree:
     the protocol as shipped, from the loader to the fold's JSON."""
     import json
     import subprocess
@@ -492,11 +493,11 @@ def test_real_data_dir_runs_end_to_end(tmp_path):
         pytest.skip(f"KITTI ground-truth poses not found in {D.DEFAULT_POSES_DIR}")
     release, out = tmp_path / "release", tmp_path / "out"
     _fake_release(release, num_frames=260)  # sequence 04 has 271
-    script = Path(__file__).resolve().parents[1] / "examples" / "07_kitti_vo.py"
     run = subprocess.run(
         [
             sys.executable,
-            str(script),
+            "-m",
+            "experiments.kitti_vo",
             "--quick",
             "--real-data-dir",
             str(release),
@@ -504,6 +505,7 @@ def test_real_data_dir_runs_end_to_end(tmp_path):
             str(out),
         ],
         env=child_env(),
+        cwd=Path(__file__).resolve().parents[1],
         capture_output=True,
         text=True,
         timeout=900,

@@ -1,5 +1,5 @@
-"""Real pendulum recording: what examples/06_discover_pendulum.py relies on
-(its stages are in eqsmooth/experiments/pendulum_friction/).
+"""Real pendulum recording: what `python -m experiments.pendulum_friction` relies on
+(its stages are in experiments/pendulum_friction/).
 
 The data (../shared/data/pendulum, MultiArm-Pendulum benchmark, Kaheman et
 al. 2022) is not part of the repository; the tests that read it skip when it
@@ -9,7 +9,7 @@ is absent.
 import numpy as np
 import pytest
 
-from eqsmooth.experiments.pendulum_friction import data as D, energy as EN, model as M
+from experiments.pendulum_friction import data as D, energy as EN, model as M
 
 
 @pytest.fixture(scope="module")

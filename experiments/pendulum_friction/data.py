@@ -10,9 +10,10 @@ import numpy as np
 
 import eqsmooth.discover as dc
 
+from .._data import data_root
 
-REPO = Path(__file__).resolve().parents[3]  # the source checkout
-DEFAULT_DATA = REPO.parent / "shared/data/pendulum/single_pendulum_freeswing_1khz.mat"
+
+DEFAULT_DATA = data_root() / "pendulum" / "single_pendulum_freeswing_1khz.mat"
 SOURCE = "https://github.com/dynamicslab/MultiArm-Pendulum"
 
 

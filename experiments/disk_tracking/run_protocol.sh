@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Run the disk tracking protocol fold by fold and commit each finished fold.
 #
-#   bash examples/run_disk_protocol.sh [FOLD ...]    # default: 0..9
+#   bash experiments/disk_tracking/run_protocol.sh [FOLD ...]    # default: 0..9
 #
-# Each fold is one call of examples/04_disk_tracking.py (resumable: a killed
+# Each fold is one call of experiments/disk_tracking/__main__.py (resumable: a killed
 # fold continues where its checkpoints left it when this script is started
 # again; finished folds are skipped). After a fold finishes, its results
 # (results/disk/fold_K.json, fold_K.log, sensor_foldK.eqx), the summary, the
@@ -18,7 +18,7 @@ for k in "${folds[@]}"; do
     echo "fold ${k}: already committed or finished, skipped"
     continue
   fi
-  "$python" examples/04_disk_tracking.py --folds "$k" --out results/disk \
+  "$python" experiments/disk_tracking/__main__.py --folds "$k" --out results/disk \
       --docs docs/tutorial/disk-tracking.md
   git add results/disk docs/tutorial/disk-tracking.md
   minutes=$("$python" -c "import json; print(round(json.load(open('results/disk/fold_${k}.json'))['timings']['total_s'] / 60, 1))")

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._data import data_root, require
+
 
 SEQUENCES = (0, 2, 3, 4, 5, 6, 7, 8, 9, 10)  # fold f tests on SEQUENCES[f]
 # Frames per sequence (KITTI odometry ground truth, 00..10).
@@ -46,9 +48,8 @@ PRETRAIN_HOLDOUT = 205  # sensor pretraining: all frames but the last 205
 SMOOTHER_FRAMES = 200  # smoother / EKF training: the last 200 frames
 EVAL_WINDOW = 100  # evaluation subsequences (states)
 
-# In a source checkout: ../shared/data beside the repository.
-DEFAULT_POSES_DIR = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
-DEFAULT_POSES_DIR = (DEFAULT_POSES_DIR / "kitti_poses").resolve()
+# $EQSMOOTH_DATA/kitti_poses, or ../shared/data/kitti_poses beside the checkout.
+DEFAULT_POSES_DIR = data_root() / "kitti_poses"
 
 
 # ---------------------------------------------------------------------------
@@ -732,13 +733,13 @@ def rendered_sequence(
 ) -> list[Trajectory]:
     """The two camera trajectories of a sequence, with rendered views
     (of the default world, or of a data variant in `VARIANTS`)."""
-    path = Path(poses_dir) / f"{seq:02d}.txt"
-    if not path.exists():
-        raise FileNotFoundError(
-            f"{path} not found: pass --poses-dir, the folder of the KITTI odometry "
-            "ground-truth poses 00.txt..10.txt (from the KITTI odometry benchmark's "
-            "'ground truth poses' download)"
-        )
+    path = require(
+        Path(poses_dir) / f"{seq:02d}.txt",
+        f"the KITTI ground-truth poses of sequence {seq:02d}",
+        "the KITTI odometry benchmark's 'ground truth poses' download "
+        "(00.txt..10.txt)",
+        "--poses-dir",
+    )
     xyt = poses_to_2d(read_poses(path))
     renderer = Renderer(xyt, seed, seq, variant)
     return [

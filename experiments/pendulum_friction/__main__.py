@@ -23,7 +23,7 @@ plus viscous friction) is fitted the same way, and its rate printed next to
 the published 0.067 s^-1. A model-free check of the friction law comes from
 the energy lost per swing. Writes `report.json` and `pendulum.png`; the
 story is in docs/tutorial/pendulum.md. The stages live in
-`eqsmooth/experiments/pendulum_friction/` (data and calibration, model and candidates,
+`experiments/pendulum_friction/` (data and calibration, model and candidates,
 energy balance, experiment, report); this script runs them.
 
 Runtime on 2 CPU cores: about 1 minute with `--quick` (the first 4 s of each
@@ -32,12 +32,13 @@ minutes when the cores are shared), about 4 minutes without (full 9.2 s
 segments); mostly compilation. Both use 100 Hz: at 25-50 Hz the angle noise
 cannot be told from process noise and its fitted scale runs off to zero.
 
-    python examples/06_discover_pendulum.py --quick --out results/pendulum
+    python -m experiments.pendulum_friction --quick --out results/pendulum
 
 Data: `single_pendulum_freeswing_1khz.mat` from the MultiArm-Pendulum
 benchmark (https://github.com/dynamicslab/MultiArm-Pendulum, MIT licence),
 expected at `../shared/data/pendulum/` next to the repository (or pass
-`--data PATH`). Without it the script says so and exits with status 0.
+`--data PATH`, or set `EQSMOOTH_DATA` to the folder that holds `pendulum/`).
+Without it the script stops with an error that names the path it looked at.
 """
 
 import argparse
@@ -51,8 +52,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 
-from eqsmooth.experiments.pendulum_friction import experiment as E, report as R  # noqa: E402
-from eqsmooth.experiments.pendulum_friction.data import DEFAULT_DATA  # noqa: E402
+from .._data import require  # noqa: E402
+from . import experiment as E, report as R  # noqa: E402
+from .data import DEFAULT_DATA, SOURCE  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -78,9 +80,10 @@ def parse_args(argv=None):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    if not args.data.is_file():
-        print(R.missing_data(args.data))
-        return 0
+    try:
+        require(args.data, "the pendulum recording", f"{SOURCE} (MIT licence)", "--data")
+    except FileNotFoundError as error:
+        sys.exit(f"error: {error}")
     start = time.perf_counter()
     prepared = E.prepare(args.data, args.rate, args.omega0_sq, args.quick)
     print(R.data_line(prepared))

@@ -243,7 +243,7 @@ def generate_fold(
     - `render_chunk`: images rendered at once to count visible pixels
         (bounds memory to `render_chunk × 43 kB`).
 
-    **Returns:** a [`DiskFold`][eqsmooth.experiments.disk_tracking.data.DiskFold].
+    **Returns:** a [`DiskFold`][experiments.disk_tracking.data.DiskFold].
     """
     if num_sequences < 1 or num_frames < 1:
         raise ValueError(
@@ -290,7 +290,7 @@ def load_fold(
     cache_dir: Path | None = None,
     verbose: bool = False,
 ) -> DiskFold:
-    """[`generate_fold`][eqsmooth.experiments.disk_tracking.data.generate_fold],
+    """[`generate_fold`][experiments.disk_tracking.data.generate_fold],
     optionally cached as `.npz` under `cache_dir`.
 
     The cache holds states and counts only (a few MB per fold); images are

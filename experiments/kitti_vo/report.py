@@ -97,7 +97,7 @@ def write_summary(out: Path) -> str:
         f"Folds: {summary['folds']} ({len(results)}/10). Mean ± std/√n over folds. "
         "The paper's columns are its code release's per-fold results on the real "
         "KITTI images (mean ± std/√n over its folds; "
-        "eqsmooth/experiments/kitti_vo/paper_code_release.json): a different "
+        "experiments/kitti_vo/paper_code_release.json): a different "
         "experiment, "
         "whose checkpoints were selected on the test trajectory itself and whose "
         "LSTM was scored per batch.",
@@ -497,7 +497,7 @@ def declared_lines(c: dict) -> list[str]:
         "selected on the validation sequence only"
         + ("" if c["validate_all_folds"] else " (NOT on every fold: see configs)")
         + "; no head or hyperparameter was chosen on this variant's data: all "
-        "are the defaults of eqsmooth/experiments/kitti_vo/experiment.Config, "
+        "are the defaults of experiments/kitti_vo/experiment.Config, "
         "fixed before "
         "its first fold (settled earlier on the default rendered data).",
         "",

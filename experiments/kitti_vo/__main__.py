@@ -14,7 +14,7 @@ Data: the KITTI images are not available here, so by default the views are
 of sequences 00-10 (`--poses-dir`, default `../shared/data/kitti_poses`,
 from the KITTI odometry benchmark's ground-truth download) drive a camera
 over a procedural world with per-frame nuisances
-(eqsmooth/experiments/kitti_vo/data.py).
+(experiments/kitti_vo/data.py).
 Results on it are not the paper's experiment. With `--real-data-dir` the
 preprocessed KITTI-10 release of the paper's code is read instead.
 
@@ -29,9 +29,9 @@ Runtime on 2 CPU cores: --quick (fold 3, test sequence 04, two training
 sequences, one camera, a few dozen steps) a few minutes; a full fold is
 budgeted at 90 minutes.
 
-    python examples/07_kitti_vo.py --quick --out /tmp/kitti_quick
-    python examples/07_kitti_vo.py --folds 0 1 --out results/kitti
-    python examples/07_kitti_vo.py --variant reliability --folds 0 \
+    python -m experiments.kitti_vo --quick --out /tmp/kitti_quick
+    python -m experiments.kitti_vo --folds 0 1 --out results/kitti
+    python -m experiments.kitti_vo --variant reliability --folds 0 \
         --out results/kitti_variant   # the pre-declared data variant
 """
 
@@ -41,8 +41,8 @@ from pathlib import Path
 
 import jax
 
-from eqsmooth.experiments._cli import experiment_parser
-from eqsmooth.experiments.kitti_vo import data as D, experiment as E, report
+from experiments._cli import experiment_parser
+from experiments.kitti_vo import data as D, experiment as E, report
 
 
 def parse_args(argv=None):

@@ -16,8 +16,8 @@ training only stages that have no finished checkpoint); `summary.json` /
 `summary.md` (mean ± std/√n over the finished folds) and the figures are
 rewritten after each fold.
 
-    python examples/04_disk_tracking.py --quick --out results/disk_quick   # ~5 min
-    python examples/04_disk_tracking.py --folds 0 --out results/disk        # one fold
+    python -m experiments.disk_tracking --quick --out results/disk_quick   # ~5 min
+    python -m experiments.disk_tracking --folds 0 --out results/disk        # one fold
 """
 
 import argparse
@@ -25,8 +25,8 @@ import dataclasses
 import json
 from pathlib import Path
 
-from eqsmooth.experiments._cli import experiment_parser
-from eqsmooth.experiments.disk_tracking import (
+from experiments._cli import experiment_parser
+from experiments.disk_tracking import (
     fresh,
     online,
     protocol,

@@ -8,20 +8,12 @@ import numpy as np
 
 import eqsmooth.discover as dc
 
-from .data import SOURCE
 from .experiment import Prepared
 from .model import SIGMA_A
 
 
 PUBLISHED_OMEGA0_SQ = 64.2  # s^-2 (Kaheman et al. 2022)
 PUBLISHED_VISCOUS_RATE = 0.067  # s^-1
-
-
-def missing_data(path: Path) -> str:
-    return (
-        f"no pendulum data at {path}: download single_pendulum_freeswing_1khz"
-        f".mat from {SOURCE} (see ../shared/data/README.md) and pass --data PATH."
-    )
 
 
 def data_line(p: Prepared) -> str:

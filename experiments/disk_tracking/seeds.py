@@ -6,7 +6,7 @@ key rows are trained again, on the committed sensors (the sensor is not
 retrained: this is the heads' seed variance, given the sensor), with other
 model seeds (initialisation and batch order):
 
-    python examples/04_disk_tracking.py --sensor-from results/disk \\
+    python -m experiments.disk_tracking --sensor-from results/disk \\
         --model-seed S --folds 0 1 2 --methods ... \\
         --out results/disk_seeds/seedS --work runs/disk_seedS
 

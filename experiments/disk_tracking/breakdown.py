@@ -6,7 +6,7 @@ RMSE split by the number of visible target pixels, the hidden frames split
 into "target outside the image" and "target occluded inside it", and the
 share of the squared error that the worst 1 % / 5 % of sequences carry.
 
-    python -m eqsmooth.experiments.disk_tracking.breakdown --fold 1 --work runs/disk
+    python -m experiments.disk_tracking.breakdown --fold 1 --work runs/disk
 """
 
 import argparse
