@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Small-graph batches on a lent GPU, GTSAM on the same host's CPU, in one
-# command (session 32). Run from the repository root on the device machine,
-# with the GTSAM wheel in .whl/ (see docs/performance.md):
+# command (first run 2026-11-28, commit 1a1f8c2). Run from the repository
+# root on the device machine, with the GTSAM wheel in .whl/ (see
+# docs/performance.md, "On a GPU"):
 #     bash benchmarks/run_gpu.sh
 # Writes its JSON to $OUT (the device tool's output folder) or benchmarks/results.
 set -u
@@ -18,7 +19,8 @@ if [ "${1:-}" != "second" ]; then
   JAX_PLATFORMS=cpu timeout 90 python3 small_graph.py --batch 1000 --floor --repeats 5 --json $out/small_graph_batch_devcpu.json
 fi
 if [ "${1:-}" = "tenk" ]; then
-  # Session 33: the 10,000-graph batch alone, its graphs built on the host.
+  # The 10,000-graph batch alone, its graphs built on the host (added
+  # 2026-11-28, commit 3b36e1c).
   timeout 400 python3 small_graph.py --batch 10000 --floor --repeats 5 --json $out/small_graph_batch_10000_gpu.json
   exit
 fi

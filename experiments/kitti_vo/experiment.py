@@ -40,7 +40,7 @@ METHODS = (
     "ekf_hetero",
     "ekf_const",
     "lstm",
-    # Added in session 30 (issue 33): the end-to-end smoothers trained with
+    # Added on 2026-11-27 (issue 33): the end-to-end smoothers trained with
     # the surrogate loss on the velocities instead of the positions, and the
     # bidirectional LSTM.
     "smoother_hetero_e2e_vel",
@@ -286,7 +286,7 @@ def concat(ws: list[dict]) -> dict:
 def method_key(fold_key, method: str):
     """The initialisation key of a trained method: fixed by the method's place
     in `METHODS`, so that a run with `--methods` (any subset, any order)
-    trains the same model as the full protocol. (Before session 31 the key
+    trains the same model as the full protocol. (Before commit 01cf627 the key
     followed the place in the run's own list; the full protocol's order is
     `METHODS`, so its rows are unchanged.)"""
     return jax.random.fold_in(fold_key, 10 + METHODS.index(method))

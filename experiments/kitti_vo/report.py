@@ -260,7 +260,7 @@ def _paper_paired(a: str, b: str):
 
 
 def derived_lines(results: list[dict]) -> list[str]:
-    """Paired per-fold differences for the rows added in session 30: the
+    """Paired per-fold differences for the rows added on 2026-11-27: the
     code release's one-frame-late EKF scoring, the noise transferred between
     filter and smoother (the paper's Table II), the velocity loss and the
     bidirectional LSTM."""
