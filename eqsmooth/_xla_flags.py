@@ -31,7 +31,8 @@ XLA reads `XLA_FLAGS` when JAX first starts its backend, so the function
 takes effect only if called before the first JAX computation; a flag the user
 has set already is left alone. XLA aborts the process on a flag it does not
 know, so a flag is added only after a subprocess has started JAX's CPU
-backend with it.
+backend with it; a flag this jaxlib lacks is left out with a warning, and
+`eqsmooth.enable_compilation_cache` leaves it out quietly.
 """
 
 import os
@@ -44,9 +45,10 @@ _SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
-def _known_to_xla(flags: str) -> bool:
-    """Whether JAX's CPU backend starts with `XLA_FLAGS=flags` (XLA aborts the
-    process on an unknown flag, so this asks a subprocess); warns if not."""
+def _known_to_xla(flags: str) -> str | None:
+    """`None` if JAX's CPU backend starts with `XLA_FLAGS=flags`, else the end
+    of what the failed start printed (XLA aborts the process on a flag it
+    does not know, so a subprocess is asked)."""
     env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
     probe = subprocess.run(
         [sys.executable, "-c", "import jax; jax.devices('cpu')"],
@@ -54,14 +56,44 @@ def _known_to_xla(flags: str) -> bool:
         capture_output=True,
         text=True,
     )
-    if probe.returncode != 0:
-        warnings.warn(
-            f"set_xla_cpu_flags: JAX's CPU backend did not start with "
-            f"XLA_FLAGS={flags!r}, so the flag was not added (this jaxlib may "
-            f"not know it). The probe's last output: {probe.stderr[-300:]!r}",
-            stacklevel=3,
-        )
-    return probe.returncode == 0
+    return None if probe.returncode == 0 else probe.stderr[-300:]
+
+
+def add_xla_flags(wanted: list[str], *, warn: bool) -> str:
+    """Append to `XLA_FLAGS` each flag of `wanted` that the user has not set
+    (to either value) and that this jaxlib knows; with `warn`, a
+    `UserWarning` names each flag left out. One probe for all the new flags,
+    and one per flag only when that probe fails. Returns the new value."""
+    current = os.environ.get("XLA_FLAGS", "")
+    new = [flag for flag in wanted if flag.split("=")[0] not in current]
+    if new and _known_to_xla(" ".join([current, *new]).strip()) is not None:
+        kept = []
+        for flag in new:
+            failure = _known_to_xla(f"{current} {flag}".strip())
+            if failure is None:
+                kept.append(flag)
+            elif warn:
+                warnings.warn(
+                    f"set_xla_cpu_flags: JAX's CPU backend did not start with "
+                    f"{flag!r} in XLA_FLAGS, so it was left out (this jaxlib, "
+                    f"{_jaxlib_version()}, may not know it); nothing else changes. "
+                    f"The probe's last output: {failure!r}",
+                    stacklevel=3,
+                )
+        new = kept
+    current = " ".join([current, *new]).strip()
+    if current:
+        os.environ["XLA_FLAGS"] = current
+    return os.environ.get("XLA_FLAGS", "")
+
+
+def _jaxlib_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"jaxlib {version('jaxlib')}"
+    except PackageNotFoundError:
+        return "jaxlib of unknown version"
 
 
 def set_xla_cpu_flags(
@@ -71,7 +103,11 @@ def set_xla_cpu_flags(
 
     XLA reads the variable when JAX starts its backend, so call this before
     the first JAX computation. A flag the user has set already (to either
-    value) is left alone.
+    value) is left alone. Every flag is added only if a subprocess starts
+    JAX's CPU backend with it, since XLA aborts the process on a flag it does
+    not know (XLA renames and retires its flags between jaxlib releases); a
+    `UserWarning` names each flag left out, and the program runs as before
+    without it.
 
     **Arguments:**
 
@@ -83,23 +119,11 @@ def set_xla_cpu_flags(
         it. Results do not change.
     - `fast_compile`: add `--xla_cpu_use_fusion_emitters=false`, XLA's
         earlier fusion emitters, which compile faster with the same run
-        times (the performance page has the figures). Added only if a subprocess starts
-        JAX's CPU backend with it, since XLA aborts on an unknown flag; a
-        `UserWarning` says when it was left out.
+        times (the performance page has the figures).
 
     **Returns:** the new value of `XLA_FLAGS`.
     """
-    current = os.environ.get("XLA_FLAGS", "")
     wanted = [_SCHEDULER_FLAG] if serial_scheduler else []
     if fast_compile:
         wanted.append(_FAST_COMPILE_FLAG)
-    for flag in wanted:
-        if flag.split("=")[0] in current:
-            continue
-        candidate = f"{current} {flag}".strip()
-        if flag == _FAST_COMPILE_FLAG and not _known_to_xla(candidate):
-            continue
-        current = candidate
-    if current:
-        os.environ["XLA_FLAGS"] = current
-    return os.environ.get("XLA_FLAGS", "")
+    return add_xla_flags(wanted, warn=True)

@@ -1,5 +1,7 @@
 import gc
+import os
 import random
+import warnings
 
 import jax
 import pytest
@@ -14,7 +16,37 @@ import eqsmooth as eqs
 # when it is imported), which no test has done yet; pytest-xdist's workers
 # set it the same way. (The jaxtyping hook is installed before conftest
 # files load, so importing eqsmooth here keeps its runtime type checks.)
-eqs.set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
+# A jaxlib that lacks the flag (XLA retires flags between releases) runs the
+# suite without it: the warning is kept for the report header, not raised.
+with warnings.catch_warnings(record=True) as _xla_flag_warnings:
+    warnings.simplefilter("always")
+    eqs.set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
+
+
+def pytest_report_header(config):
+    """The JAX this run tests, its backend and the XLA flags it runs with."""
+    import jaxlib
+
+    lines = [
+        f"jax {jax.__version__}, jaxlib {jaxlib.__version__}, default backend "
+        f"{jax.default_backend()} ({jax.devices()[0].device_kind})",
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}",
+    ]
+    return lines + [f"note: {w.message}" for w in _xla_flag_warnings]
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip tests marked `cpu_only` (they check what XLA:CPU compiles, such as
+    its LAPACK calls) when the default backend is another."""
+    backend = jax.default_backend()
+    if backend == "cpu":
+        return
+    skip = pytest.mark.skip(
+        reason=f"checks XLA:CPU's compiled program; the default backend is {backend}"
+    )
+    for item in items:
+        if item.get_closest_marker("cpu_only") is not None:
+            item.add_marker(skip)
 
 
 jax.config.update("jax_enable_x64", True)

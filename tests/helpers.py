@@ -140,3 +140,45 @@ def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
 
 def key(seed: int = 0):
     return jax.random.key(seed)
+
+
+def reduced_precision_products(fn, *args) -> list[str]:
+    """The float32 matrix products in `fn(*args)`'s program (sub-programs of
+    loops, conditionals and custom rules included) whose precision is not
+    `HIGHEST` on both operands, as `"shape x shape"` strings.
+
+    JAX's default precision lets GPUs and TPUs run a float32 product with
+    TF32 or bfloat16 operands (about three significant digits); XLA:CPU
+    ignores the setting, so this trace-time check is how a CPU run can tell
+    whether a route is right on a GPU."""
+    import jax.extend as jex
+
+    found = []
+    highest = jax.lax.Precision.HIGHEST
+
+    def subjaxprs(value):
+        if isinstance(value, jex.core.ClosedJaxpr):
+            yield value.jaxpr
+        elif isinstance(value, jex.core.Jaxpr):
+            yield value
+        elif isinstance(value, (tuple, list)):
+            for v in value:
+                yield from subjaxprs(v)
+
+    def walk(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "dot_general":
+                dtypes = {v.aval.dtype for v in eqn.invars}
+                precision = eqn.params.get("precision")
+                if jnp.dtype(jnp.float32) in dtypes and precision != (
+                    highest,
+                    highest,
+                ):
+                    shapes = " x ".join(str(v.aval.shape) for v in eqn.invars)
+                    found.append(f"{shapes} ({precision})")
+            for param in eqn.params.values():
+                for sub in subjaxprs(param):
+                    walk(sub)
+
+    walk(jax.make_jaxpr(fn)(*args).jaxpr)
+    return found

@@ -385,8 +385,8 @@ def _check_session_30_rows():
     import jax
     import jax.numpy as jnp
 
-    from experiments.kitti_vo import experiment as E, models as M
     from eqsmooth.factors import vehicle_motion
+    from experiments.kitti_vo import experiment as E, models as M
 
     w = jax.tree_util.tree_map(jnp.asarray, _tiny_windows())
     one = jax.tree_util.tree_map(lambda a: a[0], w)

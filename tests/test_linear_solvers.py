@@ -611,6 +611,7 @@ def test_block_gram_matches_matmul(M):
         np.testing.assert_allclose(g, e, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.cpu_only
 def test_chain_solve_calls_no_lapack():
     # jaxlib's batched LAPACK kernels can deadlock XLA:CPU's thread pool when two
     # run at once, and a cyclic reduction solve has one independent triangular

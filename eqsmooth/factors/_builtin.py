@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import block_diag
 from jaxtyping import Array, Float, PyTree
 
+from .._precision import matmul as mm
 from ..manifold import is_group, local, tangent_dim
 from ._factor import AbstractAnalyticFactor, AbstractFactor, shared_field
 from ._noise import AbstractNoiseModel
@@ -147,7 +148,7 @@ class BetweenFactor(AbstractAnalyticFactor):
                 e = (mean.inverse() @ x).log()
                 jr_inv = type(u).right_jacobian_inv(e)
                 pieces.append(e)
-                ja.append(-(jr_inv @ x.inverse().adjoint()))
+                ja.append(-mm(jr_inv, x.inverse().adjoint()))
                 jb.append(jr_inv)
             else:
                 e = (jnp.asarray(v) - jnp.asarray(u) - jnp.asarray(mean)).reshape(-1)

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from .._precision import matmul as mm
 from ..lie import SE2, SE3
 from ..lie._base import AbstractLieGroup
 from ._factor import AbstractFactor
@@ -139,9 +140,9 @@ def _sphere_log(measured: Array, direction: Array) -> Array:
     # bearing too small by the factor sin²(angle): -0.012 against -0.837 by
     # central differences in tests/test_gradient_contract.py.)
     basis = _sphere_basis(measured)
-    w = basis.T @ direction  # sin(angle) · unit tangent
+    w = mm(basis.T, direction)  # sin(angle) · unit tangent
     s = _norm(w)
-    c = jnp.dot(measured, direction)
+    c = mm(measured, direction)
     angle = _angle(jnp.stack([c, s]))
     small = s < 1e-8
     # angle / sin(angle) → 1 + s²/6 as s → 0 (with c > 0); the double `where`

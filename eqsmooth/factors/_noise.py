@@ -25,6 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._precision import einsum
+
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
@@ -455,8 +457,8 @@ class SqrtInformationNoise(AbstractNoiseModel):
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
         R = self.sqrt_information.astype(r.dtype)
         if R.ndim == 2:
-            return jnp.einsum("ij,nj...->ni...", R, r)
-        return jnp.einsum("nij,nj...->ni...", R, r)
+            return einsum("ij,nj...->ni...", R, r)
+        return einsum("nij,nj...->ni...", R, r)
 
     def log_det_sqrt_information(self, n: int, m: int) -> Float[Array, ""]:
         R = self.sqrt_information

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._precision import matmul as mm
 from ..lie import SE2, SO2
 from ..manifold import local
 from ._factor import AbstractAnalyticFactor, AbstractFactor
@@ -148,7 +149,7 @@ class VehicleDynamicsFactor(AbstractAnalyticFactor):
         err = (prev.pose @ step).inverse() @ next.pose
         e = err.log()
         jr_inv = SE2.right_jacobian_inv(e)
-        jr_ad = jr_inv @ err.inverse().adjoint()  # Jr⁻¹(e) Ad(E⁻¹)
+        jr_ad = mm(jr_inv, err.inverse().adjoint())  # Jr⁻¹(e) Ad(E⁻¹)
         c, s = step.unit_complex_xy[0], step.unit_complex_xy[1]
         zero = jnp.zeros_like(c)
         j_step = jnp.stack(
@@ -159,8 +160,8 @@ class VehicleDynamicsFactor(AbstractAnalyticFactor):
             ]
         )
         # Ad(E⁻¹) Ad(S⁻¹) = Ad(X⁻¹).
-        d_pose_prev = -(jr_ad @ step.inverse().adjoint())
-        d_vel_prev = -(jr_ad @ j_step)
+        d_pose_prev = -mm(jr_ad, step.inverse().adjoint())
+        d_vel_prev = -mm(jr_ad, j_step)
         eye2 = jnp.eye(2, dtype=e.dtype)
         zeros32 = jnp.zeros((3, 2), e.dtype)
         j_prev = jnp.block([[d_pose_prev, d_vel_prev], [zeros32.T, -eye2]])

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from .._precision import matmul as mm
 from ..factors import AbstractFactor
 from ..manifold import is_group, local, retract, tangent_dim
 from ._rows import (
@@ -364,30 +365,30 @@ def _update(mean, cov, factor, R, logdet_R, present, reset_covariance: bool):
     d, dtype = cov.shape[0], cov.dtype
 
     def r_w(delta):
-        return R @ factor.residual(retract(mean, delta))
+        return mm(R, factor.residual(retract(mean, delta)))
 
     r, H = _value_and_jac(r_w, d, dtype)
     m = r.shape[0]
     y = -r
-    PHt = cov @ H.T
-    S = _sym(H @ PHt + jnp.eye(m, dtype=dtype))
+    PHt = mm(cov, H.T)
+    S = _sym(mm(H, PHt) + jnp.eye(m, dtype=dtype))
     L = jnp.linalg.cholesky(S)
     K = jax.scipy.linalg.cho_solve((L, True), PHt.T).T
-    v = K @ y
+    v = mm(K, y)
     new_mean = retract(mean, v)
-    IKH = jnp.eye(d, dtype=dtype) - K @ H
-    new_cov = IKH @ cov @ IKH.T + K @ K.T
+    IKH = jnp.eye(d, dtype=dtype) - mm(K, H)
+    new_cov = mm(mm(IKH, cov), IKH.T) + mm(K, K.T)
     if reset_covariance:
 
         def moved(delta):
             return local(new_mean, retract(mean, v + delta))
 
         _, J = _value_and_jac(moved, d, dtype)
-        new_cov = J @ new_cov @ J.T
+        new_cov = mm(mm(J, new_cov), J.T)
     new_cov = _sym(new_cov)
     alpha = jax.scipy.linalg.solve_triangular(L, y, lower=True)
     ll = (
-        -0.5 * jnp.dot(alpha, alpha)
+        -0.5 * mm(alpha, alpha)
         - jnp.sum(jnp.log(jnp.diagonal(L)))
         - 0.5 * m * math.log(2 * math.pi)
         + logdet_R
@@ -405,7 +406,7 @@ def _predict(mean, cov, factor, W, prediction_steps: int):
     d, dtype = cov.shape[0], cov.dtype
 
     def r_w(a, b):
-        return W @ factor.residual(a, b)
+        return mm(W, factor.residual(a, b))
 
     b = mean
     for _ in range(prediction_steps):
@@ -418,8 +419,8 @@ def _predict(mean, cov, factor, W, prediction_steps: int):
     _, J = _value_and_jac(joint, 2 * d, dtype)
     A, B = J[:, :d], J[:, d:]
     Binv = jnp.linalg.solve(B, jnp.eye(d, dtype=dtype))
-    F = -Binv @ A
-    P = _sym(F @ cov @ F.T + Binv @ Binv.T)
+    F = -mm(Binv, A)
+    P = _sym(mm(mm(F, cov), F.T) + mm(Binv, Binv.T))
     return b, P, F
 
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from .._precision import matmul as mm
 from ..factors import (
     AbstractFactor,
     FactorGraph,
@@ -89,7 +90,7 @@ class _TangentPrior(AbstractFactor):
     offset: Float[Array, "n Sd"]
 
     def residual(self, *xs: PyTree) -> Float[Array, " Sd"]:
-        return self.sqrt_information @ _stacked_local(self.anchor, xs) + self.offset
+        return mm(self.sqrt_information, _stacked_local(self.anchor, xs)) + self.offset
 
 
 def _stacked_local(anchors: PyTree, xs) -> Array:
@@ -114,7 +115,9 @@ class _Rows(AbstractFactor):
     base: AbstractFactor = shared_field()
 
     def residual(self, *states: PyTree) -> Float[Array, " m"]:
-        return self.sqrt_information @ with_rows(self.base, self.rows).residual(*states)
+        return mm(
+            self.sqrt_information, with_rows(self.base, self.rows).residual(*states)
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,7 +234,7 @@ def _predict(model: _Model, x_prev, t, prediction_steps: int):
     for _ in range(prediction_steps):
 
         def r_w(db, b=b):
-            return W @ row.residual(x_prev, retract(b, db))
+            return mm(W, row.residual(x_prev, retract(b, db)))
 
         r, B = _value_and_jac(r_w, d, dtype)
         b = retract(b, -jnp.linalg.solve(B, r))
@@ -256,11 +259,11 @@ def _marginal_residuals(model: _Model, prior, xs, tau):
     def residuals(delta):
         ys = [retract(_slot(xs, i), delta[i * d : (i + 1) * d]) for i in range(S + 1)]
         stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *ys)
-        out = [R0 @ _stacked_local(anchor, ys[:S]) + c0]
-        out.append(model.trans_R[tau] @ trans.residual(ys[0], ys[1]))
+        out = [mm(R0, _stacked_local(anchor, ys[:S])) + c0]
+        out.append(mm(model.trans_R[tau], trans.residual(ys[0], ys[1])))
         for f, rows, R, index, active in meas:
             for k in range(active.shape[0]):
-                r = R[index[k]] @ with_rows(f, _take(rows, index[k])).residual(ys[0])
+                r = mm(R[index[k]], with_rows(f, _take(rows, index[k])).residual(ys[0]))
                 out.append(jnp.where(active[k], r, jnp.zeros_like(r)))
         for lk in model.links:
             table, mask = (jnp.asarray(a)[tau] for a in lk.early)
@@ -272,7 +275,9 @@ def _marginal_residuals(model: _Model, prior, xs, tau):
                     jax.tree_util.tree_map(lambda p, q: jnp.where(swap, p, q), u, v)
                     for u, v in ((other, ys[0]), (ys[0], other))
                 )
-                r = lk.R[row] @ with_rows(lk.factor, _take(lk.rows, row)).residual(a, b)
+                r = mm(
+                    lk.R[row], with_rows(lk.factor, _take(lk.rows, row)).residual(a, b)
+                )
                 out.append(jnp.where(mask[k], r, jnp.zeros_like(r)))
         return jnp.concatenate(out)
 
@@ -299,14 +304,14 @@ def _marginalise(model: _Model, prior, xs, tau):
     residuals, n = _marginal_residuals(model, prior, xs, tau)
     d = n // (model.S + 1)
     r, J = _value_and_jac(residuals, n, prior[1].dtype)
-    H, b = J.T @ J, J.T @ r
+    H, b = mm(J.T, J), mm(J.T, r)
     H00, H01, H11 = H[:d, :d], H[:d, d:], H[d:, d:]
     K = jnp.linalg.solve(H00, jnp.concatenate([H01, b[:d, None]], axis=1))
-    S = H11 - H01.T @ K[:, :-1]
+    S = H11 - mm(H01.T, K[:, :-1])
     S = 0.5 * (S + S.T)
     if model.S > 1:
         S = S + jnp.diag(_floor(model, tau + 1))
-    g = b[d:] - H01.T @ K[:, -1]
+    g = b[d:] - mm(H01.T, K[:, -1])
     L = jnp.linalg.cholesky(S)
     c = jax.scipy.linalg.solve_triangular(L, g, lower=True)
     anchor = jax.tree_util.tree_map(lambda a: a[1:], xs)
@@ -623,7 +628,7 @@ def _prior_moments(anchor, R, c):
     first = _slot(anchor, 0)
     d = tangent_dim(first)
     mean = retract(first, -jnp.linalg.solve(R, c)[:d])
-    return mean, jnp.linalg.inv(R.T @ R)[:d, :d]
+    return mean, jnp.linalg.inv(mm(R.T, R))[:d, :d]
 
 
 def _solution(windows, start, priors, lag: int, T: int) -> FixedLagSolution:

@@ -6,6 +6,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from .._precision import matmul as mm
 from ..manifold import local, retract
 from ._ekf import EKFSolution
 
@@ -67,9 +68,9 @@ def rts_smoother(solution: EKFSolution) -> RTSSolution:
         mean, cov, pred_mean, pred_cov, F = x
         # G = P Fᵀ Pp⁻¹, with Pp symmetric positive definite.
         chol = jnp.linalg.cholesky(pred_cov)
-        G = jax.scipy.linalg.cho_solve((chol, True), F @ cov).T
-        smoothed = retract(mean, G @ local(pred_mean, next_mean))
-        P = cov + G @ (next_cov - pred_cov) @ G.T
+        G = jax.scipy.linalg.cho_solve((chol, True), mm(F, cov)).T
+        smoothed = retract(mean, mm(G, local(pred_mean, next_mean)))
+        P = cov + mm(mm(G, next_cov - pred_cov), G.T)
         P = 0.5 * (P + P.T)
         return (smoothed, P), (smoothed, P)
 

@@ -3,6 +3,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from .._precision import matmul as mm
 from ._base import AbstractRigidMotion
 from ._so3 import skew, SO3
 from ._utils import (
@@ -25,15 +26,15 @@ def _q_matrix(rho: Array, omega: Array) -> Array:
     t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
     p = skew(rho)
     w = skew(omega)
-    wp = w @ p
-    pw = p @ w
-    wpw = wp @ w
-    ww = w @ w
+    wp = mm(w, p)
+    pw = mm(p, w)
+    wpw = mm(wp, w)
+    ww = mm(w, w)
     return (
         0.5 * p
         + coef_b(t) * (wp + pw + wpw)
-        + se3_a2(t) * (ww @ p + pw @ w - 3.0 * wpw)
-        + se3_a3(t) * (wpw @ w + w @ wpw)
+        + se3_a2(t) * (mm(ww, p) + mm(pw, w) - 3.0 * wpw)
+        + se3_a3(t) * (mm(wpw, w) + mm(w, wpw))
     )
 
 
@@ -129,7 +130,7 @@ class SE3(AbstractRigidMotion):
         rho, omega = tangent[..., :3], tangent[..., 3:]
         jr_inv = SO3.right_jacobian_inv(omega)
         q = _q_matrix(-rho, -omega)
-        return _block(jr_inv, -(jr_inv @ q @ jr_inv), jr_inv)
+        return _block(jr_inv, -mm(mm(jr_inv, q), jr_inv), jr_inv)
 
     # ---------------------------------------------------------------- operations
 
@@ -178,7 +179,7 @@ class SE3(AbstractRigidMotion):
 
     def adjoint(self) -> Float[Array, "*batch 6 6"]:
         r = self.rotation().as_matrix()
-        return _block(r, skew(self.translation()) @ r, r)
+        return _block(r, mm(skew(self.translation()), r), r)
 
     def as_matrix(self) -> Float[Array, "*batch 4 4"]:
         r = self.rotation().as_matrix()

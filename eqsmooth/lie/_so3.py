@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
+from .._precision import matmul as mm
 from ._base import AbstractLieGroup
 from ._utils import (
     as_float_array,
@@ -180,7 +181,7 @@ class SO3(AbstractLieGroup):
         omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
         w = skew(omega)
-        return _eye_like(omega, 3) - coef_a(t) * w + coef_b(t) * (w @ w)
+        return _eye_like(omega, 3) - coef_a(t) * w + coef_b(t) * mm(w, w)
 
     @classmethod
     def right_jacobian_inv(
@@ -190,7 +191,7 @@ class SO3(AbstractLieGroup):
         omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
         t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
         w = skew(omega)
-        return _eye_like(omega, 3) + 0.5 * w + coef_c(t) * (w @ w)
+        return _eye_like(omega, 3) + 0.5 * w + coef_c(t) * mm(w, w)
 
     # ---------------------------------------------------------------- operations
 

@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._precision import matmul
+
 
 def default_float_dtype() -> np.dtype:
     """The floating dtype JAX uses by default (float64 only when x64 is enabled)."""
@@ -234,7 +236,7 @@ def signs(values: Sequence[float], like: Array) -> Array:
 
 def matvec(m: Array, v: Array) -> Array:
     """Batched matrix-vector product (batch axes must already agree)."""
-    return (m @ v[..., None])[..., 0]
+    return matmul(m, v[..., None])[..., 0]
 
 
 def stack_matrix(rows: Sequence[Sequence[Array]]) -> Array:
@@ -347,7 +349,7 @@ def check_on_group(who: str, matrix: Array, rot: int, homogeneous: bool) -> Arra
         return matrix
     R = matrix[..., :rot, :rot]
     eye = jnp.broadcast_to(jnp.eye(rot, dtype=R.dtype), R.shape)
-    err = jnp.max(jnp.abs(jnp.swapaxes(R, -1, -2) @ R - eye))
+    err = jnp.max(jnp.abs(matmul(jnp.swapaxes(R, -1, -2), R) - eye))
     bad = ~(err <= tol) | jnp.any(jnp.linalg.det(R) < 0)
     if homogeneous:
         bottom = matrix[..., rot, :]

@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
+from .._precision import einsum
 from ..factors import FactorGraph, GroupLayout, Var
 from ..factors._factor import linearize_rows
 from ..manifold import retract
@@ -162,7 +163,7 @@ def apply_jacobian(lin: Linearization, delta: Tangent) -> tuple[Array, ...]:
     for fl in lin.factors:
         acc = jnp.zeros_like(fl.residual)
         for j, var in zip(fl.jacobians, fl.variables):
-            acc = acc + jnp.einsum("nmd,nd->nm", j, delta[var.group][var.index])
+            acc = acc + einsum("nmd,nd->nm", j, delta[var.group][var.index])
         out.append(acc)
     return tuple(out)
 
@@ -172,7 +173,7 @@ def apply_transpose(lin: Linearization, rows: tuple[Array, ...]) -> Tangent:
     out = zeros_tangent(lin)
     for fl, y in zip(lin.factors, rows):
         for j, var in zip(fl.jacobians, fl.variables):
-            contrib = jnp.einsum("nmd,nm->nd", j, y)
+            contrib = einsum("nmd,nm->nd", j, y)
             out[var.group] = out[var.group].at[var.index].add(contrib)
     return out
 

@@ -81,7 +81,9 @@ def parse_args(argv=None):
 def main(argv=None) -> int:
     args = parse_args(argv)
     try:
-        require(args.data, "the pendulum recording", f"{SOURCE} (MIT licence)", "--data")
+        require(
+            args.data, "the pendulum recording", f"{SOURCE} (MIT licence)", "--data"
+        )
     except FileNotFoundError as error:
         sys.exit(f"error: {error}")
     start = time.perf_counter()

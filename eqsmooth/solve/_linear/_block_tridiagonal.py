@@ -35,6 +35,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ..._precision import einsum, matmul as mm
 from ...factors import GroupLayout, Var
 from .._linearization import Linearization, Tangent
 from ._linear_solver import (
@@ -273,7 +274,7 @@ def assemble_chain(
     for fl, grads, terms in zip(lin.factors, plan.gradient_terms, plan.hessian_terms):
         r, jacs = fl.residual, fl.jacobians
         for k, g, placement in grads:
-            add(grad_acc, g, placement.place(jnp.einsum("nmd,nm->nd", jacs[k], r), T))
+            add(grad_acc, g, placement.place(einsum("nmd,nm->nd", jacs[k], r), T))
         products: dict[tuple[int, int], Array] = {}
         for term in terms:
             key = (term.first, term.second)
@@ -346,11 +347,11 @@ class BlockTridiagonalOperator(lx.AbstractLinearOperator):
     upper: Float[Array, "T-1 D D"]
 
     def mv(self, vector):
-        out = jnp.einsum("tde,te->td", self.diagonal, vector)
+        out = einsum("tde,te->td", self.diagonal, vector)
         if self.upper.shape[0]:
             zero = jnp.zeros_like(vector[:1])
-            above = jnp.einsum("tde,te->td", self.upper, vector[1:])
-            below = jnp.einsum("ted,te->td", self.upper, vector[:-1])
+            above = einsum("tde,te->td", self.upper, vector[1:])
+            below = einsum("ted,te->td", self.upper, vector[:-1])
             out = (
                 out
                 + jnp.concatenate([above, zero], axis=0)
@@ -493,8 +494,8 @@ def _tail_factor(A, B) -> tuple[_Tail, Array]:
 
     def step(inv_prev, blocks):
         a, b = blocks
-        w = inv_prev @ b
-        inv, piv = factor(a - _mT(w) @ w)
+        w = mm(inv_prev, b)
+        inv, piv = factor(a - mm(_mT(w), w))
         return inv, (inv, w, piv)
 
     _, (inv, coupling, piv) = jax.lax.scan(step, inv0, (A[1:], B))
@@ -504,21 +505,21 @@ def _tail_factor(A, B) -> tuple[_Tail, Array]:
 
 def _tail_solve(tail: _Tail, b):
     Li, W = tail.chol_inv, tail.coupling
-    y0 = Li[0] @ b[0]
+    y0 = mm(Li[0], b[0])
     if b.shape[0] == 1:
-        return (_mT(Li[0]) @ y0)[None]
+        return mm(_mT(Li[0]), y0)[None]
 
     def forward(y_prev, blocks):
         li, w, rhs = blocks
-        y = li @ (rhs - _mT(w) @ y_prev)
+        y = mm(li, rhs - mm(_mT(w), y_prev))
         return y, y
 
     _, y = jax.lax.scan(forward, y0, (Li[1:], W, b[1:]))
-    x_last = _mT(Li[-1]) @ y[-1]
+    x_last = mm(_mT(Li[-1]), y[-1])
 
     def backward(x_next, blocks):
         li, w, yt = blocks
-        x = _mT(li) @ (yt - w @ x_next)
+        x = mm(_mT(li), yt - mm(w, x_next))
         return x, x
 
     ys = jnp.concatenate([y0[None], y[:-1]])
@@ -531,15 +532,15 @@ def _tail_inverse_blocks(tail: _Tail):
     `Σ_{t,t+1} = −G_t Σ_{t+1,t+1}` and `Σ_tt = L_t⁻ᵀ L_t⁻¹ + G_t Σ_{t+1,t+1} G_tᵀ`
     with `G_t = L_t⁻ᵀ W_t`."""
     Li, W = tail.chol_inv, tail.coupling
-    last = _mT(Li[-1]) @ Li[-1]
+    last = mm(_mT(Li[-1]), Li[-1])
     if Li.shape[0] == 1:
         return last[None], W
 
     def step(s_next, blocks):
         li, w = blocks
-        G = _mT(li) @ w
-        cross = -G @ s_next
-        s = _mT(li) @ li - cross @ _mT(G)
+        G = mm(_mT(li), w)
+        cross = -mm(G, s_next)
+        s = mm(_mT(li), li) - mm(cross, _mT(G))
         s = 0.5 * (s + _mT(s))
         return s, (s, cross)
 
@@ -594,8 +595,8 @@ def cyclic_reduction_factor(
         chol_inv = block_solve_lower(chol, eye)
         ok = ok & check(jnp.diagonal(chol, axis1=1, axis2=2), scale[1::2])
         scale = scale[0::2]
-        prod = b_left @ both  # [B_{2j} A_o⁻¹ B_{2j}ᵀ, B_{2j} A_o⁻¹ B_{2j+1}]
-        A = even - _pad_end(prod[..., :D], k) - _shift_down(_mT(b_right) @ right, k)
+        prod = mm(b_left, both)  # [B_{2j} A_o⁻¹ B_{2j}ᵀ, B_{2j} A_o⁻¹ B_{2j+1}]
+        A = even - _pad_end(prod[..., :D], k) - _shift_down(mm(_mT(b_right), right), k)
         B = -prod[: k - 1, :, D:]
         levels.append(_Level(chol_inv, left, right))
     tail, pivots = _tail_factor(A, B)
@@ -621,12 +622,12 @@ def cyclic_reduction_solve(
     for n, level in zip(sizes, state.levels):
         m, k = n // 2, n - n // 2
         odd, even = b[1::2], b[0::2]
-        y = jnp.einsum("jde,je->jd", level.chol_inv, odd)
-        partial.append(jnp.einsum("jed,je->jd", level.chol_inv, y))
+        y = einsum("jde,je->jd", level.chol_inv, odd)
+        partial.append(einsum("jed,je->jd", level.chol_inv, y))
         b = (
             even
-            - _pad_end(jnp.einsum("jde,jd->je", level.left, odd), k)
-            - _shift_down(jnp.einsum("jde,jd->je", level.right, odd), k)
+            - _pad_end(einsum("jde,jd->je", level.left, odd), k)
+            - _shift_down(einsum("jde,jd->je", level.right, odd), k)
         )
     x = _tail_solve(state.tail, b)
     for n, level, u in zip(reversed(sizes), reversed(state.levels), reversed(partial)):
@@ -634,8 +635,8 @@ def cyclic_reduction_solve(
         xe = _pad_end(x, m + 1)
         xo = (
             u
-            - jnp.einsum("jde,je->jd", level.left, xe[:m])
-            - jnp.einsum("jde,je->jd", level.right, xe[1 : m + 1])
+            - einsum("jde,je->jd", level.left, xe[:m])
+            - einsum("jde,je->jd", level.right, xe[1 : m + 1])
         )
         pairs = jnp.stack([xe[:m], xo], axis=1).reshape((2 * m,) + x.shape[1:])
         x = jnp.concatenate([pairs, x[m:]])
@@ -661,17 +662,17 @@ def cyclic_reduction_inverse_blocks(
         se = _pad_end(diag, m + 1)
         s0, s1 = se[:m], se[1 : m + 1]
         c = _pad_end(upper, m)  # Σ_{2j, 2j+2} of the reduced system
-        a_inv = _mT(level.chol_inv) @ level.chol_inv
+        a_inv = mm(_mT(level.chol_inv), level.chol_inv)
         odd = (
             a_inv
-            + Wl @ s0 @ _mT(Wl)
-            + Wl @ c @ _mT(Wr)
-            + Wr @ _mT(c) @ _mT(Wl)
-            + Wr @ s1 @ _mT(Wr)
+            + mm(mm(Wl, s0), _mT(Wl))
+            + mm(mm(Wl, c), _mT(Wr))
+            + mm(mm(Wr, _mT(c)), _mT(Wl))
+            + mm(mm(Wr, s1), _mT(Wr))
         )
         odd = 0.5 * (odd + _mT(odd))
-        cross_left = -(s0 @ _mT(Wl) + c @ _mT(Wr))  # Σ_{2j, 2j+1}
-        cross_right = -(Wl @ c + Wr @ s1)  # Σ_{2j+1, 2j+2}
+        cross_left = -(mm(s0, _mT(Wl)) + mm(c, _mT(Wr)))  # Σ_{2j, 2j+1}
+        cross_right = -(mm(Wl, c) + mm(Wr, s1))  # Σ_{2j+1, 2j+2}
         diag = jnp.concatenate(
             [jnp.stack([s0, odd], axis=1).reshape(2 * m, D, D), diag[m:]]
         )

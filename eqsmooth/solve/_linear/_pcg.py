@@ -24,6 +24,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..._precision import einsum
 from ...factors import Var
 from .._linearization import (
     block_diagonal,
@@ -109,7 +110,7 @@ def block_jacobi_inverse(
 
 
 def _apply_block_jacobi(inverse, v: Tangent) -> Tangent:
-    return {k: jnp.einsum("nde,ne->nd", inverse[k], v[k]) for k in v}
+    return {k: einsum("nde,ne->nd", inverse[k], v[k]) for k in v}
 
 
 class BlockJacobi(AbstractPreconditioner):

@@ -30,6 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..._precision import einsum
+
 
 SMALL_BLOCK_LIMIT = 8
 """Largest block size handled by unrolled XLA operations instead of LAPACK."""
@@ -54,7 +56,7 @@ def block_gram(
     a = a.reshape((1,) * (rank - a.ndim) + a.shape)
     b = b.reshape((1,) * (rank - b.ndim) + b.shape)
     if M > SMALL_BLOCK_LIMIT:
-        return jnp.einsum("...md,...me->...de", a, b)
+        return einsum("...md,...me->...de", a, b)
     out = a[..., 0, :, None] * b[..., 0, None, :]
     for k in range(1, M):
         out = out + a[..., k, :, None] * b[..., k, None, :]
