@@ -371,16 +371,16 @@ def _check_losses():
     assert np.max(np.abs(p[:, 2:] - np.asarray(w["pose"][0, :, 2:]))) < 0.5
 
 
-def test_session_30_rows():
+def test_late_ekf_velocity_loss_and_bilstm_rows():
     """The rows added for issue 33: the code release's one-frame-late EKF
     scoring, the velocity surrogate loss and the bidirectional LSTM."""
     import jax
 
     with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        _check_session_30_rows()
+        _check_late_ekf_velocity_loss_and_bilstm_rows()
 
 
-def _check_session_30_rows():
+def _check_late_ekf_velocity_loss_and_bilstm_rows():
     import equinox as eqx
     import jax
     import jax.numpy as jnp
