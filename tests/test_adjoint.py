@@ -465,3 +465,61 @@ def test_gradient_of_a_failed_unrolled_solve_is_nan(linear_solver):
     assert result == eqs.RESULTS.linear_solve_failed
     assert np.isfinite(value)
     assert np.isnan(grad)
+
+
+_FAILING_ADJOINTS = {
+    "implicit": lambda eqs: eqs.ImplicitAdjoint(),
+    "implicit_gauss_newton": lambda eqs: eqs.ImplicitAdjoint(hessian="gauss_newton"),
+    "unrolled": lambda eqs: eqs.solve.UnrolledAdjoint(),
+    "truncated": lambda eqs: eqs.solve.TruncatedAdjoint(1),
+}
+
+
+@pytest.mark.parametrize("adjoint", list(_FAILING_ADJOINTS))
+def test_gradient_of_a_failed_solve_is_nan_per_adjoint_solo_and_batched(adjoint):
+    """A masked-out prior leaves the chain's gauge free: the solve ends
+    `linear_solve_failed` at a finite cost and every gradient through it is
+    NaN, under every adjoint, alone and in a batch, where the element whose
+    prior holds keeps its finite gradient. (The implicit adjoint returned
+    exactly 0 here, whether or not the loss's cotangent was zero.)"""
+    import eqsmooth as eqs
+
+    T = 4
+    t = np.arange(T)
+    adj = _FAILING_ADJOINTS[adjoint](eqs)
+
+    def loss(scale, prior_active, target):
+        graph = eqs.FactorGraph(
+            [
+                eqs.FunctionFactor(
+                    _between,
+                    (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
+                    eqs.IsotropicNoise(sqrt_precision=scale * jnp.ones(T - 1)),
+                    data=jnp.ones((T - 1, 2)),
+                ),
+                eqs.PriorFactor(
+                    eqs.Var("x", [0]),
+                    jnp.zeros((1, 2)),
+                    eqs.MaskedNoise(eqs.IsotropicNoise.from_sigma(1.0), prior_active),
+                ),
+            ]
+        )
+        sol = eqs.least_squares(
+            graph, {"x": jnp.zeros((T, 2))}, eqs.GaussNewton(), adjoint=adj, throw=False
+        )
+        return jnp.sum((sol.value["x"] - target) ** 2), sol.result
+
+    grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    for target in (0.0, 1.0):  # a zero and a nonzero cotangent
+        (value, result), g = grad(1.0, jnp.asarray([False]), target)
+        assert result == eqs.RESULTS.linear_solve_failed
+        assert np.isfinite(value) and np.isnan(g), (target, g)
+    (_, ok), g_ok = grad(1.0, jnp.asarray([True]), 1.0)
+    assert ok == eqs.RESULTS.successful and np.isfinite(g_ok)
+    batched = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True), (0, 0, None)))
+    (values, results), g = batched(jnp.ones(2), jnp.asarray([[True], [False]]), 1.0)
+    assert list(np.asarray(results == eqs.RESULTS.successful)) == [True, False]
+    assert bool(np.asarray(results == eqs.RESULTS.linear_solve_failed)[1])
+    assert np.all(np.isfinite(values))
+    np.testing.assert_allclose(g[0], g_ok, rtol=1e-10)
+    assert np.isnan(g[1])

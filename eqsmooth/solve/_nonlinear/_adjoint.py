@@ -40,6 +40,7 @@ from .._linear._default_solver import linear_solver_for
 from .._linear._linear_solver import solve_normal
 from .._linearization import Linearization, linearize_graph, retract_values, Tangent
 from .._misc import preconditioned_cg, stationary, tree_where
+from .._solution import RESULTS
 from ._graph_solver import AbstractGraphSolver
 
 
@@ -423,8 +424,13 @@ def _implicit_delta_bwd(
     v = {k: zero[k] if grad_obj[k] is None else grad_obj[k] for k in zero}
 
     def structured_solve(rhs):
-        w, _ = solve_normal(linear_solver, lin, None, rhs=rhs)
-        return w
+        w, result = solve_normal(linear_solver, lin, None, rhs=rhs)
+        # A singular or indefinite normal matrix (an unfixed gauge freedom:
+        # the solve ended `linear_solve_failed` at a finite cost) leaves the
+        # optimum undetermined: NaN, never the zero step of a failed solve.
+        # (An inexact PCG iterate, `max_steps_reached`, is still a solve.)
+        solved = (result == RESULTS.successful) | (result == RESULTS.max_steps_reached)
+        return {k: jnp.where(solved, w[k], jnp.nan) for k in w}
 
     if adjoint.hessian == "gauss_newton":
         w = structured_solve(v)
@@ -436,6 +442,12 @@ def _implicit_delta_bwd(
         w, *_ = preconditioned_cg(
             hvp, structured_solve, v, rtol, adjoint.atol, adjoint.max_steps, True
         )
+        # CG never calls its preconditioner for a zero right-hand side, so one
+        # structured solve tells whether the normal matrix is regular.
+        regular = jnp.all(
+            jnp.stack([jnp.all(jnp.isfinite(a)) for a in structured_solve(v).values()])
+        )
+        w = {k: jnp.where(regular, w[k], jnp.nan) for k in w}
     neg_w = {k: jnp.where(failed, jnp.nan, -w[k]) for k in w}
     _, vjp_fn = eqx.filter_vjp(lambda g: _tangent_gradient(g, x_star, zero), graph)
     (grad_graph,) = vjp_fn(neg_w)
