@@ -152,3 +152,62 @@ def test_mask_errors():
     )
     with raises(ValueError, "PriorFactor", "MaskedNoise.active has shape (5,)", "(6,)"):
         graph.cost({"x": jnp.zeros((T, 1))})
+
+
+def _scaled(x, data, params):
+    return x - params * data
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_nan_in_a_masked_row_reaches_no_value_and_no_derivative(robust):
+    """A masked row's data is never read: NaN there (a missing measurement)
+    gives the same solution, negative log-likelihood and gradients (with
+    respect to the noise, a shared parameter and the data) as 0.0 there, all
+    finite, and the masked datum's own derivative is exactly zero. (Before,
+    the gradients of the noise and of a parameter multiplying the data were
+    NaN: 0 · NaN.)"""
+    rows = np.arange(T)
+    active = jnp.asarray([True, True, False, True, True, True])
+
+    def graph(meas, log_sigma, scale):
+        noise = eqs.MaskedNoise(
+            eqs.IsotropicNoise.from_sigma(jnp.exp(log_sigma)), active
+        )
+        if robust:
+            noise = eqs.HuberNoise(noise, scale=1.0)
+        return eqs.FactorGraph(
+            [
+                eqs.FunctionFactor(
+                    _scaled, (eqs.Var("x", rows),), noise, data=meas, params=scale
+                ),
+                eqs.BetweenFactor(
+                    eqs.Var("x", rows[:-1]),
+                    eqs.Var("x", rows[1:]),
+                    jnp.full((T - 1, 1), 0.5),
+                    eqs.IsotropicNoise.from_sigma(1.0),
+                ),
+            ]
+        )
+
+    def losses(meas, log_sigma, scale):
+        g = graph(meas, log_sigma, scale)
+        x = eqs.least_squares(g, {"x": jnp.zeros((T, 1))}, SOLVER).value["x"]
+        nll = eqs.joint_nll(g, {"x": jnp.linspace(0.0, 2.0, T)[:, None]})
+        return jnp.sum(x**2), nll
+
+    both = jax.jit(
+        lambda *a: (
+            losses(*a),
+            jax.grad(lambda *b: losses(*b)[0], argnums=(0, 1, 2))(*a),
+            jax.grad(lambda *b: losses(*b)[1], argnums=(0, 1, 2))(*a),
+        )
+    )
+    meas = jnp.linspace(1.0, 3.0, T)[:, None]
+    args = (jnp.asarray(-0.5), jnp.asarray(1.3))
+    clean = both(meas.at[2, 0].set(0.0), *args)
+    dirty = both(meas.at[2, 0].set(jnp.nan), *args)
+    for a, b in zip(jax.tree_util.tree_leaves(clean), jax.tree_util.tree_leaves(dirty)):
+        assert np.all(np.isfinite(np.asarray(b)))
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+    _, grad_solution, grad_nll = dirty
+    assert float(grad_solution[0][2, 0]) == 0.0 and float(grad_nll[0][2, 0]) == 0.0

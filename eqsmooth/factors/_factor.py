@@ -212,13 +212,36 @@ def _row_call(factor, *states):
     return factor.residual(*states)
 
 
+def _inert_inactive_rows(factor: AbstractFactor) -> AbstractFactor:
+    """`factor` with each inactive row's per-row data (rows its noise model
+    switches off) replaced by the first active row's.
+
+    An inactive row's residual is zeroed after it is computed, but autodiff
+    still multiplies the derivative of what it read by that zero: NaN data
+    there (a missing measurement) would make the gradients of the shared
+    parameters NaN (0 · NaN). Reading an active row's data instead, the row
+    computes something finite and, being zeroed, contributes nothing; its
+    own data gets a zero derivative."""
+    active = factor.noise.active_rows()
+    n = factor.num_rows
+    if active is None or active.shape != (n,):  # a wrong shape: check_shapes says
+        return factor
+    source = jnp.where(active, jnp.arange(n), jnp.argmax(active))
+    take = lambda leaf: leaf[source] if eqx.is_inexact_array(leaf) else leaf
+    rows = {
+        name: jax.tree_util.tree_map(take, value)
+        for name, value in per_row_fields(factor).items()
+    }
+    return with_rows(factor, rows)
+
+
 def evaluate_rows(
     factor: AbstractFactor, states: tuple[PyTree, ...]
 ) -> Float[Array, "n m"]:
     """Residuals of all rows, `(n, m)`, given per-row stacked states."""
     axes = _row_axes(factor)
     fn = eqx.filter_vmap(_row_call, in_axes=(axes,) + (0,) * len(states))
-    r = fn(factor, *states)
+    r = fn(_inert_inactive_rows(factor), *states)
     if r.ndim != 2:  # (rows, m): each row's residual must be 1-D
         raise ValueError(
             f"{type(factor).__name__}.residual must return a 1-D array, got "
@@ -239,6 +262,7 @@ def linearize_rows(
     name = type(factor).__name__
     dims = [tangent_dim(s, batch_ndim=1) for s in states]
     axes = _row_axes(factor)
+    factor = _inert_inactive_rows(factor)
     if isinstance(factor, AbstractAnalyticFactor):
         r, jacs = eqx.filter_vmap(
             _closed_form_row, in_axes=(axes,) + (0,) * len(states)

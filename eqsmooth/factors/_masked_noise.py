@@ -78,9 +78,13 @@ class MaskedNoise(AbstractNoiseModel):
             )
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
-        w = self.base.whiten(r)
-        keep = self.active.reshape(self.active.shape + (1,) * (w.ndim - 1))
-        return jnp.where(keep, w, jnp.zeros((), w.dtype))
+        keep = self.active.reshape(self.active.shape + (1,) * (r.ndim - 1))
+        zero = jnp.zeros((), r.dtype)
+        # Zero an inactive row before the base model sees it, not only after:
+        # whatever it holds (NaN data of a missing measurement) must not reach
+        # the derivatives of the noise parameters (0 · NaN is NaN).
+        w = self.base.whiten(jnp.where(keep, r, zero))
+        return jnp.where(keep, w, zero)
 
     def _row_log_dets(self, n: int, m: int) -> Float[Array, " n"]:
         # Whitening is linear: applied to identities it gives each row's R_i.
@@ -102,6 +106,9 @@ class MaskedNoise(AbstractNoiseModel):
         self, s: Float[Array, " n"]
     ) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
         return self.base.rho(s)
+
+    def active_rows(self) -> Bool[Array, " n"]:
+        return self.active
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)

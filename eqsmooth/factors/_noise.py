@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._precision import einsum
 
@@ -174,6 +174,14 @@ class AbstractNoiseModel(eqx.Module):
         """Robust loss `ρ(s)` and its derivative `ρ'(s)` at squared norms `s`."""
 
     @abc.abstractmethod
+    def active_rows(self) -> Bool[Array, " n"] | None:
+        """The rows that count (`(n,)` booleans), or `None` when every row
+        does. Inactive rows (a [`eqsmooth.factors.MaskedNoise`][] mask) are
+        inert: their whitened residuals and Jacobians are zero, and the
+        factor's per-row data there is never read, so nothing they hold (NaN
+        for a missing measurement) reaches a value or a derivative."""
+
+    @abc.abstractmethod
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         """Raise a `ValueError` naming `factor_name` if shapes do not fit `(n, m)`."""
 
@@ -251,6 +259,9 @@ class IsotropicNoise(AbstractNoiseModel):
 
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
         return gaussian_log_normalizer(self, n, m)
+
+    def active_rows(self) -> None:
+        return None
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_precision.shape not in ((), (n,)):
@@ -357,6 +368,9 @@ class DiagonalNoise(AbstractNoiseModel):
 
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
         return gaussian_log_normalizer(self, n, m)
+
+    def active_rows(self) -> None:
+        return None
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_precision.shape not in ((m,), (n, m)):
@@ -471,6 +485,9 @@ class SqrtInformationNoise(AbstractNoiseModel):
     def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
         return gaussian_log_normalizer(self, n, m)
 
+    def active_rows(self) -> None:
+        return None
+
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_information.shape not in ((m, m), (n, m, m)):
             raise ValueError(
@@ -545,6 +562,9 @@ class AbstractRobustNoise(AbstractNoiseModel):
         # Gaussian's (its own, so that masked rows are left out), so
         # likelihoods built from it are only indicative.
         return self.base.log_normalizer(n, m)
+
+    def active_rows(self) -> Bool[Array, " n"] | None:
+        return self.base.active_rows()
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)

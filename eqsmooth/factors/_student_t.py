@@ -6,7 +6,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 from jax.scipy.special import gammaln
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._masked_noise import MaskedNoise
 from ._noise import (
@@ -121,6 +121,9 @@ class StudentTNoise(AbstractNoiseModel):
         a = nu + self.dim
         return a * jnp.log1p(s / nu), a / (nu + s)
 
+    def active_rows(self) -> None:
+        return None
+
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)
         if m != self.dim:
@@ -158,6 +161,9 @@ class _ScaledGaussian(AbstractNoiseModel):
 
     def rho(self, s):
         return s, jnp.ones_like(s)
+
+    def active_rows(self) -> Bool[Array, " n"] | None:
+        return self.base.active_rows()
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)

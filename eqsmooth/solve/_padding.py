@@ -55,6 +55,9 @@ class _PaddingNoise(AbstractNoiseModel):
     def rho(self, s):
         return s, jnp.ones_like(s)
 
+    def active_rows(self) -> Bool[Array, " n"]:
+        return self.active
+
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.active.shape != (n,):
             raise ValueError(
