@@ -4,22 +4,58 @@ import hashlib
 import io
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import jax
 from jaxtyping import PyTree
 
 
 _MAGIC = "eqsmooth-checkpoint"
-_VERSION = 2  # 2: the header holds the payload's length and SHA-256
-_READABLE = (1, 2)
+# 2: the header holds the payload's length and SHA-256; 3: and what the
+# checkpoint belongs to (`_structure`)
+_VERSION = 3
+_READABLE = (1, 2, 3)
 
 
 class CheckpointError(ValueError):
-    """A checkpoint file that cannot be trusted: truncated, corrupted, or not
-    written by [`eqsmooth.learn.save_checkpoint`][]."""
+    """A checkpoint file that cannot be trusted: truncated, corrupted, not
+    written by [`eqsmooth.learn.save_checkpoint`][], or written for another
+    model or optimiser."""
+
+
+class CheckpointMismatch(CheckpointError):
+    """A sound checkpoint of another run (raised, never skipped for the
+    previous file: that one belongs to the same other run)."""
+
+
+def _structure(state: "TrainState") -> str:
+    """What a checkpoint belongs to: the model's and the optimiser state's
+    classes, field names and static configuration, and each array's dtype
+    and shape (no values). Two models whose leaves merely have the same
+    shapes, or an Adam state read as another optimiser's, differ here.
+    Object addresses that a repr may print are dropped (they change between
+    processes); one token a line, so that a difference is named exactly."""
+    described = jax.tree_util.tree_map(
+        lambda x: f"{x.dtype}{list(x.shape)}" if eqx.is_array(x) else type(x).__name__,
+        (state.model, state.opt_state),
+    )
+    return re.sub(r" at 0x[0-9a-fA-F]+", "", eqx.tree_pformat(described, width=1))
+
+
+def _first_difference(saved: str, current: str) -> str:
+    a, b = saved.splitlines(), current.splitlines()
+    for i, (x, y) in enumerate(zip(a, b)):
+        if x != y:
+            context = " ".join(line.strip() for line in a[max(0, i - 3) : i])
+            return (
+                f"after `{context}` the checkpoint has `{x.strip()}` where this "
+                f"run has `{y.strip()}`"
+            )
+    return f"the checkpoint's description has {len(a)} lines, this run's {len(b)}"
 
 
 class TrainState(eqx.Module):
@@ -120,6 +156,7 @@ def save_checkpoint(
         "best_step": int(state.best_step),
         "best_metric": float(state.best_metric),
         "metadata": metadata or {},
+        "structure": _structure(state),
         "payload_bytes": len(payload),
         "sha256": hashlib.sha256(payload).hexdigest(),
     }
@@ -177,11 +214,23 @@ def load_checkpoint(path: str | os.PathLike, like: TrainState) -> TrainState:
     **Returns:** the stored `TrainState`.
 
     **Raises:** [`eqsmooth.learn.CheckpointError`][] (a `ValueError`) when the
-    file is truncated, fails its checksum, or does not fit `like`.
+    file is truncated, fails its checksum, or does not fit `like`: another
+    model (other classes, fields or static configuration, even with leaves
+    of the same shapes) or another optimiser's state. The message names the
+    first difference.
     """
     with open(path, "rb") as f:
         header = _read_header(f, path)
         payload = f.read()
+    if "structure" in header:  # version 3: refuse another run's checkpoint
+        current = _structure(like)
+        if header["structure"] != current:
+            raise CheckpointMismatch(
+                f"{path}: checkpoint was written for another model or optimiser "
+                f"than this run's: {_first_difference(header['structure'], current)} "
+                "(resume with the model and optimiser that wrote it, or start over: "
+                "Checkpoints(..., resume=False) or another path)"
+            )
     if "payload_bytes" in header:  # version 2: verify before trusting it
         expected = int(header["payload_bytes"])
         if len(payload) < expected:

@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from ._checkpoint import (
     atomic_write,
     CheckpointError,
+    CheckpointMismatch,
     load_checkpoint,
     previous_checkpoint,
     read_checkpoint_header,
@@ -286,6 +287,8 @@ def _resume(ckpt: Path, like: TrainState, seed: int, metadata: dict) -> TrainSta
             )
         try:
             state = load_checkpoint(path, like)
+        except CheckpointMismatch:
+            raise
         except CheckpointError as err:
             errors.append(str(err))
             continue
