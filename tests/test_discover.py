@@ -1024,3 +1024,30 @@ def test_shape_check_marks_a_term_too_weak_to_check():
     strong["shape_check"] = sc
     assert _verdict(strong, leftover=False) == "a"
     assert _shape_check(report(0.1, significant=True), 0.05, data, 0.3, 0.9) is None
+
+
+def test_discovery_refuses_what_it_cannot_use():
+    """A level outside (0, 1) (1.5 declared detections, 0 never could), a
+    measurement channel that never changes (its noise scale ran to 1e-21
+    and the verdict was "unnamed residual structure"), and `name` / `add`
+    given other sequences than those `find` analysed (another verdict, with
+    no error): each is refused by name."""
+    import dataclasses
+
+    import eqsmooth.discover as dc
+    from hostile import raises
+
+    data, found, named, _ = _simulated_run(1, "viscous", 0.1)
+    for alpha in (1.5, 0.0, -0.1, 1.0):
+        with raises(ValueError, "find: alpha", "must lie in (0, 1)", str(alpha)):
+            dc.find(_model(), data, alpha=alpha)
+    flat = dataclasses.replace(data, measurements=np.full_like(data.measurements, 0.3))
+    with raises(ValueError, "find: data.measurements channel(s) [0]", "[0.3]"):
+        dc.find(_model(), flat)
+    other = _simulate(2)
+    with raises(ValueError, "name: data are not the sequences find analysed"):
+        dc.name(found, other)
+    with raises(ValueError, "add: data are not the sequences find analysed"):
+        dc.add(found, named, other)
+    with raises(TypeError, "name: found must be the report"):
+        dc.name({"detected": True}, data)

@@ -13,6 +13,7 @@ from ._model import (
 from ._stats import (
     normal_quantile,
 )
+from ._validate import fingerprint
 
 
 def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> dict:
@@ -30,6 +31,11 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
     definite, a coefficient without a standard error).
     """
     st = found.state
+    if "data" in st and st["data"] != fingerprint(data):
+        raise ValueError(
+            "add: data are not the sequences find analysed (their contents differ); "
+            "fit the named effects on the data find and name were given"
+        )
     if st.get("failed"):
         model = st["model"]
         return {

@@ -30,7 +30,7 @@ from ._stats import (
     normal_quantile,
     normal_two_sided,
 )
-from ._validate import check_inputs
+from ._validate import check_informative, check_inputs, check_level, fingerprint
 
 
 # ---------------------------------------------------------------------------
@@ -92,6 +92,8 @@ def find(
     (JSON-serialisable), with what later steps reuse as its `state`.
     """
     check_inputs("find", model, data)
+    check_level("find", alpha)
+    check_informative("find", data)
     K = len(model.candidates)
     if K == 0:
         raise ValueError("find: the model has no candidate effects to test")
@@ -109,7 +111,7 @@ def find(
     try:
         ev0 = evaluate(model, data, z0, np.asarray(data.initial_states), np.ones(K))
     except EVALUATION_ERRORS as e:
-        return _failed_find(model, settings, f"nominal evidence: {_short(e)}")
+        return _failed_find(model, data, settings, f"nominal evidence: {_short(e)}")
     scales = feature_scales(model, data, ev0.xhat)
     if fit_noise:
         ev = fit(model, data, nuis, z0, ev0.xhat, scales)
@@ -121,10 +123,10 @@ def find(
     try:
         ev = evaluate(model, data, ev.z, ev.xhat, scales, everything)
     except EVALUATION_ERRORS as e:
-        return _failed_find(model, settings, f"information matrix: {_short(e)}")
+        return _failed_find(model, data, settings, f"information matrix: {_short(e)}")
     if not (np.all(np.isfinite(ev.hessian)) and np.all(np.isfinite(ev.scores))):
         return _failed_find(
-            model, settings, "information matrix or scores are not finite"
+            model, data, settings, "information matrix or scores are not finite"
         )
     nominal = fitted_model(model, ev.z)
     test = _candidate_indices(model)
@@ -154,6 +156,7 @@ def find(
             model, data, ev.z, ev.xhat, nuis, alpha, everything_acting
         )
     state = {
+        "data": fingerprint(data),
         "model": model,
         "evaluation": ev,
         "scales": scales,
@@ -298,7 +301,9 @@ def _safe_innovation_tests(model, data, xhat, flags: list[str]) -> dict:
     }
 
 
-def _failed_find(model: ChainModel, settings: dict, why: str) -> "StepReport":
+def _failed_find(
+    model: ChainModel, data: Sequences, settings: dict, why: str
+) -> "StepReport":
     """The report of a find whose evidence could not be evaluated (no raise)."""
     report = {
         "status": "failed",
@@ -315,6 +320,7 @@ def _failed_find(model: ChainModel, settings: dict, why: str) -> "StepReport":
     }
     state = {
         "failed": True,
+        "data": fingerprint(data),
         "model": model,
         "settings": settings,
         "alpha": settings["alpha"],

@@ -26,6 +26,7 @@ from ._stats import (
     noncentral_chi2_sf,
     noncentrality_for_power,
 )
+from ._validate import fingerprint
 
 
 _LN20 = float(np.log(20.0))
@@ -499,7 +500,17 @@ def name(
         )
     if not 0.0 < shape_power < 1.0:
         raise ValueError(f"name: shape_power must lie in (0, 1), got {shape_power}")
-    st = found.state
+    st = getattr(found, "state", None)
+    if not isinstance(st, dict) or "model" not in st:
+        raise TypeError(
+            "name: found must be the report eqsmooth.discover.find returned, got "
+            f"{type(found).__name__}"
+        )
+    if "data" in st and st["data"] != fingerprint(data):
+        raise ValueError(
+            "name: data are not the sequences find analysed (their contents differ); "
+            "name the effect on the data find was given, or run find on these"
+        )
     out = {
         "named": [],
         "steps": [],

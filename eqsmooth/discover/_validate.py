@@ -1,5 +1,7 @@
 """Input checks at the public entry points of the discovery workflow."""
 
+import hashlib
+
 import numpy as np
 
 from ._model import ChainModel, Sequences
@@ -48,3 +50,41 @@ def check_inputs(who: str, model: ChainModel, data: Sequences) -> None:
             raise ValueError(
                 f"{who}: model.{field} must be positive and finite, got {sigma}"
             )
+
+
+def check_level(who: str, alpha: float) -> None:
+    """Raise a `ValueError` naming `who` unless `0 < alpha < 1`."""
+    if isinstance(alpha, bool) or not isinstance(alpha, (int, float, np.floating)):
+        raise TypeError(f"{who}: alpha must be a number in (0, 1), got {alpha!r}")
+    if not 0.0 < float(alpha) < 1.0:
+        raise ValueError(
+            f"{who}: alpha (the level of the workflow's alarms) must lie in (0, 1), "
+            f"got {alpha} (0.05 is the usual choice)"
+        )
+
+
+def check_informative(who: str, data: Sequences) -> None:
+    """Raise a `ValueError` naming the channel if a measurement channel never
+    changes: its noise scale would be fitted to nothing (it ran to 1e-21)."""
+    meas = np.asarray(data.measurements)
+    flat = meas.reshape(-1, meas.shape[-1])
+    constant = np.flatnonzero(np.ptp(flat, axis=0) == 0)
+    if constant.size:
+        raise ValueError(
+            f"{who}: data.measurements channel(s) {constant.tolist()} hold the same "
+            f"value ({flat[0, constant].tolist()}) in every sequence and step: a "
+            "constant channel carries no information about the dynamics and its "
+            "noise scale cannot be fitted (a disconnected or saturated sensor? "
+            "drop the channel)"
+        )
+
+
+def fingerprint(data: Sequences) -> str:
+    """A digest of the sequences (every array, its shape and dtype), so that a
+    later step can tell whether it was given the data `find` analysed."""
+    digest = hashlib.sha256()
+    for field in ("measurements", "x0_mean", "inputs", "initial_states"):
+        arr = np.ascontiguousarray(np.asarray(getattr(data, field)))
+        digest.update(f"{field}{arr.shape}{arr.dtype}".encode())
+        digest.update(arr.tobytes())
+    return digest.hexdigest()

@@ -29,7 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._noise import AbstractNoiseModel, AbstractRobustNoise, robust_scale
+from ._noise import (
+    _is_concrete,
+    AbstractNoiseModel,
+    AbstractRobustNoise,
+    robust_scale,
+)
 
 
 def _safe_sqrt(s: Array) -> Array:
@@ -494,6 +499,26 @@ class KernelChoice(AbstractKernel):
         # an int compiles a small conversion program in every fresh process.
         self.index = jax.device_put(np.int32(names.index(key)))
 
+    def __check_init__(self):
+        if _is_concrete(self.index) and not 0 <= int(self.index) < len(KERNELS):
+            raise ValueError(_index_message(int(self.index)))
+
     def rho(self, s, scale):
         branches = [lambda s, k, K=K: K().rho(s, k) for K in KERNELS]
-        return jax.lax.switch(self.index, branches, s, scale)
+        # `lax.switch` clamps an index out of range to the last kernel: an
+        # index set by `eqx.tree_at` or swept as data is checked at run time.
+        index = eqx.error_if(
+            self.index,
+            (self.index < 0) | (self.index >= len(KERNELS)),
+            _index_message(None),
+        )
+        return jax.lax.switch(index, branches, s, scale)
+
+
+def _index_message(index: int | None) -> str:
+    names = [k.__name__ for k in KERNELS]
+    got = "" if index is None else f", got {index}"
+    return (
+        f"KernelChoice.index must be in 0..{len(KERNELS) - 1}, one per kernel of "
+        f"{names}{got} (lax.switch would clamp it to a kernel not chosen)"
+    )

@@ -24,11 +24,38 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 
-def _above_floor(sigma, floor) -> np.ndarray:
-    """`1/σ₀ − floor` (at least 1e-3), in float64."""
-    return np.asarray(
-        np.maximum(1.0 / np.asarray(sigma, np.float64) - np.asarray(floor), 1e-3)
-    )
+def _above_floor(who: str, sigma, floor) -> np.ndarray:
+    """`1/σ₀ − floor`, in float64, after checking the arguments of `who`."""
+    try:
+        sigma = np.asarray(sigma, np.float64)
+        floor_arr = np.asarray(floor, np.float64)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{who}: sigma and floor must be numbers: {err}") from None
+    if sigma.ndim > 1:
+        raise ValueError(
+            f"{who}: sigma must have shape () or (m,), one per residual component; "
+            f"got {sigma.shape}"
+        )
+    if not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError(
+            f"{who}: sigma (the initial standard deviation) must be positive and "
+            f"finite, got {sigma.tolist()}"
+        )
+    if floor_arr.ndim > 1 or (floor_arr.ndim == 1 and floor_arr.shape != sigma.shape):
+        raise ValueError(
+            f"{who}: floor must be a float or one per component of sigma "
+            f"{sigma.shape}; got shape {floor_arr.shape}"
+        )
+    if not np.all(np.isfinite(floor_arr) & (floor_arr >= 0)):
+        raise ValueError(f"{who}: floor must be >= 0 and finite, got {floor!r}")
+    if np.any(floor_arr >= 1.0 / sigma):
+        raise ValueError(
+            f"{who}: floor {floor!r} must be below 1/sigma = "
+            f"{np.round(1.0 / sigma, 6).tolist()}: the head starts at the square-root "
+            "precision 1/sigma and never goes below the floor (lower the floor, or "
+            "start from a smaller sigma)"
+        )
+    return np.asarray(1.0 / sigma - floor_arr)
 
 
 class AbstractNoiseHead(eqx.Module):
@@ -68,10 +95,9 @@ class ConstantNoiseHead(AbstractNoiseHead):
         floor: float | tuple[float, ...] = 0.0,
         dtype=np.float32,
     ):
+        above = _above_floor("ConstantNoiseHead", sigma, floor)
         self.floor = floor
-        self.log_sqrt_precision = jnp.asarray(
-            np.log(_above_floor(sigma, floor)).astype(dtype)
-        )
+        self.log_sqrt_precision = jnp.asarray(np.log(above).astype(dtype))
 
     def __call__(self, features):
         p = jnp.exp(self.log_sqrt_precision)
@@ -123,6 +149,21 @@ class HeteroscedasticNoiseHead(AbstractNoiseHead):
         scale: float = 1.0,
         dtype=None,
     ):
+        who = "HeteroscedasticNoiseHead"
+        base = _above_floor(who, sigma, floor)
+        for name, value in (("in_size", in_size), ("width", width)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise TypeError(f"{who}: {name} must be an int, got {value!r}")
+            if value < 1:
+                raise ValueError(f"{who}: {name} must be >= 1, got {value}")
+        if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)):
+            raise TypeError(f"{who}: depth must be an int, got {depth!r}")
+        if depth < 0:
+            raise ValueError(f"{who}: depth must be >= 0, got {depth}")
+        if not np.isfinite(shift):
+            raise ValueError(f"{who}: shift must be finite, got {shift}")
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"{who}: scale must be positive and finite, got {scale}")
         sigma = np.asarray(sigma, np.float32)
         out = 1 if sigma.ndim == 0 else sigma.shape[0]
         mlp = eqx.nn.MLP(
@@ -138,7 +179,6 @@ class HeteroscedasticNoiseHead(AbstractNoiseHead):
         self.floor = floor
         self.shift = shift
         self.scale = scale
-        base = _above_floor(sigma, floor)
         if learn_scale:
             scale_dtype = np.float32 if dtype is None else dtype
             self.log_scale = jnp.asarray(np.log(base).astype(scale_dtype))
@@ -148,6 +188,12 @@ class HeteroscedasticNoiseHead(AbstractNoiseHead):
             self.fixed_scale = float(base) if base.ndim == 0 else tuple(base.tolist())
 
     def __call__(self, features):
+        if features.ndim < 1 or features.shape[-1] != self.mlp.in_size:
+            raise ValueError(
+                f"HeteroscedasticNoiseHead was built with in_size={self.mlp.in_size} "
+                f"features per frame; got features of shape {features.shape} (the "
+                "last axis holds a frame's features)"
+            )
         dtype = self.mlp.layers[0].weight.dtype
         x = (features.astype(dtype) - self.shift) / self.scale
         lead = x.shape[:-1]
