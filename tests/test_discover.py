@@ -1034,8 +1034,9 @@ def test_discovery_refuses_what_it_cannot_use():
     no error): each is refused by name."""
     import dataclasses
 
-    import eqsmooth.discover as dc
     from hostile import raises
+
+    import eqsmooth.discover as dc
 
     data, found, named, _ = _simulated_run(1, "viscous", 0.1)
     for alpha in (1.5, 0.0, -0.1, 1.0):

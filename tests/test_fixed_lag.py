@@ -460,3 +460,22 @@ def test_updates_hostile_input():
     bad = eqx.tree_at(lambda f: f.data, step_meas[1], step_meas[1].data * jnp.nan)
     with raises(eqx.EquinoxRuntimeError, "non-finite factor data"):
         smoother.update(state, trans0, bad)
+
+
+def test_updates_name_another_lag_and_another_dtype():
+    """A state from a smoother of another lag was blamed on "factors differ in
+    kind"; a float32 step after a float64 init failed inside
+    `lax.dynamic_update_slice`. Each now says what differs."""
+    (_, _, truth), step_trans, step_meas = _se2_steps(1.0)
+    mean0, cov0 = _se2_initial(truth)
+    state, _ = eqs.filters.FixedLagSmoother(lag=2).init(
+        mean0, cov0, step_trans[0], step_meas[0]
+    )
+    with raises(ValueError, "FixedLagSmoother.update", "lag=2", "lag=3"):
+        eqs.filters.FixedLagSmoother(lag=3).update(state, step_trans[0], step_meas[1])
+    f32 = jax.tree_util.tree_map(
+        lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a,
+        step_meas[1],
+    )
+    with raises(TypeError, "measurements[0] data has dtype float32", "float64"):
+        eqs.filters.FixedLagSmoother(lag=2).update(state, step_trans[0], f32)

@@ -151,3 +151,132 @@ def test_kernel_choice_in_range_still_selects_its_kernel():
         )
     with raises(ValueError, "KernelChoice: unknown kernel", "'Hubber'"):
         eqs.factors.KernelChoice("Hubber")
+
+
+# ---------------------------------------------------------------------------
+# Training options, batched solves, diverged solves
+# ---------------------------------------------------------------------------
+
+
+class _Line(eqx.Module):
+    w: jax.Array
+
+
+def _line_loss(model, batch):
+    return jnp.mean((model.w * batch["x"] - batch["y"]) ** 2)
+
+
+_LINE_DATA = {"x": np.linspace(0.0, 1.0, 8), "y": np.linspace(0.0, 2.0, 8)}
+
+
+@pytest.mark.parametrize("option", ["Checkpoints", "Logging"])
+def test_a_file_path_below_a_file_is_refused_when_the_option_is_built(option, tmp_path):
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("x")
+    path = blocker / "run" / "file.eqx"
+    cls = getattr(L, option)
+    with raises(ValueError, f"{option}: path {path} cannot be written", "is a file"):
+        cls(path)
+
+
+@pytest.mark.parametrize(
+    "valid, fragments",
+    [
+        ({"x": np.ones(4)}, ["structure differs from train_data's", "'y'"]),
+        ({"x": np.ones(4), "y": np.ones(4), "z": np.ones(4)}, ["structure differs"]),
+        ({"x": np.ones((4, 2)), "y": np.ones(4)}, ["validation.data['x']", "(2,)"]),
+    ],
+)
+def test_validation_data_must_look_like_the_training_data(valid, fragments):
+    import optax
+
+    with raises(ValueError, "train: validation.data", *fragments):
+        L.train(
+            _Line(jnp.asarray(0.0)),
+            _line_loss,
+            _LINE_DATA,
+            optimizer=optax.sgd(0.1),
+            num_steps=1,
+            batch_size=4,
+            validation=L.Validation(valid),
+            logging=L.Logging(progress=False),
+        )
+
+
+def test_one_values_dict_for_a_batch_of_graphs_is_named():
+    from helpers import se2_loop
+
+    graphs, values = zip(*[se2_loop(s)[:2] for s in range(3)])
+    with raises(ValueError, "least_squares_batch: values['pose']", "3 graphs"):
+        eqs.least_squares_batch(list(graphs), values[0], eqs.LevenbergMarquardt())
+
+
+def _sqrt_residual(x, data, params):
+    return jnp.sqrt(x) - data
+
+
+def test_a_diverged_solve_says_where_its_first_step_went():
+    graph = eqs.FactorGraph(
+        [
+            eqs.FunctionFactor(
+                _sqrt_residual,
+                (eqs.Var("x", [0, 1]),),
+                eqs.IsotropicNoise.from_sigma(1.0),
+                data=jnp.asarray([[0.1], [0.1]]),
+            )
+        ]
+    )
+    x0 = {"x": jnp.asarray([[4.0], [4.0]])}
+    with raises(
+        eqx.EquinoxRuntimeError,
+        "Nonlinear solve diverged",
+        "the first Gauss-Newton step",
+        "FunctionFactor (factor stack 0): non-finite residual in rows [0, 1]",
+    ):
+        eqs.least_squares(graph, x0, eqs.GaussNewton())
+    # Levenberg-Marquardt's damping shortens the step: it converges.
+    sol = eqs.least_squares(graph, x0, eqs.LevenbergMarquardt())
+    np.testing.assert_allclose(sol.value["x"], 0.01, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------
+# Loaders and caches of the experiments (run from the checkout)
+# ---------------------------------------------------------------------------
+
+
+def test_a_binary_file_given_as_kitti_poses_is_named(tmp_path):
+    from experiments.kitti_vo import data as D
+
+    path = tmp_path / "00.txt"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")
+    with raises(ValueError, str(path), "not a KITTI pose file", "offset 0"):
+        D.read_poses(path)
+
+
+@pytest.mark.parametrize("content", ["keys", "not_mat"])
+def test_a_pendulum_recording_without_its_keys_is_named(content, tmp_path):
+    scipy_io = pytest.importorskip("scipy.io")
+    from experiments.pendulum_friction import data as P
+
+    path = tmp_path / "recording.mat"
+    if content == "keys":
+        scipy_io.savemat(path, {"Y_id": np.ones((1, 3)), "dt": 0.001})
+        fragments = ["lacks ['Y_vad']", "MultiArm-Pendulum"]
+    else:
+        path.write_text("not a MATLAB file")
+        fragments = ["not a MATLAB file of the MultiArm-Pendulum recording"]
+    with raises(ValueError, str(path), *fragments):
+        P.load_segments(path)
+
+
+def test_a_cache_holding_other_shapes_than_its_name_is_rebuilt(tmp_path):
+    from experiments.disk_tracking import data as D
+
+    small = D.load_fold(0, 0, num_sequences=2, num_frames=3, cache_dir=tmp_path)
+    # Another fold's arrays under this fold's name (n=2, t=4).
+    (cached,) = tmp_path.glob("*.npz")
+    cached.rename(tmp_path / cached.name.replace("_t3", "_t4"))
+    with pytest.warns(UserWarning, match="damaged cache file.*expected leading"):
+        fold = D.load_fold(0, 0, num_sequences=2, num_frames=4, cache_dir=tmp_path)
+    assert fold.visible_pixels.shape == (2, 4)
+    assert small.visible_pixels.shape == (2, 3)

@@ -115,6 +115,26 @@ def _check_step(who, transition, measurements, group: str | None):
     return transition, measurements, group
 
 
+def _check_dtypes(who, transition, measurements, kept):
+    """A step's factor data must have the dtypes of the rows `init` kept (a
+    float32 step after a float64 init failed deep inside the update)."""
+    names = ["transition"] + [f"measurements[{i}]" for i in range(len(measurements))]
+    stacks = (transition, *measurements)
+    if len(stacks) != len(kept):
+        return  # another structure: the structure check says so
+    for name, factor, (old_rows, _) in zip(names, stacks, kept):
+        new = jax.tree_util.tree_leaves(per_row_fields(factor))
+        old = jax.tree_util.tree_leaves(old_rows)
+        for a, b in zip(new, old):
+            if jnp.result_type(a) != jnp.result_type(b):
+                raise TypeError(
+                    f"{who}: this step's {name} data has dtype "
+                    f"{jnp.result_type(a)} where the state (from init) has "
+                    f"{jnp.result_type(b)}: give every step the dtype of init's "
+                    "factors (a float32 step after a float64 init, or the reverse)"
+                )
+
+
 def _finite(rows, t, who):
     """Stop on a non-finite value in the new rows (traced data: a runtime
     error naming the step, instead of NaN estimates)."""
@@ -216,6 +236,14 @@ class FixedLagSmoother(eqx.Module):
                 f"{who}: state must be a FixedLagState, got {type(state).__name__}"
             )
         transition, measurements, _ = _check_step(who, transition, measurements, None)
+        lags = {jnp.shape(a)[0] for a in jax.tree_util.tree_leaves(state.window)}
+        if lags != {self.lag}:
+            raise ValueError(
+                f"{who}: the state was made by a FixedLagSmoother with lag="
+                f"{sorted(lags)[0]}, this smoother has lag={self.lag}: update a "
+                "state with the smoother whose init made it"
+            )
+        _check_dtypes(who, transition, measurements, state.rows)
         mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
         step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
         n = self.lag + 1

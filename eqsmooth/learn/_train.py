@@ -328,15 +328,39 @@ def _check_options(model, optimizer, filter_spec, on_nonfinite, num_steps, seed)
         )
 
 
-def _validation(validation, loss_fn, has_aux, mesh):
+def _validation(validation, loss_fn, has_aux, mesh, train_data):
     """The validation data on the host and its evaluator (None, None without)."""
     if validation is None:
         return None, None
     valid = _to_host(validation.data)
     _num_examples(valid, "validation.data")
     own = validation.loss_fn is None
+    if own and train_data is not None:
+        _same_examples(valid, train_data)
     fn = loss_fn if own else validation.loss_fn
     return valid, _make_evaluator(fn, has_aux and own, mesh)
+
+
+def _same_examples(valid, train) -> None:
+    """Validation examples scored by the training loss must look like the
+    training examples (it raised a `KeyError` from inside the user's loss)."""
+    vs, ts = jax.tree_util.tree_structure(valid), jax.tree_util.tree_structure(train)
+    if vs != ts:
+        raise ValueError(
+            "train: validation.data is scored by the training loss (Validation."
+            "loss_fn is None) but its structure differs from train_data's: "
+            f"{vs} against {ts} (give it the same keys and nesting, or a "
+            "loss_fn of its own)"
+        )
+    for (path, v), t in zip(
+        jax.tree_util.tree_flatten_with_path(valid)[0], jax.tree_util.tree_leaves(train)
+    ):
+        if np.shape(v)[1:] != np.shape(t)[1:]:
+            raise ValueError(
+                f"train: validation.data{jax.tree_util.keystr(path)} has examples "
+                f"of shape {np.shape(v)[1:]} where train_data's have "
+                f"{np.shape(t)[1:]}"
+            )
 
 
 def _check_batch(n: int, batch_size: int, mesh: Mesh | None) -> None:
@@ -581,7 +605,9 @@ def train(
     data = _to_host(train_data)
     n = _num_examples(data, "train_data")
     _check_batch(n, batch_size, mesh)
-    valid, evaluator = _validation(validation, loss_fn, has_aux, mesh)
+    # (An augmentation may give the loss batches of another structure.)
+    like = data if augment is None else None
+    valid, evaluator = _validation(validation, loss_fn, has_aux, mesh, like)
     with jax.numpy_dtype_promotion("standard"):
         opt_state = optimizer.init(eqx.filter(model, filter_spec))
     seed = int(seed)

@@ -15,8 +15,22 @@ def _check_every(owner: str, every: int) -> None:
 
 
 def _check_file(owner: str, path) -> None:
-    if path is not None and Path(path).is_dir():
+    """Refuse a path that can never be written: a directory, or one below an
+    existing file (it failed with a bare `FileExistsError` at the first
+    write, after the first interval of training)."""
+    if path is None:
+        return
+    path = Path(path)
+    if path.is_dir():
         raise ValueError(f"{owner}: path {path} is a directory; give a file path")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(
+                    f"{owner}: path {path} cannot be written: {parent} is a file, "
+                    "not a folder"
+                )
+            break
 
 
 class Validation(eqx.Module):

@@ -59,7 +59,14 @@ DEFAULT_POSES_DIR = data_root() / "kitti_poses"
 
 def read_poses(path: str | Path) -> np.ndarray:
     """KITTI pose file -> `(N, 3, 4)` float64 `[R | t]` matrices."""
-    if not Path(path).read_text().strip():
+    try:
+        text = Path(path).read_bytes().decode("ascii")
+    except UnicodeDecodeError as err:
+        raise ValueError(
+            f"{path}: not a KITTI pose file (a byte that is not text at offset "
+            f"{err.start}); a pose file holds 12 floats per line"
+        ) from None
+    if not text.strip():
         raise ValueError(f"{path}: no poses (an empty file)")
     try:
         data = np.loadtxt(path, dtype=np.float64, ndmin=2)
@@ -736,8 +743,7 @@ def rendered_sequence(
     path = require(
         Path(poses_dir) / f"{seq:02d}.txt",
         f"the KITTI ground-truth poses of sequence {seq:02d}",
-        "the KITTI odometry benchmark's 'ground truth poses' download "
-        "(00.txt..10.txt)",
+        "the KITTI odometry benchmark's 'ground truth poses' download (00.txt..10.txt)",
         "--poses-dir",
     )
     xyt = poses_to_2d(read_poses(path))

@@ -24,8 +24,21 @@ def load_segments(path: Path) -> dict:
     angular velocity [rad/s]; all segments are cut to the shortest length.
     """
     from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
 
-    mat = loadmat(str(path))
+    try:
+        mat = loadmat(str(path))
+    except (MatReadError, ValueError, OSError, TypeError) as err:
+        raise ValueError(
+            f"{path}: not a MATLAB file of the MultiArm-Pendulum recording ({err})"
+        ) from None
+    missing = [k for k in ("Y_id", "Y_vad", "dt") if k not in mat]
+    if missing:
+        raise ValueError(
+            f"{path}: the recording lacks {missing}; expected the MultiArm-Pendulum "
+            f"benchmark's single_pendulum_freeswing_1khz.mat ({SOURCE}) with Y_id "
+            "(identification segments), Y_vad (validation segments) and dt"
+        )
     ident = [np.asarray(a[0], float) for a in mat["Y_id"]]
     valid = [np.asarray(a[0], float) for a in mat["Y_vad"]]
     n = min(a.shape[1] for a in ident + valid)

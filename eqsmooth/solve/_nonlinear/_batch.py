@@ -4,6 +4,7 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jaxtyping import PyTree
@@ -16,6 +17,25 @@ from ._least_squares import least_squares
 
 
 Values = dict[str, PyTree]
+
+
+def _check_batch_axes(graphs: FactorGraph, values: Values) -> None:
+    """The graphs' and the values' leading axes must agree (one values dict
+    given for a batch was read as already batched: a `vmap` size error)."""
+    sizes = {
+        jnp.shape(a)[0] for a in jax.tree_util.tree_leaves(graphs) if eqx.is_array(a)
+    }
+    if len(sizes) != 1:
+        return  # not a stacked graph: vmap names what it cannot map
+    (B,) = sizes
+    for path, leaf in jax.tree_util.tree_flatten_with_path(values)[0]:
+        if jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != B:
+            raise ValueError(
+                f"least_squares_batch: values{jax.tree_util.keystr(path)} has shape "
+                f"{jnp.shape(leaf)} but the batch has {B} graphs: give one values "
+                "dict per graph (a sequence), or one dict whose leaves carry the "
+                f"batch axis first (e.g. eqsmooth.learn.stack_trees([values] * {B}))"
+            )
 
 
 def least_squares_batch(
@@ -63,6 +83,7 @@ def least_squares_batch(
         graphs = stack_trees(graphs)
     if not isinstance(values, dict):
         values = stack_trees(list(values))
+    _check_batch_axes(graphs, values)
     sol = _solve_batch(graphs, values, solver, adjoint, max_steps=max_steps)
     if throw:
         (code,) = jax.tree_util.tree_leaves(sol.result)

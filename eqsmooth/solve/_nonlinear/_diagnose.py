@@ -1,14 +1,21 @@
 """The detail of a failed solve's error, found on the host after the solve:
-which factor rows are not finite (`RESULTS.nonfinite_problem`), and whether a
+which factor rows are not finite (`RESULTS.nonfinite_problem`), whether a
 singular system is a missing prior or float32 ill-conditioning
-(`RESULTS.linear_solve_failed`)."""
+(`RESULTS.linear_solve_failed`), and where a diverged solve's first step led
+(`RESULTS.nonlinear_divergence`)."""
 
 import jax
 import numpy as np
 from jaxtyping import PyTree
 
 from ...factors import FactorGraph
-from .._linearization import dense_jacobian, group_offsets, linearize
+from .._linearization import (
+    dense_jacobian,
+    group_offsets,
+    linearize,
+    retract_values,
+    unflatten_tangent,
+)
 from .._solution import RESULTS
 
 
@@ -107,6 +114,31 @@ def singular_detail(graph: FactorGraph, values: dict[str, PyTree]) -> str:
     return ""
 
 
+def divergence_detail(graph: FactorGraph, values: dict[str, PyTree]) -> str:
+    """Where a diverged solve went: the first Gauss-Newton step from the
+    (finite) initial values, computed densely in float64 on the host
+    (problems of up to 3000 tangent dimensions), and the factor rows that are
+    not finite there."""
+    lin = linearize(graph, values)
+    if lin.num_tangent > _MAX_DENSE or not np.all(np.isfinite(np.asarray(lin.cost))):
+        return ""
+    J, r = (np.asarray(a, np.float64) for a in dense_jacobian(lin))
+    if not (np.isfinite(J).all() and np.isfinite(r).all()):
+        return ""
+    step = -np.linalg.lstsq(J, r, rcond=None)[0]
+    moved = retract_values(values, unflatten_tangent(lin, jax.numpy.asarray(step)))
+    where = nonfinite_rows(graph, moved)
+    if not where:
+        return ""
+    return (
+        "The initial values are finite, but the first Gauss-Newton step from them "
+        f"leads where {where}. A residual undefined there (a square root or "
+        "logarithm of a negative number, a division by zero) or a step too long "
+        "for the model: start closer, use LevenbergMarquardt (its damping "
+        "shortens such steps), or make the residual defined everywhere."
+    )
+
+
 def failure_detail(
     graph: FactorGraph, values: dict[str, PyTree], result: RESULTS
 ) -> str:
@@ -117,8 +149,11 @@ def failure_detail(
         return nonfinite_rows(graph, values)
     if np.all(code == _SINGULAR):
         return singular_detail(graph, values)
+    if np.all(code == _DIVERGED):
+        return divergence_detail(graph, values)
     return ""
 
 
 (_NONFINITE,) = jax.tree_util.tree_leaves(RESULTS.nonfinite_problem)
 (_SINGULAR,) = jax.tree_util.tree_leaves(RESULTS.linear_solve_failed)
+(_DIVERGED,) = jax.tree_util.tree_leaves(RESULTS.nonlinear_divergence)
