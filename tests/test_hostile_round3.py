@@ -1,25 +1,56 @@
 """Hostile input, round three: the features added since the second round.
 
-Each case asserts a clear error (the exact type, and the argument, field,
-shape or file named in the message) or the right answer. By class:
+101 cases (87 here, 14 in the files named below), each asserting a clear
+error (the exact type, with the argument, factor, rows or file named in the
+message) or the right answer. By class:
 
-- **Noise heads** (`ConstantNoiseHead`, `HeteroscedasticNoiseHead`): a zero,
-  negative, infinite or NaN `sigma` (a zero one gave σ⁻¹ = inf, a negative
-  one σ = 1000 silently), a `sigma` of rank 2, a negative or non-finite
+- **Noise heads** (`ConstantNoiseHead`, `HeteroscedasticNoiseHead`, 36): a
+  zero, negative, infinite or NaN `sigma` (zero gave σ⁻¹ = inf, a negative
+  one σ = 1000, silently), a `sigma` of rank 2, a negative or infinite
   `floor`, a floor of the wrong shape, a floor at or above `1/sigma` (the
-  head silently started at the floor, not at `1/sigma`), non-integer or
-  non-positive `in_size`/`width`, a negative `depth`, a non-positive or
-  non-finite `scale`, a non-finite `shift`, features of another size than
-  `in_size` at the call (a raw `dot_general` shape error before).
-- **`KernelChoice`**: an index out of range set with `eqx.tree_at`
-  (`lax.switch` clamped it to the last kernel), above and below, jitted and
-  batched; an unknown kernel name.
-- Elsewhere (their own files): a checkpoint of another run
-  (`test_hostile_checkpoint.py`); NaN gradients of failed solves under every
-  adjoint, solo and batched (`test_adjoint.py`); masked rows that no value
-  in them reaches (`test_masked_noise.py`); discovery's level, constant
-  channels and `name`/`add` given other data than `find`'s
-  (`test_discover.py::test_discovery_refuses_what_it_cannot_use`).
+  head silently started at the floor), non-positive `in_size`/`width`, a
+  bool width, a negative `depth`, a non-positive or NaN `scale`, an
+  infinite `shift`, features of another size than `in_size` at the call (a
+  raw `dot_general` error), and the largest floor allowed starting at
+  `1/sigma`.
+- **`KernelChoice` and robust composition** (13): an index out of range set
+  with `eqx.tree_at` (clamped by `lax.switch` before), jitted and batched;
+  every index in range selecting its kernel; an unknown name; an int for a
+  kernel; a zero, negative, NaN or wrongly shaped Huber scale; a kernel that
+  is a string; nested kernels; a zero or NaN Student-t dof.
+- **Row masks** (3 here; 2 in `test_masked_noise.py`: NaN in a masked row
+  reaches no value or derivative): a float mask, a mask of the wrong length,
+  a mask around Student-t noise.
+- **Training option groups and checkpoints** (13 here; 4 in
+  `test_hostile_checkpoint.py`: a checkpoint of another model, of the same
+  leaves under other names, of another optimiser, of another batch size):
+  a checkpoint or log path below a file (a `FileExistsError` at the first
+  write before), at a folder; validation data scored by the training loss
+  with another structure or example shape (a `KeyError` in the loss
+  before), without examples, ragged; intervals 0, -1 or a bool; a batch
+  size of 0.
+- **Batched and diverged solves** (6 here; 4 in `test_adjoint.py`: NaN
+  gradients of failed solves per adjoint, solo and batched): one values dict
+  for a batch (a `vmap` size error before), too few values, no graphs, a
+  string among the graphs, two structures; a diverged Gauss-Newton solve
+  naming where its first step went.
+- **Discovery** (6 here; 2 in `test_discover.py`: `name` and `add` given
+  other data than `find`'s): a level of 1.5, 1, 0 or -0.1; a constant
+  measurement channel; `name` of a dict.
+- **The fixed-lag smoother's per-step API** (6 here; 2 in
+  `test_fixed_lag.py`: a state from a smoother of another lag, blamed on
+  "factors differ in kind" before, and a float32 step after a float64 init,
+  an error inside `lax.dynamic_update_slice` before): a lag of 1.5 or
+  `True`, a dict for a state, a covariance of the wrong shape, a robust
+  measurement at `init` and at `update`.
+- **Loaders and caches of the experiments** (4): a binary file given as
+  KITTI poses (a `UnicodeDecodeError` naming no path before), a pendulum
+  recording without its keys (a bare `KeyError`) or not a MATLAB file, a
+  fold cache whose arrays have other sizes than its name (returned as such
+  before).
+
+A wrong type is named by the run's type checker (jaxtyping's hook) before
+eqsmooth's own check; those cases accept either.
 """
 
 import equinox as eqx
@@ -28,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from hostile import raises
+from jaxtyping import TypeCheckError
 
 import eqsmooth as eqs
 from eqsmooth import learn as L
@@ -105,7 +137,7 @@ def test_heteroscedastic_head_mlp_arguments(kw, exc, fragments):
         _build("heteroscedastic", 0.5, **kw)
 
 
-@pytest.mark.parametrize("shape", [(5, 3), (5,), (2, 5, 2)])
+@pytest.mark.parametrize("shape", [(5, 3), (5,), (2, 5, 2), ()])
 def test_heteroscedastic_head_names_in_size_for_features_of_another_size(shape):
     head = _build("heteroscedastic", 0.5, in_size=1)
     with raises(ValueError, "in_size=1", str(shape)):
@@ -280,3 +312,278 @@ def test_a_cache_holding_other_shapes_than_its_name_is_rebuilt(tmp_path):
         fold = D.load_fold(0, 0, num_sequences=2, num_frames=4, cache_dir=tmp_path)
     assert fold.visible_pixels.shape == (2, 4)
     assert small.visible_pixels.shape == (2, 3)
+
+
+# ---------------------------------------------------------------------------
+# A table of the other new APIs: each case a clear error naming the argument
+# ---------------------------------------------------------------------------
+
+_BASE = eqs.IsotropicNoise.from_sigma(1.0)
+
+
+def _measure(x, data, params):
+    return x - data
+
+
+def _stack(noise, n=4):
+    return eqs.FunctionFactor(
+        _measure, (eqs.Var("x", np.arange(n)),), noise, data=jnp.zeros((n, 1))
+    )
+
+
+def _solve(noise):
+    graph = eqs.FactorGraph([_stack(noise)])
+    return eqs.least_squares(graph, {"x": jnp.zeros((4, 1))}, eqs.GaussNewton())
+
+
+def _batch(graphs, values):
+    return eqs.least_squares_batch(graphs, values, eqs.GaussNewton())
+
+
+def _train(valid=None, batch_size=2):
+    import optax
+
+    return L.train(
+        _Line(jnp.asarray(0.0)),
+        _line_loss,
+        _LINE_DATA,
+        optimizer=optax.sgd(0.1),
+        num_steps=1,
+        batch_size=batch_size,
+        validation=None if valid is None else L.Validation(valid),
+        logging=L.Logging(progress=False),
+    )
+
+
+def _find(alpha=0.05, constant=False):
+    import dataclasses
+
+    from test_discover import _model, _simulate
+
+    import eqsmooth.discover as dc
+
+    data = _simulate(2)
+    if constant:
+        flat = np.full_like(np.asarray(data.measurements), 0.3)
+        data = dataclasses.replace(data, measurements=flat)
+    return dc.find(_model(), data, alpha=alpha)
+
+
+def _fixed_lag(case):
+    from test_fixed_lag import _se2_initial, _se2_steps
+
+    (_, _, truth), trans, meas = _se2_steps(1.0)
+    mean0, cov0 = _se2_initial(truth)
+    smoother = eqs.filters.FixedLagSmoother(lag=2)
+    robust = eqx.tree_at(lambda f: f.noise, meas[1], eqs.HuberNoise(meas[1].noise, 1.0))
+    if case == "covariance shape":
+        return smoother.init(mean0, jnp.eye(2), trans[0], meas[0])
+    if case == "robust init":
+        return smoother.init(mean0, cov0, trans[0], robust)
+    state, _ = smoother.init(mean0, cov0, trans[0], meas[0])
+    if case == "robust update":
+        return smoother.update(state, trans[0], robust)
+    return smoother.update({"t": 0}, trans[0], meas[1])
+
+
+# A wrong type: the runtime type checker of the test run (jaxtyping's hook)
+# names the parameter first; without it, eqsmooth's own check does.
+_TYPED = (TypeCheckError, TypeError, ValueError)
+
+_TABLE = {
+    # robust composition
+    "Huber scale 0": (
+        lambda: eqs.HuberNoise(_BASE, 0.0),
+        ValueError,
+        ["HuberNoise.scale must be positive", "0.0"],
+    ),
+    "Huber scale -1": (
+        lambda: eqs.HuberNoise(_BASE, -1.0),
+        ValueError,
+        ["HuberNoise.scale must be positive", "-1.0"],
+    ),
+    "Huber scale nan": (
+        lambda: eqs.HuberNoise(_BASE, jnp.nan),
+        ValueError,
+        ["HuberNoise.scale must be finite"],
+    ),
+    "Huber scale rows": (
+        lambda: _solve(eqs.HuberNoise(_BASE, jnp.ones(3))),
+        ValueError,
+        ["FunctionFactor: HuberNoise.scale has shape (3,)", "(4,)"],
+    ),
+    "kernel not a kernel": (
+        lambda: eqs.RobustNoise(_BASE, "Huber", 1.0),
+        _TYPED,
+        ["kernel", "Huber"],
+    ),
+    "kernels nested": (
+        lambda: eqs.HuberNoise(eqs.TukeyNoise(_BASE, 1.0), 1.0),
+        TypeError,
+        ["HuberNoise.base must be a Gaussian", "TukeyNoise", "do not nest"],
+    ),
+    "Student-t dof 0": (
+        lambda: eqs.StudentTNoise(_BASE, 0.0),
+        ValueError,
+        ["StudentTNoise.dof must be positive"],
+    ),
+    "Student-t dof nan": (
+        lambda: eqs.StudentTNoise(_BASE, jnp.nan),
+        ValueError,
+        ["StudentTNoise.dof must be finite"],
+    ),
+    "KernelChoice of an int": (
+        lambda: eqs.factors.KernelChoice(3),
+        _TYPED,
+        ["kernel", "3"],
+    ),
+    # row masks
+    "mask of floats": (
+        lambda: eqs.MaskedNoise(_BASE, jnp.ones(4)),
+        TypeError,
+        ["MaskedNoise.active must be booleans", ".astype(bool)"],
+    ),
+    "mask rows": (
+        lambda: _solve(eqs.MaskedNoise(_BASE, jnp.ones(3, bool))),
+        ValueError,
+        ["FunctionFactor: MaskedNoise.active has shape (3,)", "(4,)"],
+    ),
+    "mask of Student-t": (
+        lambda: eqs.MaskedNoise(eqs.StudentTNoise(_BASE, 4.0), jnp.ones(4, bool)),
+        TypeError,
+        ["MaskedNoise.base must be a Gaussian", "StudentTNoise"],
+    ),
+    # training option groups
+    "Validation every 0": (
+        lambda: L.Validation({"x": np.ones(3)}, every=0),
+        ValueError,
+        ["Validation: every must be an int >= 1", "0"],
+    ),
+    "Validation every True": (
+        lambda: L.Validation({"x": np.ones(3)}, every=True),
+        _TYPED,
+        ["every", "True"],
+    ),
+    "Checkpoints at a folder": (
+        lambda: L.Checkpoints("."),
+        ValueError,
+        ["Checkpoints: path . is a directory"],
+    ),
+    "Checkpoints every 0": (
+        lambda: L.Checkpoints("ckpt.eqx", every=0),
+        ValueError,
+        ["Checkpoints: every must be an int >= 1"],
+    ),
+    "Logging every -1": (
+        lambda: L.Logging(every=-1),
+        ValueError,
+        ["Logging: every must be an int >= 1", "-1"],
+    ),
+    "batch size 0": (
+        lambda: _train(batch_size=0),
+        ValueError,
+        ["train: need batch_size >= 1", "0"],
+    ),
+    "validation without examples": (
+        lambda: _train({"x": np.ones(0), "y": np.ones(0)}),
+        ValueError,
+        ["train: validation.data has no examples"],
+    ),
+    "validation ragged": (
+        lambda: _train({"x": np.ones(3), "y": np.ones(2)}),
+        ValueError,
+        ["validation.data needs the same leading (example) axis", "(3,)", "(2,)"],
+    ),
+    # batched solves
+    "batch of no graphs": (
+        lambda: _batch([], []),
+        ValueError,
+        ["least_squares_batch: no graphs"],
+    ),
+    "batch with a string": (
+        lambda: _batch(
+            [eqs.FactorGraph([_stack(_BASE)]), "g"], [{"x": jnp.zeros((4, 1))}] * 2
+        ),
+        _TYPED,  # beartype checks one random element of a list
+        ["graphs"],
+    ),
+    "batch of two structures": (
+        lambda: _batch(
+            [eqs.FactorGraph([_stack(_BASE)]), eqs.FactorGraph([_stack(_BASE, 3)])],
+            [{"x": jnp.zeros((4, 1))}, {"x": jnp.zeros((3, 1))}],
+        ),
+        ValueError,
+        ["stack_trees: tree 1 differs in structure from tree 0"],
+    ),
+    "batch with too few values": (
+        lambda: _batch(
+            [eqs.FactorGraph([_stack(_BASE)])] * 3, [{"x": jnp.zeros((4, 1))}] * 2
+        ),
+        ValueError,
+        ["least_squares_batch: values['x'] has shape (2, 4, 1)", "3 graphs"],
+    ),
+    # discovery: a level outside (0, 1) (1.5 declared detections, 0 never
+    # could); a channel that never changes (its noise scale ran to 1e-21)
+    **{
+        f"find alpha {a}": (
+            lambda a=a: _find(alpha=a),
+            ValueError,
+            ["find: alpha", "must lie in (0, 1)", str(a)],
+        )
+        for a in (1.5, 1.0, 0.0, -0.1)
+    },
+    "find of a constant channel": (
+        lambda: _find(constant=True),
+        ValueError,
+        ["find: data.measurements channel(s) [0]", "[0.3]", "drop the channel"],
+    ),
+    "name of a dict": (
+        lambda: __import__("eqsmooth.discover").discover.name({"detected": True}, None),
+        _TYPED,
+        ["found"],
+    ),
+    # the fixed-lag smoother's per-step API
+    "lag 1.5": (
+        lambda: eqs.filters.FixedLagSmoother(lag=1.5),
+        _TYPED,
+        ["lag", "1.5"],
+    ),
+    "lag True": (
+        lambda: eqs.filters.FixedLagSmoother(lag=True),
+        ValueError,
+        ["FixedLagSmoother: lag must be an int >= 1", "True"],
+    ),
+    "update of a dict": (
+        lambda: _fixed_lag("not a state"),
+        _TYPED,
+        ["state", "FixedLagState"],
+    ),
+    "init covariance shape": (
+        lambda: _fixed_lag("covariance shape"),
+        ValueError,
+        ["FixedLagSmoother.init: initial_covariance has shape (2, 2)", "(6, 6)"],
+    ),
+    "robust measurement at init": (
+        lambda: _fixed_lag("robust init"),
+        TypeError,
+        ["FixedLagSmoother.init: factor FunctionFactor", "RobustNoise is robust"],
+    ),
+    "robust measurement at update": (
+        lambda: _fixed_lag("robust update"),
+        TypeError,
+        ["FixedLagSmoother.update: factor FunctionFactor", "RobustNoise is robust"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(_TABLE))
+def test_new_apis_name_what_is_wrong(case):
+    build, exc, fragments = _TABLE[case]
+    if exc is _TYPED:
+        with pytest.raises(exc) as info:
+            build()
+        for fragment in fragments:
+            assert fragment in str(info.value), (fragment, str(info.value))
+        return
+    with raises(exc, *fragments):
+        build()

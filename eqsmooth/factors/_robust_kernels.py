@@ -492,6 +492,14 @@ class KernelChoice(AbstractKernel):
 
     def __init__(self, kernel: type[AbstractKernel] | str):
         names = [k.__name__ for k in KERNELS]
+        if not isinstance(kernel, str) and not (
+            isinstance(kernel, type) and issubclass(kernel, AbstractKernel)
+        ):
+            raise TypeError(
+                "KernelChoice: kernel must be a kernel class (Huber, Tukey, ...) or "
+                f"its name, one of {names}; got {kernel!r} (an index is set as "
+                "data: eqx.tree_at(lambda k: k.index, KernelChoice('Huber'), i))"
+            )
         key = kernel if isinstance(kernel, str) else kernel.__name__
         if key not in names:
             raise ValueError(f"KernelChoice: unknown kernel {kernel!r}; one of {names}")
