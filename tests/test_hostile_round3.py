@@ -1,6 +1,6 @@
 """Hostile input, round three: the features added since the second round.
 
-101 cases (87 here, 14 in the files named below), each asserting a clear
+102 cases (88 here, 14 in the files named below), each asserting a clear
 error (the exact type, with the argument, factor, rows or file named in the
 message) or the right answer. By class:
 
@@ -43,11 +43,12 @@ message) or the right answer. By class:
   an error inside `lax.dynamic_update_slice` before): a lag of 1.5 or
   `True`, a dict for a state, a covariance of the wrong shape, a robust
   measurement at `init` and at `update`.
-- **Loaders and caches of the experiments** (4): a binary file given as
+- **Loaders and caches of the experiments** (5): a binary file given as
   KITTI poses (a `UnicodeDecodeError` naming no path before), a pendulum
   recording without its keys (a bare `KeyError`) or not a MATLAB file, a
   fold cache whose arrays have other sizes than its name (returned as such
-  before).
+  before), a KITTI sensor cache of another length, first frame or format
+  (read without a check before).
 
 A wrong type is named by the run's type checker (jaxtyping's hook) before
 eqsmooth's own check; those cases accept either.
@@ -587,3 +588,18 @@ def test_new_apis_name_what_is_wrong(case):
         return
     with raises(exc, *fragments):
         build()
+
+
+def test_a_sensor_cache_of_another_length_is_rebuilt(tmp_path):
+    from experiments.kitti_vo import experiment as E
+
+    path = tmp_path / "seq.npz"
+    np.savez(path, z=np.ones((5, 2)), log_sigma=np.ones((5, 2)), first=np.asarray(3))
+    assert E._read_sensor_cache(path, 3, 5)["z"].shape == (5, 2)
+    with pytest.warns(UserWarning, match="damaged sensor cache.*not 7 frames"):
+        assert E._read_sensor_cache(path, 3, 7) is None
+    with pytest.warns(UserWarning, match="starts at frame 3, not 0"):
+        assert E._read_sensor_cache(path, 0, 5) is None
+    path.write_bytes(b"not a zip")
+    with pytest.warns(UserWarning, match=f"{path}: damaged sensor cache"):
+        assert E._read_sensor_cache(path, 3, 5) is None

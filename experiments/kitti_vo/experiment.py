@@ -17,6 +17,8 @@ import functools
 import json
 import platform
 import time
+import warnings
+import zipfile
 from pathlib import Path
 
 import equinox as eqx
@@ -491,6 +493,28 @@ def _pretrain_sensor(cfg, key, train_trajs, valid_trajs, sensor_path, work, timi
     return res.best_model
 
 
+def _read_sensor_cache(path: Path, first: int, frames: int) -> dict | None:
+    """A trajectory's cached sensor outputs, or None (absent, or damaged: not
+    an `.npz`, another first frame, or arrays of another length; a damaged
+    file is reported with its path and rebuilt, never used)."""
+    if not path.exists():
+        return None
+    try:
+        with open(path, "rb") as fh, np.load(fh) as z:
+            cached = {k: z[k] for k in z.files}
+        if int(cached["first"]) != first:
+            raise ValueError(f"it starts at frame {int(cached['first'])}, not {first}")
+        for k, a in cached.items():
+            if k != "first" and (a.ndim == 0 or a.shape[0] != frames):
+                raise ValueError(f"{k} has shape {a.shape}, not {frames} frames")
+        return cached
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+        warnings.warn(
+            f"{path}: damaged sensor cache ({err}); it is rebuilt", stacklevel=3
+        )
+        return None
+
+
 def _sensor_caches(sensor, trajs_by_role, cache_dir: Path) -> dict:
     """Stage 2: the frozen sensor's outputs per trajectory, cached on disk."""
     caches = {}
@@ -498,12 +522,13 @@ def _sensor_caches(sensor, trajs_by_role, cache_dir: Path) -> dict:
     all_trajs = [(t, role) for role, trajs in trajs_by_role for t in trajs]
     for tr, role in tqdm(all_trajs, desc="sensor cache"):
         path = cache_dir / (tr.name.replace("/", "_") + ".npz")
-        if path.exists():
-            caches[tr.name] = dict(np.load(path))
-            continue
         # Training trajectories: only their last frames (the smoother split).
         # The validation and test sequences are used whole.
         first = 0 if role != "train" else int(D.smoother_frames(tr.num_frames)[0])
+        cached = _read_sensor_cache(path, first, tr.num_frames - 1 - first)
+        if cached is not None:
+            caches[tr.name] = cached
+            continue
         caches[tr.name] = trajectory_cache(sensor, tr, first)
         np.savez(path, **caches[tr.name])
     return caches
