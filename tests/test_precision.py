@@ -4,10 +4,11 @@ XLA:CPU computes a float32 product in float32 whatever precision it is
 given, but GPUs with tensor cores (and TPUs) round the operands of a product
 that asks for JAX's default precision to TF32 (or bfloat16): about three
 significant digits, which put float32 Lie-group results 1e-4 off their
-float64 values on an H200 (jax 0.11.2) where the CPU agrees to 1e-6. The
-library asks for `Precision.HIGHEST` in its own products
-(`eqsmooth/_precision.py`); these tests read the traced programs, so a CPU
-run catches a product that would be rounded on a GPU.
+float64 values on an H200 (jax 0.11.2) where the CPU agrees to 1e-6. Off
+the CPU the library asks for `Precision.HIGHEST` in its own products
+(`eqsmooth/_precision.py`). These tests trace the programs as for a GPU
+(the backend the choice reads is patched) and read them, so a CPU run
+catches a product that would be rounded on a GPU.
 """
 
 import jax
@@ -20,6 +21,27 @@ import eqsmooth as eqs
 
 
 GROUPS = [eqs.SO2, eqs.SE2, eqs.SO3, eqs.SE3]
+
+
+@pytest.fixture(autouse=True)
+def _traced_as_for_a_gpu(monkeypatch):
+    import eqsmooth._precision as precision
+
+    monkeypatch.setattr(precision, "_backend", lambda: "gpu")
+
+
+def test_on_the_cpu_products_name_no_precision(monkeypatch):
+    """XLA:CPU computes float32 in float32 anyway, and keeps a product that
+    names a precision as a `dot` instead of fusing it (slower): on the CPU
+    the library's products name none."""
+    import eqsmooth._precision as precision
+
+    monkeypatch.setattr(precision, "_backend", lambda: "cpu")
+    xi = jnp.ones((4, 3), jnp.float32)
+    found = reduced_precision_products(eqs.SO3.right_jacobian, xi)
+    assert found and all("None" in f for f in found)
+    monkeypatch.setattr(precision, "_backend", lambda: "gpu")
+    assert reduced_precision_products(eqs.SO3.right_jacobian, xi) == []
 
 
 def test_the_check_sees_a_default_precision_product():
