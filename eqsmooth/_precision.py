@@ -8,12 +8,12 @@ about 1e-3 relative, far beyond what a float32 smoother otherwise reaches
 (on an H200, float32 SO(3) and SE(3) results were 1e-4 off their float64
 values). So on those backends eqsmooth's own products ask for
 `Precision.HIGHEST`. XLA:CPU computes float32 products in float32 whatever
-they ask for, but a product that names a precision is kept as a `dot`
-where XLA:CPU would otherwise rewrite a small one as fused element-wise
-arithmetic (a float32 chain solve took 1.6-2.6 times as long with it:
-`benchmarks/precision_ab.py`), so on the CPU they name none. The choice is
-made when a function is traced, from the default backend. Products in user
-code keep JAX's setting (`jax.default_matmul_precision`).
+they ask for, and compiles a program that names a precision differently: a
+float32 chain solve took 1.05-1.21 times as long with it (float64:
+0.90-0.97; `benchmarks/precision_ab.py`), so on the CPU they name none and
+keep the programs eqsmooth compiled before. The choice is made when a
+function is traced, from the default backend. Products in user code keep
+JAX's setting (`jax.default_matmul_precision`).
 """
 
 import jax
