@@ -2,6 +2,7 @@
 # Run the whole test suite on a GPU machine and write a summary.
 #
 #   bash tests/run_on_gpu.sh [OUTDIR] [-- PYTEST ARGS...]
+#   bash tests/run_on_gpu.sh -- tests/test_linear_solvers.py   # to $OUT
 #
 # From the repository root of a checkout, with the machine's own python3 and
 # JAX (a GPU image's). Only what that Python lacks is installed: from wheels
@@ -13,9 +14,12 @@
 # "GPU test-suite results" updated from it.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-out=${1:-${OUT:-results/gpu_suite}}
-shift || true
-[ "${1:-}" = "--" ] && shift
+out=${OUT:-results/gpu_suite}
+if [ $# -gt 0 ] && [ "$1" != "--" ]; then
+  out=$1
+  shift
+fi
+if [ "${1:-}" = "--" ]; then shift; fi
 mkdir -p "$out"
 python=${PYTHON:-python3}
 export PYTHONUNBUFFERED=1
