@@ -594,12 +594,13 @@ def test_a_sensor_cache_of_another_length_is_rebuilt(tmp_path):
     from experiments.kitti_vo import experiment as E
 
     path = tmp_path / "seq.npz"
-    np.savez(path, z=np.ones((5, 2)), log_sigma=np.ones((5, 2)), first=np.asarray(3))
+    arrays = {k: np.ones((5, 2)) for k in ("z", "log_sigma", "features")}
+    np.savez(path, first=np.asarray(3), **arrays)
     assert E._read_sensor_cache(path, 3, 5)["z"].shape == (5, 2)
-    with pytest.warns(UserWarning, match="damaged sensor cache.*not 7 frames"):
+    with pytest.warns(UserWarning, match="damaged cache file.*leading axes \\(7,\\)"):
         assert E._read_sensor_cache(path, 3, 7) is None
     with pytest.warns(UserWarning, match="starts at frame 3, not 0"):
         assert E._read_sensor_cache(path, 0, 5) is None
     path.write_bytes(b"not a zip")
-    with pytest.warns(UserWarning, match=f"{path}: damaged sensor cache"):
+    with pytest.warns(UserWarning, match=f"{path}: damaged cache file"):
         assert E._read_sensor_cache(path, 3, 5) is None

@@ -18,11 +18,11 @@ run's first sequences are exactly those of the full protocol.
 
 import dataclasses
 import time
-import warnings
-import zipfile
 from pathlib import Path
 
 import numpy as np
+
+from .._data import leading_axes, load_cache
 
 
 IMAGE_SIZE = 120
@@ -305,7 +305,7 @@ def load_fold(
         n, t = num_sequences, num_frames
         shapes = {"disk_positions": (n, t), "disk_velocities": (n, t)}
         shapes |= {"radii": (n,), "colours": (n,), "visible_pixels": (n, t)}
-        z = load_cache(path, _FOLD_KEYS, leading=shapes)
+        z = load_cache(path, _FOLD_KEYS, leading_axes(shapes))
         if z is not None:
             return DiskFold(**z, seed=seed, fold=fold)
     t0 = time.perf_counter()
@@ -331,36 +331,6 @@ def load_fold(
 
 
 _FOLD_KEYS = ("disk_positions", "disk_velocities", "radii", "colours", "visible_pixels")
-
-
-def load_cache(
-    path: Path, keys: tuple[str, ...], leading: dict[str, tuple[int, ...]] | None = None
-) -> dict[str, np.ndarray] | None:
-    """The arrays `keys` of the `.npz` cache at `path`, or None when there is
-    none. A damaged cache (cut short by a kill, missing a key, or holding an
-    array whose leading axes are not `leading[key]`, the sizes its name
-    promises) is only a cache: it is reported with its path and rebuilt,
-    never a crash and never used."""
-    if not path.exists():
-        return None
-    try:
-        # Our own file handle: np.load leaves its own open when the zip is bad.
-        with open(path, "rb") as fh, np.load(fh) as z:
-            out = {k: z[k] for k in keys}
-        for k, want in (leading or {}).items():
-            a = out[k]
-            if a.shape[: len(want)] != want:
-                raise ValueError(
-                    f"{k} has shape {a.shape}, expected leading axes {want}"
-                )
-        return out
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
-        warnings.warn(
-            f"{path}: damaged cache file ({type(err).__name__}: {err}); it is "
-            "rebuilt (delete the file to silence this)",
-            stacklevel=2,
-        )
-        return None
 
 
 def fold_images(fold: DiskFold, cache_dir: Path | None = None) -> np.ndarray:

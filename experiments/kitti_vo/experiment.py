@@ -17,8 +17,6 @@ import functools
 import json
 import platform
 import time
-import warnings
-import zipfile
 from pathlib import Path
 
 import equinox as eqx
@@ -29,6 +27,7 @@ from tqdm.auto import tqdm
 
 import eqsmooth as eqs
 
+from .._data import leading_axes, load_cache
 from .._provenance import git_hash
 from . import data as D, models as M
 
@@ -495,24 +494,18 @@ def _pretrain_sensor(cfg, key, train_trajs, valid_trajs, sensor_path, work, timi
 
 def _read_sensor_cache(path: Path, first: int, frames: int) -> dict | None:
     """A trajectory's cached sensor outputs, or None (absent, or damaged: not
-    an `.npz`, another first frame, or arrays of another length; a damaged
-    file is reported with its path and rebuilt, never used)."""
-    if not path.exists():
-        return None
-    try:
-        with open(path, "rb") as fh, np.load(fh) as z:
-            cached = {k: z[k] for k in z.files}
+    an `.npz`, another first frame, or arrays of another length; see
+    `experiments._data.load_cache`)."""
+
+    def check(cached):
         if int(cached["first"]) != first:
             raise ValueError(f"it starts at frame {int(cached['first'])}, not {first}")
-        for k, a in cached.items():
-            if k != "first" and (a.ndim == 0 or a.shape[0] != frames):
-                raise ValueError(f"{k} has shape {a.shape}, not {frames} frames")
-        return cached
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
-        warnings.warn(
-            f"{path}: damaged sensor cache ({err}); it is rebuilt", stacklevel=3
-        )
-        return None
+        leading_axes({k: (frames,) for k in _SENSOR_KEYS})(cached)
+
+    return load_cache(path, ("first", *_SENSOR_KEYS), check)
+
+
+_SENSOR_KEYS = ("z", "log_sigma", "features")
 
 
 def _sensor_caches(sensor, trajs_by_role, cache_dir: Path) -> dict:
