@@ -4,7 +4,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..factors import FactorGraph
-from ..factors._graph import graph_negative_log_likelihood
+from ..factors._graph import graph_negative_log_likelihood, Values
 from ..manifold import manifold_mse
 from ..solve import (
     AbstractAdjoint,
@@ -15,9 +15,6 @@ from ..solve import (
     UnrolledAdjoint,
 )
 from ..solve._padding import padding_size
-
-
-Values = dict[str, PyTree]
 
 
 _DEFAULT_SOLVER = FixedStepGaussNewton(BlockTridiagonal(), num_steps=3)

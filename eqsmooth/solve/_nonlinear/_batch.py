@@ -7,16 +7,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import PyTree
 
 from ..._stack import stack_trees
 from ...factors import FactorGraph
+from ...factors._graph import Values
 from .._solution import RESULTS, Solution
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._least_squares import least_squares
-
-
-Values = dict[str, PyTree]
 
 
 def _check_batch_axes(graphs: FactorGraph, values: Values) -> None:

@@ -13,16 +13,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import Array, Float
 
 from ...factors import FactorGraph
-from ...factors._graph import graph_cost
+from ...factors._graph import graph_cost, Values
 from .._linearization import retract_values, Tangent
 from .._solution import promote_result, raise_unless_successful, Solution
 from ._graph_solver import manifold_residuals
-
-
-Values = dict[str, PyTree]
 
 
 class TangentResiduals(eqx.Module):
