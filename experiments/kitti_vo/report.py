@@ -12,10 +12,48 @@ from . import data as D, experiment as E
 
 # The paper's KITTI-10 numbers as its code release recorded them per fold
 # (paper_code_release.json: source, convention, and every fold's value with
-# its file and commit). The printed table of the paper could not be read with
-# the tools here. They are for the real KITTI images, a different experiment
-# from the rendered views: shown beside ours, never merged.
+# its file and commit). They are for the real KITTI images, a different
+# experiment from the rendered views: shown beside ours, never merged.
 PAPER = json.loads((Path(__file__).parent / "paper_code_release.json").read_text())
+
+# The paper's printed KITTI-10 values (Yi et al., IROS 2021: its table of
+# results on the KITTI task and its Table II, heteroscedastic noise transfer),
+# as transcribed in the project's shared paper notes (paper/kitti_tables.md):
+# (m/m, deg/m) as printed, mean ± standard error over its 10 folds; None
+# where the paper prints no value. Its ± is std/√n with the population std
+# (ddof=0): the code release's per-fold m/m of ekf_const give 0.0114 that way
+# and 0.0120 with ddof=1, and the paper prints .0114.
+PAPER_PRINTED = {
+    "smoother_hetero_e2e": (".1457 ± .0096", ".0762 ± .0067"),
+    "smoother_hetero_e2e_vel": (".1478 ± .0091", ".0720 ± .0059"),
+    "smoother_hetero_nll": (".1694 ± .0105", ".0724 ± .0057"),
+    "smoother_const_e2e": (".1692 ± .0105", ".0724 ± .0057"),
+    "smoother_const_e2e_vel": (".1692 ± .0104", ".0724 ± .0057"),
+    "smoother_const_nll": (".1695 ± .0105", ".0724 ± .0057"),
+    "ekf_hetero": (".1683 ± .0117", ".0743 ± .0066"),
+    "ekf_const": (".1723 ± .0114", ".0745 ± .0065"),
+    "lstm": (".7575 ± .0199", ".3779 ± .0539"),
+    "lstm_bi": (".7773 ± .0142", ".4773 ± .0743"),
+    # Table II (m/m only): trained on the filter, tested on the smoother, and
+    # the other way round.
+    "smoother_hetero_noise_from_ekf": (".1669 ± .0034", None),
+    "ekf_hetero_noise_from_smoother": (".1705 ± .0045", None),
+}
+# The paper's prior-work rows (Kloss et al.'s own implementation, their LSTM
+# with analytical dynamics): printed there, not run here.
+PAPER_PRIOR_WORK = {
+    "Kloss et al.: EKF, constant noise": (".2112 ± .0342", ".0766 ± .0069"),
+    "Kloss et al.: UKF, constant noise": (".1800 ± .0233", ".0799 ± .0083"),
+    "Kloss et al.: LSTM with dynamics": (".5382 ± .0567", ".0788 ± .0083"),
+}
+
+
+def _printed_mean(method: str) -> float | None:
+    """The paper's printed m/m of `method` as a number, or None."""
+    cell = PAPER_PRINTED.get(method, (None,))[0]
+    return None if cell is None else float(cell.split(" ± ")[0])
+
+
 # Our method name -> the code release's row.
 PAPER_ROWS = {
     "smoother_hetero_e2e": "smoother_hetero_e2e",
@@ -90,20 +128,30 @@ def write_summary(out: Path) -> str:
     declared = declared_criterion(results)
     if declared is not None:
         summary["declared_criterion"] = declared
+    summary["paper_printed"] = {
+        "what": "the paper's printed values (m/m, deg/m; mean ± std/√n with "
+        "ddof=0 over its 10 folds; real KITTI images): report.PAPER_PRINTED",
+        "rows": {m: PAPER_PRINTED[m] for m in summary["methods"] if m in PAPER_PRINTED},
+        "prior_work": PAPER_PRIOR_WORK,
+    }
     (Path(out) / "summary.json").write_text(json.dumps(summary, indent=1))
     lines = [
         f"# KITTI-10 visual odometry: {label}" + (" (QUICK run)" if quick else ""),
         "",
         f"Folds: {summary['folds']} ({len(results)}/10). Mean ± std/√n over folds. "
-        "The paper's columns are its code release's per-fold results on the real "
-        "KITTI images (mean ± std/√n over its folds; "
-        "experiments/kitti_vo/paper_code_release.json): a different "
-        "experiment, "
-        "whose checkpoints were selected on the test trajectory itself and whose "
-        "LSTM was scored per batch.",
+        "The paper's columns are for the real KITTI images, a different "
+        "experiment: 'paper, printed' is the value the paper prints (its "
+        "results table and, for the two *_noise_from_* rows, its Table II; its "
+        "± is std/√n with ddof=0; experiments/kitti_vo/report.PAPER_PRINTED), "
+        "'code release' its code release's per-fold results averaged here "
+        "(mean ± std/√n, ddof=1; experiments/kitti_vo/paper_code_release.json). "
+        "In that code each checkpoint was selected on the test trajectory "
+        "itself and the LSTM was scored per batch. The prior-work rows are "
+        "printed in the paper and not run here.",
         "",
-        "| method | m/m | deg/m | paper m/m | paper deg/m |",
-        "|---|---|---|---|---|",
+        "| method | m/m | deg/m | paper, printed m/m | paper, printed deg/m "
+        "| code release m/m | code release deg/m |",
+        "|---|---|---|---|---|---|---|",
     ]
     # Whole-window columns where any row has them (every row of a variant;
     # on the default data, rows scored before the metric existed take it
@@ -112,8 +160,9 @@ def write_summary(out: Path) -> str:
     if whole:
         lines[-2:] = [
             "| method | m/m | deg/m | whole-window m/m | whole-window deg/m "
-            "| paper m/m | paper deg/m |",
-            "|---|---|---|---|---|---|---|",
+            "| paper, printed m/m | paper, printed deg/m "
+            "| code release m/m | code release deg/m |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
 
     def fmt(e, k):
@@ -134,13 +183,26 @@ def write_summary(out: Path) -> str:
         keys = ("trans_m_per_m", "rot_deg_per_m")
         if whole:
             keys += ("trans_m_per_m_whole", "rot_deg_per_m_whole")
-        cells = [fmt(e, k) if k in e else "—" for k in keys] + list(p)
+        printed = [c or "—" for c in PAPER_PRINTED.get(m, (None, None))]
+        cells = [fmt(e, k) if k in e else "—" for k in keys] + printed + list(p)
         fewer = f" (n={e['num_folds']})" if e["num_folds"] < len(results) else ""
         lines.append(f"| {m}{fewer} | " + " | ".join(cells) + " |")
+    ours = ["—"] * (4 if whole else 2)
+    for name, printed in PAPER_PRIOR_WORK.items():
+        cells = ours + list(printed) + ["—", "—"]
+        name = f"prior work, {name} (not run here)"
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", *test_feedback_lines(results)]
     lines += ["", *criterion_lines(results), "", *best_step_lines(results)]
     derived = derived_lines(results)
     if derived:
         lines += ["", *derived]
+    metrics = paired_metrics_lines(results)
+    if metrics:
+        lines += ["", *metrics]
+    windows = window_lines(results)
+    if windows:
+        lines += ["", *windows]
     rescored = rescored_lines(results)
     if rescored:
         lines += ["", *rescored]
@@ -295,16 +357,18 @@ def derived_lines(results: list[dict]) -> list[str]:
         if ours is None:
             continue
         theirs = _paper_paired(*paper) if paper else None
+        printed = [_printed_mean(m) for m in (paper or (a, b))]
+        printed = "—" if None in printed else f"{printed[0] - printed[1]:+.4f}"
         whole.append(_paired(results, a, b, "trans_m_per_m_whole"))
-        rows.append((a, b, ours, theirs))
+        rows.append((a, b, ours, theirs, printed))
     if not rows:
         return []
     with_whole = any(w is not None for w in whole)
     rows = [
         f"| {a} − {b} | {cell(ours)} | "
         + (f"{cell(w)} | " if with_whole else "")
-        + f"{cell(theirs)} |"
-        for (a, b, ours, theirs), w in zip(rows, whole)
+        + f"{cell(theirs)} | {printed} |"
+        for (a, b, ours, theirs, printed), w in zip(rows, whole)
     ]
     retrained = {}
     for r in results:
@@ -330,31 +394,178 @@ def derived_lines(results: list[dict]) -> list[str]:
             "paired differences shift each of them by its retrained source's "
             "own score in the same run (`source_now`): " + "; ".join(notes) + ".",
         ]
+    printed_head = "paper, printed (difference of its means) |"
     head = (
         [
             "| difference | final-step m/m | whole-window m/m | paper's code "
-            "release (final-step) |",
-            "|---|---|---|---|",
+            "release (final-step) | " + printed_head,
+            "|---|---|---|---|---|",
         ]
         if with_whole
-        else ["| difference | these folds | paper's code release |", "|---|---|---|"]
+        else [
+            "| difference | these folds | paper's code release | " + printed_head,
+            "|---|---|---|---|",
+        ]
     )
     return [
         "Paired per-fold differences of final-step m/m"
         + (" and of whole-window m/m" if with_whole else "")
         + " (mean ± std/√n over the "
-        "folds with both rows). `*_one_frame_late`: the trained EKF scored as "
-        "the paper's code release scores its EKF (predict before correct over "
-        "all T observations: the belief compared with the last pose is the one "
-        "predicted for the next frame). `*_noise_from_*`: the noise learned by "
-        "one estimator used in the other (the paper's Table II). `*_e2e_vel`: "
-        "the surrogate loss on the velocities instead of the positions. The "
-        "code release's column pairs its own rows (its EKF as it scored it).",
+        "folds with both rows). `*_one_frame_late`: our EKF, trained as ours "
+        "is, scored one frame late: each filtered mean is moved one step by "
+        "the motion model, the off-by-one with which the paper's code release "
+        "scores its EKF (it predicts before it corrects over all T "
+        "observations, so the belief compared with a pose is the one "
+        "predicted for the next frame). It reproduces that convention at "
+        "scoring time only and is not the release's EKF: the release also "
+        "trains with the off-by-one and evaluates its noise network with "
+        "dropout on, neither of which is done here. `*_noise_from_*`: the "
+        "noise learned by one estimator used in the other (the paper's Table "
+        "II). `*_e2e_vel`: the surrogate loss on the velocities instead of the "
+        "positions. The code release's column pairs its own rows (its EKF as "
+        "it scored it); the printed column is the difference of the paper's "
+        "printed means of the same two rows (not paired per fold).",
         "",
         *head,
         *rows,
         *notes,
     ]
+
+
+def test_feedback_lines(results: list[dict]) -> list[str]:
+    """Which design choices saw test data: the heteroscedastic head's inputs
+    and two training changes were settled on fold 0 of the default rendered
+    data after its test m/m had been seen (results/kitti/fold_0.json, the
+    notes of runs[1] and runs[2])."""
+    if any(r["config"].get("variant") for r in results):
+        return [
+            "Test feedback: no choice saw this variant's data. The design it "
+            "inherits (the heteroscedastic head reading only the sensor's log σ, "
+            "the surrogate's solve started at dead reckoning, smoother "
+            "checkpoints selected by the test-time smoother's position error) "
+            "was settled on fold 0 of the default rendered data after that "
+            "fold's test m/m had been seen (results/kitti/fold_0.json, notes of "
+            "runs[1] and runs[2]), before this variant was declared."
+        ]
+    return [
+        "**Test feedback (fold 0).** Three design choices were made after fold "
+        "0's *test* m/m had been seen: the heteroscedastic noise head reads "
+        "only the sensor's log σ (the first head, on the 64 sensor features "
+        "and the log σ, gave 0.2393 m/m for smoother_hetero_e2e; a throwaway "
+        "run of the log-σ head on fold 0's cached windows gave 0.2077), the "
+        "surrogate's unrolled solve starts at dead reckoning, and smoother "
+        "checkpoints are selected by the test-time smoother's position error "
+        "on the validation sequence (both made because every smoother and EKF "
+        "row of fold 0 was then worse than dead reckoning, 0.2061 m/m). "
+        "Source: results/kitti/fold_0.json, notes of runs[1] and runs[2], "
+        "which keep the discarded rows; fold 1's first trained rows, from "
+        "before the head change, were seen and discarded too (fold_1.json, "
+        "note of runs[1]). Every checkpoint is still selected on the "
+        "validation sequence, but fold 0 (test sequence 00) is not an "
+        "untouched test for the smoother and EKF rows, above all those with a "
+        "heteroscedastic head (smoother_hetero_*, ekf_hetero*)."
+    ]
+
+
+# Pairs reported on three metrics (final-step m/m, whole-window m/m and
+# deg/m), where the whole-window metric exists.
+METRIC_PAIRS = (
+    ("smoother_hetero_e2e", "ekf_hetero"),
+    ("smoother_hetero_e2e", "ekf_hetero_one_frame_late"),
+    ("smoother_const_e2e", "ekf_const"),
+    ("smoother_hetero_e2e", "smoother_const_e2e"),
+    ("smoother_hetero_e2e", "smoother_hetero_nll"),
+    ("smoother_hetero_e2e", "dead_reckoning"),
+    ("ekf_hetero", "dead_reckoning"),
+    ("smoother_hetero_e2e", "lstm"),
+    ("smoother_hetero_e2e", "lstm_bi"),
+    ("lstm_bi", "lstm"),
+)
+
+
+def paired_metrics_lines(results: list[dict]) -> list[str]:
+    """`METRIC_PAIRS` paired per fold on the final-step m/m and the
+    whole-window m/m and deg/m (pairs without the whole-window metric are
+    left out)."""
+    keys = ("trans_m_per_m", "trans_m_per_m_whole", "rot_deg_per_m_whole")
+
+    def cell(p):
+        if p is None:
+            return "—"
+        mean, sem, below, n = p
+        return f"{mean:+.4f} ± {sem:.4f} ({below}/{n})"
+
+    rows = []
+    for a, b in METRIC_PAIRS:
+        cells = [_paired(results, a, b, k) for k in keys]
+        if cells[1] is not None:
+            rows.append(f"| {a} − {b} | " + " | ".join(map(cell, cells)) + " |")
+    if not rows:
+        return []
+    return [
+        "Paired per fold on three metrics (mean ± std/√n over the folds with "
+        "both rows; in brackets the folds where the first is lower):",
+        "",
+        "| difference | final-step m/m | whole-window m/m | whole-window deg/m |",
+        "|---|---|---|---|",
+        *rows,
+    ]
+
+
+# Baselines of the per-fold window bootstrap on the default data.
+WINDOW_BASELINES = ("ekf_hetero", "smoother_const_e2e")
+
+
+def window_lines(results: list[dict]) -> list[str]:
+    """Per fold of the default data: LEAD minus each of `WINDOW_BASELINES`
+    (final-step m/m) with its 95% bootstrap interval over the fold's test
+    windows (a variant reports the same in `declared_lines`)."""
+    need = (LEAD, *WINDOW_BASELINES)
+    rs = [
+        r
+        for r in results
+        if not r["config"].get("variant")
+        and all("trans_m_per_m_windows" in r["rows"].get(m, {}) for m in need)
+    ]
+    if not rs:
+        return []
+    lines = [
+        f"Per fold, final-step m/m of {LEAD} minus each baseline, with its 95% "
+        "bootstrap interval over the fold's test windows (the four views of a "
+        "window averaged first; 10,000 resamples, seed 0):",
+        "",
+        "| fold | windows | "
+        + " | ".join(f"− {b} [95%]" for b in WINDOW_BASELINES)
+        + " |",
+        "|---|---|" + "---|" * len(WINDOW_BASELINES),
+    ]
+    below = {b: [] for b in WINDOW_BASELINES}
+    above = {b: [] for b in WINDOW_BASELINES}
+    for r in rs:
+        c = r["config"]
+        views = len(c["cameras"]) * (2 if c["mirror"] else 1)
+        views = min(views, c.get("eval_copies") or views)
+        windows = len(r["rows"][LEAD]["trans_m_per_m_windows"]) // views
+        cells = []
+        for b in WINDOW_BASELINES:
+            d = r["rows"][LEAD]["trans_m_per_m"] - r["rows"][b]["trans_m_per_m"]
+            lo, hi = _window_interval(r, "trans_m_per_m", b)
+            if hi < 0:
+                below[b].append(r["fold"])
+            if lo > 0:
+                above[b].append(r["fold"])
+            cells.append(f"{d:+.4f} [{lo:+.4f}, {hi:+.4f}]")
+        lines.append(f"| {r['fold']} | {windows} | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append(
+        "Intervals wholly below 0 (the smoother better) / wholly above 0: "
+        + "; ".join(
+            f"against {b}: folds {below[b] or 'none'} / {above[b] or 'none'}"
+            for b in WINDOW_BASELINES
+        )
+        + f" (of {len(rs)})."
+    )
+    return lines
 
 
 # The issue's per-fold criterion: the heteroscedastic end-to-end smoother
@@ -414,13 +625,15 @@ DECLARED_METRICS = {
 }
 
 
-def _window_interval(r: dict, key: str, resamples: int = 10000) -> list[float]:
-    """95% bootstrap interval of one fold's LEAD − BASELINE over its test
+def _window_interval(
+    r: dict, key: str, baseline: str = BASELINE, resamples: int = 10000
+) -> list[float]:
+    """95% bootstrap interval of one fold's LEAD − `baseline` over its test
     windows (the views of a window, cameras and mirrors, averaged first)."""
     c = r["config"]
     views = len(c["cameras"]) * (2 if c["mirror"] else 1)
     views = min(views, c.get("eval_copies") or views)
-    a, b = (np.asarray(r["rows"][m][key + "_windows"]) for m in (LEAD, BASELINE))
+    a, b = (np.asarray(r["rows"][m][key + "_windows"]) for m in (LEAD, baseline))
     d = (a - b).reshape(views, -1).mean(0)
     idx = np.random.default_rng(0).integers(0, d.size, (resamples, d.size))
     return np.percentile(d[idx].mean(1), [2.5, 97.5]).tolist()
