@@ -612,7 +612,7 @@ def test_ablation_pairs_are_reported():
     paired, table = report.paired_table(summary, (), folds)
     (key,) = paired
     assert paired[key]["mean"] == pytest.approx(0.2)
-    assert "no first-state prior (the paper's graph)" in table
+    assert "heads trained with the first-state prior, scored without it" in table
 
 
 def test_seed_summary_pools_within_fold_spread(tmp_path):

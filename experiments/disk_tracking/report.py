@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._provenance import git_hash  # noqa: F401  (report.git_hash: __main__ --rerun)
 from . import data as D
 
 
@@ -70,6 +71,22 @@ LABELS = {
     "lstm_bi": "LSTM, bidirectional",
     "virtual_sensor": "virtual sensor alone",
 }
+
+
+# Rows whose design was chosen with feedback from a test fold: the mark the
+# summary puts beside the row and the note it prints under the table.
+TEST_FEEDBACK = {
+    "smoother_hetero_surrogate_learndyn_view": (
+        "Test feedback: the out-of-view factor and its two-stage solve were "
+        "adopted after fold 1's *test* RMSE had been seen to fall from 2.459 to "
+        "1.962 px with the two-stage solve, while its validation RMSE did not "
+        "move (1.587 vs 1.589; results/disk/extra_out_of_view.json, "
+        "two_stage_vs_one_stage); only folds 8 and 9 were first run with the "
+        "final design. Its checkpoints are selected on validation, but its "
+        "design is not: read the row with the fresh-data confirmation."
+    ),
+}
+TEST_FEEDBACK_MARK = "†"
 
 
 def machine() -> dict:
@@ -135,14 +152,24 @@ def markdown_table(summary: dict[str, dict], folds: list[dict], num_folds: int) 
         ours = f"{s['mean']:.3f}"
         if s["stderr"] is not None:
             ours += f" ± {s['stderr']:.3f}"
-        rows.append(f"| {LABELS[m]} | {ours} | {PAPER[m]} |")
+        rows.append(f"| {label(m)} | {ours} | {PAPER[m]} |")
+    flags = "".join(
+        f"\n{TEST_FEEDBACK_MARK} {note}\n"
+        for m, note in TEST_FEEDBACK.items()
+        if m in summary
+    )
     return (
         head
         + "\n".join(rows)
         + "\n\nThe paper's column: Yi et al. (2021), its own code's 10-fold "
         "results as mean ± standard error, per-coordinate RMSE in pixels (the "
-        "LSTM rows converted from its Euclidean metric).\n"
+        "LSTM rows converted from its Euclidean metric).\n" + flags
     )
+
+
+def label(m: str) -> str:
+    """`LABELS[m]`, marked when the row's design saw a test fold."""
+    return LABELS[m] + (f" {TEST_FEEDBACK_MARK}" if m in TEST_FEEDBACK else "")
 
 
 # The opt-in rows against the protocol's smoother (same sensor, same run).
@@ -154,6 +181,11 @@ ABLATION_PAIRS = (
 
 
 FREE_START = "no_first_state_test_rmse"  # the record field protocol.py writes
+# What that field is: the protocol's heads, trained with the prior on the
+# true first state, scored by the same solve without it. It is not the
+# paper's setting, which trains without the prior and evaluates by
+# Gauss-Newton started at the ground truth.
+FREE_START_LABEL = "heads trained with the first-state prior, scored without it"
 
 
 def paired_table(
@@ -171,8 +203,8 @@ def paired_table(
     for m in summary:
         free = [f["records"].get(m, {}).get(FREE_START) for f in folds]
         if folds and all(v is not None for v in free):
-            out[f"{m} without first-state prior - {m}"], line = paired(
-                f"{LABELS[m]}, no first-state prior (the paper's graph)",
+            out[f"{m} scored without first-state prior - {m}"], line = paired(
+                f"{LABELS[m]}, {FREE_START_LABEL}",
                 LABELS[m],
                 free,
                 summary[m]["folds"],
@@ -191,6 +223,55 @@ def paired_of(a: str, b: str, summary: dict[str, dict]) -> tuple[dict, str]:
     return paired(LABELS[a], LABELS[b], summary[a]["folds"], summary[b]["folds"])
 
 
+# The protocol's rows against our own baselines and against each other,
+# paired per fold (the tutorial's "Against our own baselines first").
+BASELINE_PAIRS = (
+    ("smoother_hetero_surrogate", "ekf_hetero_mse"),
+    ("smoother_hetero_surrogate", "lstm_uni"),
+    ("smoother_hetero_surrogate", "lstm_bi"),
+    ("smoother_hetero_surrogate_learndyn", "smoother_hetero_surrogate"),
+    ("smoother_hetero_surrogate_learndyn_view", "smoother_hetero_surrogate_learndyn"),
+    ("smoother_hetero_surrogate_learndyn_view", "lstm_bi"),
+    ("smoother_hetero_finetune", "smoother_hetero_surrogate"),
+    ("smoother_hetero_implicit", "smoother_hetero_surrogate"),
+)
+
+
+def baseline_table(summary: dict[str, dict]) -> tuple[dict, str]:
+    """`BASELINE_PAIRS` paired per fold: mean difference, its 95% Student-t
+    interval over the folds, and the folds where the first is lower; empty
+    unless `summary` holds every row of them (the full protocol)."""
+    from scipy import stats
+
+    if not all(m in summary for pair in BASELINE_PAIRS for m in pair):
+        return {}, ""
+    out, lines = {}, []
+    for a, b in BASELINE_PAIRS:
+        d = np.asarray(summary[a]["folds"], float) - np.asarray(
+            summary[b]["folds"], float
+        )
+        n = d.size
+        half = stats.t.ppf(0.975, n - 1) * d.std(ddof=1) / math.sqrt(n)
+        lo, hi = d.mean() - half, d.mean() + half
+        out[f"{a} - {b}"] = dict(
+            mean=float(d.mean()),
+            interval_95=[float(lo), float(hi)],
+            better_folds=int(np.sum(d < 0)),
+            folds=d.tolist(),
+        )
+        lines.append(
+            f"| {label(a)} − {label(b)} | {d.mean():+.3f} [{lo:+.3f}, {hi:+.3f}] "
+            f"| {int(np.sum(d < 0))}/{n} |"
+        )
+    head = (
+        "\nAgainst our own baselines, paired over folds (per-fold test RMSE of "
+        "the first minus the second; mean, 95% Student-t interval over the "
+        "folds, folds where the first is lower):\n\n"
+        "| difference | mean [95% interval] (px) | first lower |\n|---|---|---|\n"
+    )
+    return out, head + "\n".join(lines) + "\n"
+
+
 def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
     """`summary.json` and `summary.md` from every `fold_K.json` under `out`
     (with paired differences of the `ABLATION_PAIRS` it holds)."""
@@ -199,7 +280,8 @@ def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
         raise FileNotFoundError(f"no fold_K.json under {out}")
     summary = summarise(folds)
     ablation, ablation_table = paired_table(summary, ABLATION_PAIRS, folds)
-    table = markdown_table(summary, folds, num_folds) + ablation_table
+    baselines, baselines_table = baseline_table(summary)
+    table = markdown_table(summary, folds, num_folds) + ablation_table + baselines_table
     record = dict(
         benchmark="disk_tracking",
         folds=[f["fold"] for f in folds],
@@ -208,6 +290,8 @@ def write_summary(out: Path, num_folds: int = D.NUM_FOLDS) -> tuple[dict, str]:
         paper=PAPER,
         minutes_per_fold=[f["timings"]["total_s"] / 60 for f in folds],
         paired=ablation,
+        baselines=baselines,
+        test_feedback={m: n for m, n in TEST_FEEDBACK.items() if m in summary},
     )
     (out / "summary.json").write_text(json.dumps(record, indent=1))
     (out / "summary.md").write_text(table)
