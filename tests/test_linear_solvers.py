@@ -478,7 +478,7 @@ def test_pcg_out_of_steps():
     """By default the last iterate counts (LM's gain ratio judges it); it
     decreases the quadratic model. `accept_inexact=False` reports it."""
     import eqsmooth as eqs
-    from eqsmooth.solve._nonlinear._levenberg_marquardt import predicted_decrease
+    from eqsmooth.solve._nonlinear._descent import predicted_decrease
 
     lin = _closure_lin(0)
     delta, result = _solve(eqs.PCG(max_steps=2), lin, None)

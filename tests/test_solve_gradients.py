@@ -225,6 +225,42 @@ def test_solvers_refuse_another_residual_function():
     assert sol.result == optx.RESULTS.successful
 
 
+def test_solvers_refuse_a_function_that_agrees_only_at_the_initial_values():
+    # The example: the graph's residuals plus 100 |x - x0|^2 agree
+    # with the graph at the initial values and nowhere else; no options key
+    # skips the check (the one the driver used to set is gone).
+    import eqsmooth as eqs
+
+    graph, init = _chain()
+    x0 = init["x"]
+
+    def shifted(y, g):
+        (first, *rest) = eqs.solve.graph_residuals(y, g)
+        bump = 100.0 * jnp.sum((y["x"] - x0) ** 2)
+        return (first + bump, *rest)
+
+    assert (
+        float(
+            jnp.max(
+                jnp.abs(
+                    shifted(init, graph)[0] - eqs.solve.graph_residuals(init, graph)[0]
+                )
+            )
+        )
+        == 0.0
+    )
+    for options in (None, {"fn_is_graph_residuals": True}):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="graph_residuals"):
+            optx.least_squares(
+                shifted,
+                eqs.LevenbergMarquardt(),
+                init,
+                args=graph,
+                options=options,
+                max_steps=4,
+            )
+
+
 def test_fixed_step_solution_keeps_the_linearisation_at_its_values():
     import eqsmooth as eqs
 

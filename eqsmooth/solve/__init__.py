@@ -45,21 +45,28 @@ from ._nonlinear._adjoint import (
     UnrolledAdjoint as UnrolledAdjoint,
 )
 from ._nonlinear._batch import least_squares_batch as least_squares_batch
+from ._nonlinear._descent import (
+    AbstractDescent as AbstractDescent,
+    DampedDescent as DampedDescent,
+    UndampedDescent as UndampedDescent,
+)
 from ._nonlinear._gauss_newton import (
+    AbstractGaussNewton as AbstractGaussNewton,
     FixedStepGaussNewton as FixedStepGaussNewton,
     GaussNewton as GaussNewton,
     GaussNewtonState as GaussNewtonState,
+    LevenbergMarquardt as LevenbergMarquardt,
+    LevenbergMarquardtState as LevenbergMarquardtState,
 )
 from ._nonlinear._graph_solver import (
-    AbstractConvergingSolver as AbstractConvergingSolver,
-    AbstractFixedStepSolver as AbstractFixedStepSolver,
     AbstractGraphSolver as AbstractGraphSolver,
     graph_residuals as graph_residuals,
 )
 from ._nonlinear._least_squares import least_squares as least_squares
-from ._nonlinear._levenberg_marquardt import (
-    LevenbergMarquardt as LevenbergMarquardt,
-    LevenbergMarquardtState as LevenbergMarquardtState,
+from ._nonlinear._stopping import (
+    AbstractStopping as AbstractStopping,
+    FixedSteps as FixedSteps,
+    Tolerances as Tolerances,
 )
 from ._nonlinear._tangent import (
     tangent_least_squares as tangent_least_squares,

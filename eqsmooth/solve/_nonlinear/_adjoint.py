@@ -23,6 +23,7 @@ eqs.solve.graph_residuals, solver, values, args=graph, adjoint=...)` the same
 way.
 """
 
+import abc
 from typing import Literal
 
 import equinox as eqx
@@ -31,20 +32,16 @@ import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import PyTree
 
 from ...factors import FactorGraph
-from ...factors._graph import graph_cost
+from ...factors._graph import graph_cost, Values
 from .._derivatives import checked_derivative, recomputed, stop_arrays
 from .._linear._default_solver import linear_solver_for
 from .._linear._linear_solver import solve_normal
 from .._linearization import Linearization, linearize_graph, retract_values, Tangent
 from .._misc import preconditioned_cg, stationary, tree_where
 from .._solution import RESULTS
-from ._graph_solver import AbstractGraphSolver
-
-
-Values = dict[str, PyTree]
+from ._graph_solver import AbstractGraphSolver, graph_of, solve_stats
 
 
 def _scan_while(cond, body, carry, length: int):
@@ -113,8 +110,15 @@ class AbstractAdjoint(optx.AbstractAdjoint):
     memory cost.
 
     Subclasses implement optimistix's `apply(primal_fn, rewrite_fn, inputs,
-    tags)`.
+    tags)` and say whether the solve's intermediate iterates are
+    differentiable.
     """
+
+    @abc.abstractmethod
+    def differentiates_iterates(self) -> bool:
+        """Whether reverse-mode autodiff reaches the intermediate iterates (and
+        so `Solution.stats["cost_history"]`); an adjoint that differentiates
+        the solution only says no, and differentiating the record raises."""
 
 
 class UnrolledAdjoint(AbstractAdjoint):
@@ -134,6 +138,9 @@ class UnrolledAdjoint(AbstractAdjoint):
     scan covers `max_steps` iterations (`num_steps` for
     [`eqsmooth.solve.FixedStepGaussNewton`][]).
     """
+
+    def differentiates_iterates(self) -> bool:
+        return True
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
@@ -185,6 +192,10 @@ class TruncatedAdjoint(AbstractAdjoint):
                 "TruncatedAdjoint.num_steps must be an int >= 1, got "
                 f"{self.num_steps!r}"
             )
+
+    def differentiates_iterates(self) -> bool:
+        # The iterates before the last `num_steps` get zero derivatives.
+        return True
 
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
@@ -325,6 +336,9 @@ class ImplicitAdjoint(AbstractAdjoint):
                 f"ImplicitAdjoint.max_steps must be >= 1, got {self.max_steps}"
             )
 
+    def differentiates_iterates(self) -> bool:
+        return False
+
     def apply(self, primal_fn, rewrite_fn, inputs, tags):
         del rewrite_fn, tags
         graphs = _find(inputs, FactorGraph)
@@ -335,45 +349,73 @@ class ImplicitAdjoint(AbstractAdjoint):
                 "args=graph)); for other problems, or "
                 "eqsmooth.solve.tangent_least_squares, use optimistix.ImplicitAdjoint()"
             )
-        (graph,) = graphs
         solver = _graph_solver(inputs)
-        x_star, residual = primal_fn(stop_arrays(inputs) + (_lax_while,))
-        x_star, residual = stop_arrays((x_star, residual))
-        # An eqsmooth solver's state (and its stats) keep the linearisation at
-        # the solution: reuse it. Any other solver's: linearise once more.
-        lins = _find(residual, Linearization) if solver is not None else []
-        lin = lins[0] if lins else linearize_graph(stop_arrays(graph), x_star)
-        own = None if solver is None else solver.linear_solver
-        linear_solver = linear_solver_for(own, lin)
-        # optimistix does not hand the solve's result code to an adjoint; a
-        # non-finite problem at the returned point is the failure we can see.
+        if solver is None:
+            # Another optimistix solver on the graph: its loop runs stopped, and
+            # the values it returns get the implicit derivative.
+            (graph,) = graphs
+            x_star, residual = primal_fn(stop_arrays(inputs) + (_lax_while,))
+            x_star, residual = stop_arrays((x_star, residual))
+            lin = linearize_graph(stop_arrays(graph), x_star)
+            linear_solver = linear_solver_for(None, lin)
+            failed = ~jnp.isfinite(lin.cost)
+            delta = _implicit_delta(graph, x_star, lin, self, linear_solver, failed)
+            return retract_values(x_star, delta), residual
+        # An eqsmooth solver: its loop runs stopped, and its own `finish` and
+        # stats, in `postprocess`, see the solution with its implicit
+        # derivative (`_Implicitly`).
+        implicit = _Implicitly(solver, self)
+        swap = lambda x: implicit if x is solver else x
+        is_solver = lambda x: x is solver
+        inputs = jax.tree_util.tree_map(swap, inputs, is_leaf=is_solver)
+        return primal_fn(inputs + (_stopped_while,))
+
+
+def _stopped_while(cond, body, carry, max_steps: int | None):
+    """The solver's loop with every output stopped (the body still closes over
+    the live problem, so no derivative flows through it)."""
+    return _lax_while(
+        cond, lambda c: stop_arrays(body(c)), stop_arrays(carry), max_steps
+    )
+
+
+class _Implicitly(eqx.Module):
+    """An eqsmooth solver whose solution is differentiated implicitly.
+
+    `init`, `step` and `terminate` are the solver's (its loop runs stopped,
+    `_stopped_while`). `postprocess` runs the solver's `finish` with
+    gradients stopped, writes the solution as `x* ⊕ δ(θ)` with the implicit
+    derivative of `δ` (`_implicit_delta`), and gives the solver's stats the
+    linearisation at `x` with its exact derivative.
+    """
+
+    solver: AbstractGraphSolver
+    adjoint: ImplicitAdjoint
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return self.solver.init(fn, y, args, options, f_struct, aux_struct, tags)
+
+    def step(self, fn, y, args, options, state, tags):
+        return self.solver.step(fn, y, args, options, state, tags)
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return self.solver.terminate(fn, y, args, options, state, tags)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        del fn, options, tags, result
+        solver = self.solver
+        graph = graph_of(args, type(solver).__name__)
+        x_star, state, _ = solver.finish(
+            stop_arrays(graph), stop_arrays(y), stop_arrays(state)
+        )
+        lin = state.lin
+        linear_solver = linear_solver_for(solver.linear_solver, lin)
+        # A non-finite problem at the returned point is the failure whose
+        # gradient must be NaN (see ImplicitAdjoint).
         failed = ~jnp.isfinite(lin.cost)
-        delta = _implicit_delta(graph, x_star, lin, self, linear_solver, failed)
+        delta = _implicit_delta(graph, x_star, lin, self.adjoint, linear_solver, failed)
         x = retract_values(x_star, delta)
-        # The solver state optimistix returns keeps a linearisation at the
-        # solution (for a converging solver): make it differentiable, as in
-        # eqsmooth's driver. It is found by type in optimistix's output.
-        live = lambda y: (
-            recomputed((graph, x), y, linearize_graph)
-            if isinstance(y, Linearization)
-            else y
-        )
-        residual = jax.tree_util.tree_map(
-            live, residual, is_leaf=lambda y: isinstance(y, Linearization)
-        )
-        # An eqsmooth solver's stats: the final cost is that of the (now
-        # differentiable) linearisation at the solution.
-        is_stats = lambda y: (
-            isinstance(y, dict) and "final_cost" in y and "linearization" in y
-        )
-        residual = jax.tree_util.tree_map(
-            lambda y: (
-                {**y, "final_cost": y["linearization"].cost} if is_stats(y) else y
-            ),
-            residual,
-            is_leaf=is_stats,
-        )
-        if solver is not None and not solver.reaches_minimum():
+        if not solver.reaches_minimum():
             x = checked_derivative(
                 x,
                 lin,
@@ -383,7 +425,12 @@ class ImplicitAdjoint(AbstractAdjoint):
                 "fixed number of steps short of a stationary point: use "
                 "eqsmooth.UnrolledAdjoint() or TruncatedAdjoint(k)",
             )
-        return x, residual
+        # The linearisation at the solution, with the derivative of
+        # linearising the live graph at `x` (so marginals, log-determinants
+        # and the final cost are differentiable).
+        live = recomputed((graph, x), lin, linearize_graph)
+        state = eqx.tree_at(lambda s: s.lin, state, live)
+        return x, aux, solve_stats(state, live.cost)
 
 
 def _zeros(lin: Linearization) -> Tangent:

@@ -1,4 +1,9 @@
-from typing import Any, ClassVar
+"""The Gauss-Newton family: one solver, one state, one iteration; a descent
+(undamped or damped) and a stopping policy (tolerances or a fixed number of
+steps) make Gauss-Newton, Levenberg-Marquardt and the unrolled fixed-step
+solver."""
+
+from typing import Any
 
 import equinox as eqx
 import jax.lax as lax
@@ -10,36 +15,36 @@ from jaxtyping import Array, Bool, Float, Int
 from .._linear._default_solver import linear_solver_for
 from .._linear._linear_solver import solve_unless
 from .._linearization import (
-    gradient,
     Linearization,
     linearize_graph,
     retract_values,
     Tangent,
     zeros_tangent,
 )
-from .._misc import (
-    converged_test,
-    finite_lin,
-    max_abs,
-    nan_derivative_if,
-    sq_norm,
-    tree_where,
-)
+from .._misc import finite_lin, nan_derivative_if, sq_norm, tree_where
 from .._solution import RESULTS
+from ._descent import AbstractDescent, check_damping, DampedDescent, UndampedDescent
 from ._graph_solver import (
-    AbstractConvergingSolver,
-    AbstractFixedStepSolver,
+    AbstractGraphSolver,
     cost_record,
     graph_of,
     record_iteration,
     start,
     to_optx_result,
 )
+from ._stopping import (
+    AbstractStopping,
+    check_num_steps,
+    check_tolerances,
+    FixedSteps,
+    Tolerances,
+)
 
 
 class GaussNewtonState(eqx.Module):
-    """The state of [`eqsmooth.solve.GaussNewton`][] and
-    [`eqsmooth.solve.FixedStepGaussNewton`][].
+    """The state of every Gauss-Newton-family solver
+    ([`eqsmooth.solve.GaussNewton`][], [`eqsmooth.solve.LevenbergMarquardt`][],
+    [`eqsmooth.solve.FixedStepGaussNewton`][]).
 
     Every iteration linearises once: the first at the initial values, each
     later one at the trial point `x ⊕ δ` of the step solved at the end of the
@@ -52,8 +57,11 @@ class GaussNewtonState(eqx.Module):
     - `lin`: the linearisation at the current values (after the first
         iteration).
     - `delta`: the step to try in the next iteration.
+    - `solved`: whether `delta` came from a successful linear solve.
     - `step`: iterations run, the first (which only linearises) included.
     - `num_accepted`: steps taken.
+    - `damping`: λ of the next solve (0 for an undamped descent).
+    - `nu`: the factor λ grows by on the next rejection.
     - `done`: converged or failed.
     - `result`: an [`eqsmooth.solve.RESULTS`][] code.
     - `last_step_norm`: `‖δ‖₂` of the last step tried (a diagnostic).
@@ -65,8 +73,11 @@ class GaussNewtonState(eqx.Module):
 
     lin: Linearization
     delta: Tangent
+    solved: Bool[Array, ""]
     step: Int[Array, ""]
     num_accepted: Int[Array, ""]
+    damping: Float[Array, ""]
+    nu: Float[Array, ""]
     done: Bool[Array, ""]
     result: RESULTS
     last_step_norm: Float[Array, ""]
@@ -74,106 +85,169 @@ class GaussNewtonState(eqx.Module):
     cost_history: Float[Array, " H"]
 
 
-def _init(fn, values, args, options, f_struct, who: str) -> GaussNewtonState:
-    lin, done, result, step = start(fn, values, args, options, f_struct, who)
-    return GaussNewtonState(
-        lin=lin,
-        delta=zeros_tangent(lin),
-        step=step,
-        num_accepted=jnp.array(0),
-        done=done,
-        result=result,
-        last_step_norm=jnp.asarray(jnp.inf, lin.dtype),
-        initial_cost=lin.cost.astype(lin.dtype),
-        cost_history=cost_record(options, lin.dtype),
-    )
+LevenbergMarquardtState = GaussNewtonState  # the name before 0.3.0
 
 
-def _step(solver, graph, values, state: GaussNewtonState, options, check: bool):
-    """One iteration: linearise the trial point, take or refuse it, solve the
-    next step. `check=False` never stops on convergence."""
-    first = state.step == 0
-    trial = tree_where(first, values, retract_values(values, state.delta))
-    new_lin = linearize_graph(graph, trial)
-    finite = finite_lin(new_lin)
-    result = RESULTS.where(
-        finite,
-        RESULTS.successful,
-        RESULTS.where(first, RESULTS.nonfinite_problem, RESULTS.nonlinear_divergence),
-    )
-    done = ~finite
-    if check:
-        converged = jnp.where(
-            first,
-            max_abs(gradient(new_lin)) <= solver.gtol,
-            converged_test(
-                state.lin.cost,
-                new_lin,
-                state.delta,
-                solver.ftol,
-                solver.gtol,
-                solver.xtol,
+class AbstractGaussNewton(AbstractGraphSolver):
+    """A Gauss-Newton-family solver on the manifold: a descent and a stopping policy.
+
+    Each iteration linearises the trial point `x ⊕ δ` of the step solved in
+    the iteration before (the initial values in the first), lets the
+    `descent` judge it (take it or not, move the damping λ, stop), asks the
+    `stopping` policy whether it has converged, and solves
+    `(JᵀJ + λD) δ = −Jᵀr` for the next step with the lineax
+    `linear_solver`. The three concrete solvers are
+    [`eqsmooth.solve.GaussNewton`][] (`UndampedDescent`, `Tolerances`),
+    [`eqsmooth.solve.LevenbergMarquardt`][] (`DampedDescent`, `Tolerances`)
+    and [`eqsmooth.solve.FixedStepGaussNewton`][] (`UndampedDescent`,
+    `FixedSteps`); a subclass with other `descent` and `stopping` (fields
+    or properties) is a new member of the family with the same state.
+    """
+
+    linear_solver: eqx.AbstractVar[lx.AbstractLinearSolver | None]
+    descent: eqx.AbstractVar[AbstractDescent]
+    stopping: eqx.AbstractVar[AbstractStopping]
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del aux_struct, tags
+        lin, done, result, step = start(
+            fn, y, args, options, f_struct, type(self).__name__
+        )
+        dtype = lin.dtype
+        return GaussNewtonState(
+            lin=lin,
+            delta=zeros_tangent(lin),
+            solved=jnp.array(True),
+            step=step,
+            num_accepted=jnp.array(0),
+            damping=jnp.asarray(self.descent.initial_damping_value(), dtype),
+            nu=jnp.asarray(2.0, dtype),
+            done=done,
+            result=result,
+            last_step_norm=jnp.asarray(jnp.inf, dtype),
+            initial_cost=lin.cost.astype(dtype),
+            cost_history=cost_record(options, dtype),
+        )
+
+    def step(self, fn, y, args, options: dict[str, Any], state, tags):
+        del fn, tags  # fn was checked against the graph's residuals in init
+        graph = graph_of(args, type(self).__name__)
+        first = state.step == 0
+        trial = tree_where(first, y, retract_values(y, state.delta))
+        trial_lin = linearize_graph(graph, trial)
+        finite = finite_lin(trial_lin)
+        verdict = self.descent.judge(state, trial_lin, finite, first)
+        converged = self.stopping.converged(
+            first, verdict.accept, state.lin.cost, trial_lin, state.delta
+        )
+        done = verdict.stop | (finite & converged)
+        take = verdict.accept | first
+        values = tree_where(take, trial, y)
+        # A failed step is not taken, and nothing is differentiable through it.
+        values = nan_derivative_if(verdict.diverged, values, state.lin.cost)
+        lin = tree_where(take, trial_lin, state.lin)
+        delta, solved = solve_unless(
+            done,
+            linear_solver_for(self.linear_solver, lin),
+            lin,
+            self.descent.damping(lin, verdict.damping),
+            options,
+        )
+        result = verdict.result
+        if not self.descent.recovers_from_failed_solve():
+            # A failed solve ends the solve here: no derivative through its
+            # values.
+            result = RESULTS.where(done | solved, result, RESULTS.linear_solve_failed)
+            values = nan_derivative_if(~solved, values, lin.cost)
+            done = done | ~solved
+        # Diagnostic only; stopped so that sqrt at a zero step never puts a NaN
+        # into masked iterations of an unrolled backward pass.
+        step_norm = jnp.where(
+            first, jnp.inf, lax.stop_gradient(jnp.sqrt(sq_norm(state.delta)))
+        ).astype(lin.dtype)
+        new_state = GaussNewtonState(
+            lin=lin,
+            delta=delta,
+            solved=solved,
+            step=state.step + 1,
+            num_accepted=state.num_accepted
+            + verdict.accept.astype(state.num_accepted.dtype),
+            damping=verdict.damping,
+            nu=verdict.nu,
+            done=done,
+            result=result,
+            last_step_norm=step_norm,
+            initial_cost=jnp.where(first, lin.cost, state.initial_cost),
+            cost_history=record_iteration(
+                options,
+                state.step,
+                state.cost_history,
+                lin.cost,
+                step_norm,
+                verdict.damping,
             ),
         )
-        done = done | (finite & converged)
-    # A failed step is not taken, and nothing is differentiable through it.
-    failed = ~finite & ~first
-    values = nan_derivative_if(
-        failed, tree_where(finite, trial, values), state.lin.cost
-    )
-    lin = tree_where(finite | first, new_lin, state.lin)
-    delta, solved = solve_unless(
-        done, linear_solver_for(solver.linear_solver, lin), lin, None, options
-    )
-    result = RESULTS.where(done | solved, result, RESULTS.linear_solve_failed)
-    # A failed solve ends the solve here: no derivative through its values.
-    values = nan_derivative_if(~solved, values, lin.cost)
-    # Diagnostic only; stopped so that sqrt at a zero step never puts a NaN
-    # into masked iterations of an unrolled backward pass.
-    step_norm = jnp.where(
-        first, jnp.inf, lax.stop_gradient(jnp.sqrt(sq_norm(state.delta)))
-    ).astype(lin.dtype)
-    new_state = GaussNewtonState(
-        lin=lin,
-        delta=delta,
-        step=state.step + 1,
-        num_accepted=state.num_accepted
-        + (finite & ~first).astype(state.num_accepted.dtype),
-        done=done | ~solved,
-        result=result,
-        last_step_norm=step_norm,
-        initial_cost=jnp.where(first, lin.cost, state.initial_cost),
-        cost_history=record_iteration(
-            options, state.step, state.cost_history, lin.cost, step_norm
-        ),
-    )
-    return values, new_state, None
+        return values, new_state, None
+
+    def terminate(
+        self, fn, y, args, options, state: GaussNewtonState, tags
+    ) -> tuple[Bool[Array, ""], optx.RESULTS]:
+        del fn, y, args, options, tags  # fn: checked in init
+        done = state.done | self.stopping.out_of_steps(state.step)
+        return done, to_optx_result(state.result)
+
+    def finish(self, graph, values, state: GaussNewtonState):
+        if not self.steps_after_loop():
+            return values, state, state.lin.cost
+        # The last step, solved in the last iteration: taken here and
+        # linearised, so that the state keeps the linearisation at the
+        # returned values (marginals). Where only the values are used (a
+        # training loss), the Jacobians are dead code and compiled away.
+        take = state.result == RESULTS.successful
+        final = retract_values(values, state.delta)
+        final_lin = linearize_graph(graph, final)
+        cost = final_lin.cost.astype(state.lin.dtype)
+        ok = jnp.isfinite(cost)
+        failed = take & ~ok
+        values = nan_derivative_if(
+            failed, tree_where(take & ok, final, values), state.lin.cost
+        )
+        state = eqx.tree_at(
+            lambda s: (
+                s.lin,
+                s.delta,
+                s.step,
+                s.num_accepted,
+                s.done,
+                s.result,
+                s.last_step_norm,
+            ),
+            state,
+            (
+                tree_where(take & ok, final_lin, state.lin),
+                zeros_tangent(state.lin),
+                state.step + take.astype(state.step.dtype),
+                state.num_accepted + (take & ok).astype(state.step.dtype),
+                state.done | failed,
+                RESULTS.where(failed, RESULTS.nonlinear_divergence, state.result),
+                jnp.where(
+                    take, lax.stop_gradient(jnp.sqrt(sq_norm(state.delta))), jnp.inf
+                ).astype(state.lin.dtype),
+            ),
+        )
+        return values, state, jnp.where(take & ok, cost, state.lin.cost)
 
 
-def _solver_init(self, fn, y, args, options, f_struct, aux_struct, tags):
-    """`init` of both Gauss-Newton solvers (optimistix's signature)."""
-    del aux_struct, tags
-    return _init(fn, y, args, options, f_struct, type(self).__name__)
-
-
-def _solver_step(self, fn, y, args, options: dict[str, Any], state, tags):
-    """`step` of both Gauss-Newton solvers (`check_steps`: a converging one
-    checks each linear solve, a fixed-step one runs its steps whatever they
-    give)."""
-    del tags  # fn was checked against the graph's residuals in init
-    graph = graph_of(args, type(self).__name__)
-    return _step(self, graph, y, state, options, check=self.check_steps)
-
-
-class GaussNewton(AbstractConvergingSolver):
+class GaussNewton(AbstractGaussNewton):
     """Gauss-Newton on the manifold: solve `JᵀJ δ = −Jᵀr`, set `x ← x ⊕ δ`.
 
     An optimistix least-squares solver (`args` is the graph, see
-    [`eqsmooth.solve.AbstractGraphSolver`][]). Converges when the relative
-    cost change is at most `ftol`, the largest gradient entry at most
-    `gtol`, or the largest step entry at most `xtol` (Ceres-like
-    tolerances). Undamped: prefer [`eqsmooth.solve.LevenbergMarquardt`][]
-    far from the solution.
+    [`eqsmooth.solve.AbstractGraphSolver`][]) of the Gauss-Newton family:
+    [`eqsmooth.solve.UndampedDescent`][] and [`eqsmooth.solve.Tolerances`][].
+    Converges when the relative cost change is at most `ftol`, the largest
+    gradient entry at most `gtol`, or the largest step entry at most `xtol`
+    (Ceres-like tolerances). Undamped: prefer
+    [`eqsmooth.solve.LevenbergMarquardt`][] far from the solution.
 
     **Arguments:**
 
@@ -183,7 +257,7 @@ class GaussNewton(AbstractConvergingSolver):
         `lx.CG(rtol, atol)`, ...). `None` (the default) picks one from the
         graph's structure: `BlockTridiagonal()` for chains, else
         `DenseCholesky()` (small) or `SparseLU()`.
-    - `ftol`, `gtol`, `xtol`: tolerances.
+    - `ftol`, `gtol`, `xtol`: tolerances (each `>= 0`).
     """
 
     linear_solver: lx.AbstractLinearSolver | None = None
@@ -191,24 +265,24 @@ class GaussNewton(AbstractConvergingSolver):
     gtol: float = eqx.field(static=True, default=1e-10)
     xtol: float = eqx.field(static=True, default=1e-10)
 
-    check_steps: ClassVar[bool] = True
-    init = _solver_init
-    step = _solver_step
+    def __check_init__(self):
+        check_tolerances("GaussNewton", self.ftol, self.gtol, self.xtol)
 
-    def terminate(self, fn, y, args, options, state: GaussNewtonState, tags):
-        del y, args, options, tags  # fn: checked in init
-        return state.done, to_optx_result(state.result)
+    @property
+    def descent(self) -> UndampedDescent:
+        return UndampedDescent()
 
-    def finish(self, graph, values, state: GaussNewtonState):
-        del graph
-        return values, state, state.lin.cost
+    @property
+    def stopping(self) -> Tolerances:
+        return Tolerances(self.ftol, self.gtol, self.xtol)
 
 
-class FixedStepGaussNewton(AbstractFixedStepSolver):
+class FixedStepGaussNewton(AbstractGaussNewton):
     """Exactly `num_steps` Gauss-Newton steps (the paper's unrolled solver).
 
-    Reaching `num_steps` is success; no tolerance stops it early, so the
-    computation (and its gradient under
+    The Gauss-Newton family with [`eqsmooth.solve.UndampedDescent`][] and
+    [`eqsmooth.solve.FixedSteps`][]. Reaching `num_steps` is success; no
+    tolerance stops it early, so the computation (and its gradient under
     [`eqsmooth.solve.UnrolledAdjoint`][]) is the same for every input. Used
     by the surrogate loss (start at ground truth, K steps). It runs K
     iterations, each one linearisation and one solve; the K-th step is
@@ -223,57 +297,78 @@ class FixedStepGaussNewton(AbstractFixedStepSolver):
 
     - `linear_solver`: the linear solver (`None`: chosen from the graph, see
         [`eqsmooth.solve.GaussNewton`][]).
-    - `num_steps`: K.
+    - `num_steps`: K (an int `>= 1`).
     """
 
     linear_solver: lx.AbstractLinearSolver | None = None
     num_steps: int = eqx.field(static=True, default=3)
-    ftol: float = eqx.field(static=True, default=0.0)
-    gtol: float = eqx.field(static=True, default=-1.0)
-    xtol: float = eqx.field(static=True, default=-1.0)
 
     def __check_init__(self):
-        if self.num_steps < 1:
-            raise ValueError(
-                f"FixedStepGaussNewton.num_steps must be >= 1, got {self.num_steps}"
-            )
+        check_num_steps("FixedStepGaussNewton", self.num_steps)
 
-    check_steps: ClassVar[bool] = False
-    init = _solver_init
-    step = _solver_step
+    @property
+    def descent(self) -> UndampedDescent:
+        return UndampedDescent()
 
-    def terminate(
-        self, fn, y, args, options, state: GaussNewtonState, tags
-    ) -> tuple[Bool[Array, ""], optx.RESULTS]:
-        del y, args, options, tags  # fn: checked in init
-        done = state.done | (state.step >= self.num_steps)
-        return done, to_optx_result(state.result)
+    @property
+    def stopping(self) -> FixedSteps:
+        return FixedSteps(self.num_steps)
 
-    def finish(self, graph, values, state: GaussNewtonState):
-        # The K-th step, solved in the last iteration: taken here and
-        # linearised, so that the state keeps the linearisation at the
-        # returned values (marginals). Where only the values are used (a
-        # training loss), the Jacobians are dead code and compiled away.
-        take = state.result == RESULTS.successful
-        final = retract_values(values, state.delta)
-        final_lin = linearize_graph(graph, final)
-        cost = final_lin.cost.astype(state.lin.dtype)
-        ok = jnp.isfinite(cost)
-        failed = take & ~ok
-        values = nan_derivative_if(
-            failed, tree_where(take & ok, final, values), state.lin.cost
+
+class LevenbergMarquardt(AbstractGaussNewton):
+    """Levenberg-Marquardt on the manifold, robust to singular Gauss-Newton systems.
+
+    The Gauss-Newton family with [`eqsmooth.solve.DampedDescent`][] and
+    [`eqsmooth.solve.Tolerances`][]. Solves `(JᵀJ + λ D) δ = −Jᵀr` with
+    `D = clip(diag(JᵀJ), min_diagonal, max_diagonal)` (Marquardt scaling with
+    a floor, so the damped system is positive definite even where `JᵀJ` is
+    singular). A step is accepted when the gain ratio (actual / predicted
+    cost decrease) exceeds `min_gain`; λ then shrinks smoothly (Nielsen's
+    rule), otherwise it grows by a factor that doubles on every consecutive
+    rejection. A failed linear solve counts as a rejection. Only accepted
+    steps are tested for convergence.
+
+    **Arguments:**
+
+    - `linear_solver`: the linear solver (`None`: chosen from the graph, see
+        [`eqsmooth.solve.GaussNewton`][]).
+    - `ftol`, `gtol`, `xtol`: Ceres-like tolerances (see
+        [`eqsmooth.solve.GaussNewton`][]).
+    - `initial_damping`: λ₀, relative to the diagonal of `JᵀJ`. The default
+        `1e-8` starts close to Gauss-Newton: λ shrinks by at most a factor 3
+        per accepted step, so a large λ₀ costs many steps on long pose-graph
+        chains, while a rejected step raises λ quickly (factors 2, 4, 8, … in
+        a row).
+    - `min_diagonal`, `max_diagonal`: clipping of `D`.
+    - `max_damping`: if λ exceeds this, the solve stops with
+        `RESULTS.linear_solve_failed` (or success if already converged).
+    - `min_gain`: acceptance threshold of the gain ratio.
+    """
+
+    linear_solver: lx.AbstractLinearSolver | None = None
+    ftol: float = eqx.field(static=True, default=1e-8)
+    gtol: float = eqx.field(static=True, default=1e-10)
+    xtol: float = eqx.field(static=True, default=1e-10)
+    initial_damping: float = eqx.field(static=True, default=1e-8)
+    min_diagonal: float = eqx.field(static=True, default=1e-6)
+    max_diagonal: float = eqx.field(static=True, default=1e32)
+    max_damping: float = eqx.field(static=True, default=1e16)
+    min_gain: float = eqx.field(static=True, default=1e-3)
+
+    def __check_init__(self):
+        check_tolerances("LevenbergMarquardt", self.ftol, self.gtol, self.xtol)
+        check_damping("LevenbergMarquardt", self)
+
+    @property
+    def descent(self) -> DampedDescent:
+        return DampedDescent(
+            self.initial_damping,
+            self.min_diagonal,
+            self.max_diagonal,
+            self.max_damping,
+            self.min_gain,
         )
-        state = GaussNewtonState(
-            initial_cost=state.initial_cost,
-            cost_history=state.cost_history,
-            lin=tree_where(take & ok, final_lin, state.lin),
-            delta=zeros_tangent(state.lin),
-            step=state.step + take.astype(state.step.dtype),
-            num_accepted=state.num_accepted + (take & ok).astype(state.step.dtype),
-            done=state.done | failed,
-            result=RESULTS.where(failed, RESULTS.nonlinear_divergence, state.result),
-            last_step_norm=jnp.where(
-                take, lax.stop_gradient(jnp.sqrt(sq_norm(state.delta))), jnp.inf
-            ).astype(state.lin.dtype),
-        )
-        return values, state, jnp.where(take & ok, cost, state.lin.cost)
+
+    @property
+    def stopping(self) -> Tolerances:
+        return Tolerances(self.ftol, self.gtol, self.xtol)

@@ -22,8 +22,14 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ...factors import FactorGraph
 from ...lie import AbstractLieGroup
 from .._derivatives import stop_arrays
-from .._linearization import Linearization, placeholder_linearization
+from .._linearization import (
+    Linearization,
+    placeholder_linearization,
+    retract_values,
+    Tangent,
+)
 from .._solution import RESULTS
+from ._stopping import AbstractStopping
 
 
 Values = dict[str, PyTree]
@@ -120,12 +126,10 @@ def manifold_residuals(values: Values, graph: FactorGraph) -> tuple[Array, ...]:
 
 
 # Per-call options eqsmooth's driver sets (optimistix's `options` dict):
-# the length of the per-iteration cost record, whether to print each
-# iteration, and that `fn` is `graph_residuals` itself (optimistix hands the
-# solvers a wrapped copy, so they cannot see it).
+# the length of the per-iteration cost record and whether to print each
+# iteration.
 HISTORY = "cost_history_length"
 VERBOSE = "verbose"
-FN_IS_GRAPH_RESIDUALS = "fn_is_graph_residuals"
 
 
 def cost_record(options, dtype) -> Float[Array, " H"]:
@@ -161,55 +165,81 @@ def graph_of(args, who: str) -> FactorGraph:
     return args
 
 
-def _fn_mismatch(fn, y, graph: FactorGraph, who: str) -> Bool[Array, ""] | None:
+def _fn_mismatch(
+    fn, y, graph: FactorGraph, lin: Linearization, who: str
+) -> Bool[Array, ""] | None:
     """Whether `fn(y, graph)` differs from the graph's residuals (None when `fn` is
-    `graph_residuals` itself). The solvers linearise the graph, not `fn`, so a
-    different `fn` would be silently ignored: its shapes are checked here at
-    trace time and its values at run time, at the initial values."""
+    `graph_residuals` itself).
+
+    The solvers linearise the graph, not `fn`, so a different `fn` would be
+    silently ignored. Its shapes are checked here at trace time, and its
+    values at run time at two points: the initial values `y` and `y ⊕ u`,
+    a fixed pseudo-random tangent perturbation `u` (entries of size about
+    0.1), so that a function that agrees with the graph at `y` only is
+    caught. Nothing skips the check: optimistix hands the solvers a wrapped
+    copy of `fn`, so `graph_residuals` itself is checked too (two residual
+    evaluations, once per solve).
+    """
     if fn is graph_residuals or fn is manifold_residuals:
         return None
     y, graph = stop_arrays((y, graph))
-    out = fn(y, graph)
-    want = _residuals(y, graph)
-    # optimistix wraps `fn` so that it returns `(residuals, aux)`.
-    wrapped = isinstance(out, tuple) and len(out) == 2
-    if wrapped and jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(
-        want
-    ):
-        out = out[0]
-    got = out
-    got_leaves = jax.tree_util.tree_leaves(got)
     hint = (
         f"{who} solves the factor graph passed as args, so its fn must be "
         "eqsmooth.solve.graph_residuals (the graph's own residuals); for another "
         "residual function use optimistix's solvers, or "
         "eqsmooth.solve.tangent_least_squares for Lie-group values"
     )
-    if len(got_leaves) != len(want) or any(
-        jnp.shape(a) != jnp.shape(b) for a, b in zip(got_leaves, want)
-    ):
-        raise ValueError(
-            f"{hint}; fn returned shapes {[jnp.shape(a) for a in got_leaves]}, the "
-            f"graph's residuals have shapes {[jnp.shape(b) for b in want]}"
-        )
-    dtype = jnp.result_type(*want)
-    tol = float(np.sqrt(np.finfo(dtype).eps))
     bad = jnp.array(False)
-    for a, b in zip(got_leaves, want):
-        scale = 1.0 + jnp.max(jnp.abs(b), initial=0.0)
-        bad = bad | ~(jnp.max(jnp.abs(a - b), initial=0.0) <= tol * scale)
+    for point in (y, retract_values(y, _probe_tangent(lin))):
+        got, want = _fn_output(fn, point, graph), _residuals(point, graph)
+        if len(got) != len(want) or any(
+            jnp.shape(a) != jnp.shape(b) for a, b in zip(got, want)
+        ):
+            raise ValueError(
+                f"{hint}; fn returned shapes {[jnp.shape(a) for a in got]}, the "
+                f"graph's residuals have shapes {[jnp.shape(b) for b in want]}"
+            )
+        bad = bad | _differ(got, want)
     return bad
 
 
-def checked_graph(
-    fn, y, args, who: str, options=None
-) -> tuple[FactorGraph, Bool[Array, ""] | None]:
-    """`args` as the factor graph, and whether `fn` is not its residual function
-    (for an `eqx.error_if` on the solver's initial state)."""
-    graph = graph_of(args, who)
-    if options is not None and options.get(FN_IS_GRAPH_RESIDUALS, False):
-        return graph, None
-    return graph, _fn_mismatch(fn, y, graph, who)
+def _probe_tangent(lin: Linearization) -> Tangent:
+    """A fixed, deterministic tangent perturbation with entries in
+    [-0.15, 0.15] (a low-discrepancy sequence: no PRNG in the program)."""
+    out, offset = {}, 0
+    for g in lin.layout:
+        n = g.count * g.dim
+        k = jnp.arange(offset, offset + n, dtype=lin.dtype) + 1.0
+        out[g.name] = (0.15 * jnp.sin(2.399963 * k)).reshape(g.count, g.dim)
+        offset += n
+    return out
+
+
+def _fn_output(fn, y, graph) -> list:
+    out = fn(y, graph)
+    want = jax.eval_shape(_residuals, y, graph)
+    # optimistix wraps `fn` so that it returns `(residuals, aux)`.
+    wrapped = isinstance(out, tuple) and len(out) == 2
+    if wrapped and jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(
+        want
+    ):
+        out = out[0]
+    return jax.tree_util.tree_leaves(out)
+
+
+def _differ(got: list, want: tuple) -> Bool[Array, ""]:
+    """Whether two lists of residual arrays differ beyond `√ε` (relative to the
+    largest finite entry); entries non-finite in both the same way agree."""
+    dtype = jnp.result_type(*want)
+    tol = float(np.sqrt(np.finfo(dtype).eps))
+    bad = jnp.array(False)
+    for a, b in zip(got, want):
+        same = (a == b) | (jnp.isnan(a) & jnp.isnan(b))
+        gap = jnp.where(same, 0.0, jnp.abs(a - b))
+        finite_b = jnp.where(jnp.isfinite(b), jnp.abs(b), 0.0)
+        scale = 1.0 + jnp.max(finite_b, initial=0.0)
+        bad = bad | ~(jnp.max(gap, initial=0.0) <= tol * scale)
+    return bad
 
 
 def initial_status(values: Values) -> tuple[Bool[Array, ""], RESULTS]:
@@ -242,8 +272,10 @@ def start(fn, values, args, options, f_struct, who: str) -> Start:
     `args` (and `fn` checked against it), a placeholder linearisation shaped
     from optimistix's `f_struct` (no trace of the linearisation for shapes),
     and the initial `done`/`result` (`initial_status`)."""
-    graph, mismatch = checked_graph(fn, values, args, who, options)
+    del options
+    graph = graph_of(args, who)
     lin = placeholder_linearization(graph, values, f_struct)
+    mismatch = _fn_mismatch(fn, values, graph, lin, who)
     done, result = initial_status(values)
     # No cost before the first linearisation: NaN where the solve ends
     # before it (non-finite initial values).
@@ -261,8 +293,8 @@ def fn_error_if(x, mismatch: Bool[Array, ""] | None, who: str):
         mismatch,
         f"{who} solves the factor graph passed as args: its fn must be "
         "eqsmooth.solve.graph_residuals, and the fn given returned other residuals "
-        "at the initial values (use optimistix's solvers for another residual "
-        "function)",
+        "at the initial values or near them (use optimistix's solvers for another "
+        "residual function)",
     )
 
 
@@ -299,13 +331,15 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
     Subclasses implement optimistix's `init`, `step` and `terminate` with
     `fn` [`eqsmooth.solve.graph_residuals`][] (any other `fn` raises: the
     solvers linearise the graph itself), `args` the
-    [`eqsmooth.factors.FactorGraph`][] and `y` the values dict. They
-    linearise every factor stack with forward-mode autodiff, hand a
+    [`eqsmooth.factors.FactorGraph`][] and `y` the values dict, plus `finish`
+    (what happens after the last iteration) and a `stopping` policy
+    ([`eqsmooth.solve.AbstractStopping`][]). They linearise every factor
+    stack with forward-mode autodiff, hand a
     [`eqsmooth.solve.NormalOperator`][] to their lineax `linear_solver` and
     update the values on the manifold (`x ⊕ δ`). Their states keep `lin`,
-    the linearisation at the current values (the adjoints of
-    [`eqsmooth.solve.least_squares`][] rely on it), `step`, `num_accepted`,
-    `done` and `result` (an [`eqsmooth.solve.RESULTS`][] code).
+    the linearisation at the current values, `step`, `num_accepted`, `done`,
+    `result` (an [`eqsmooth.solve.RESULTS`][] code), `initial_cost` and
+    `cost_history`.
 
     `options` (optimistix's per-call knobs): `"linear_options"` is passed to
     `lineax.linear_solve` at every step; `"cost_history_length"` (an int)
@@ -313,119 +347,72 @@ class AbstractGraphSolver(optx.AbstractLeastSquaresSolver):
     `"verbose"` prints every iteration. `postprocess` returns the stats
     `num_steps`, `num_accepted`, `initial_cost`, `final_cost`,
     `cost_history` and `linearization` (the linearisation at the returned
-    values).
+    values, differentiable under every eqsmooth adjoint).
     """
 
     linear_solver: eqx.AbstractVar[lx.AbstractLinearSolver | None]
-    ftol: eqx.AbstractVar[float]
-    gtol: eqx.AbstractVar[float]
-    xtol: eqx.AbstractVar[float]
-
-    # optimistix's names for the tolerances and the norm of its solvers.
-    @property
-    def rtol(self) -> float:
-        return self.ftol
-
-    @property
-    def atol(self) -> float:
-        return self.xtol
-
-    @property
-    def norm(self):
-        return optx.max_norm
+    stopping: eqx.AbstractVar[AbstractStopping]
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        del tags, result  # fn: checked in init
+        del fn, options, tags, result  # fn: checked in init
         y, state, cost = self.finish(graph_of(args, type(self).__name__), y, state)
-        steps = jnp.maximum(state.step - 1, 0)
-        # The cost record: entry i is the cost after step i (0: the initial
-        # values), padded with the final cost.
-        history = state.cost_history
-        if history.shape[0]:
-            history = history.at[steps].set(cost, mode="drop")
-            history = jnp.where(jnp.arange(history.shape[0]) <= steps, history, cost)
-        stats = {
-            "num_steps": steps,
-            "num_accepted": state.num_accepted,
-            "initial_cost": state.initial_cost,
-            "final_cost": cost,
-            "cost_history": history,
-            # optimistix returns the state of the last iteration; a
-            # fixed-step solver takes its last step here, after it.
-            "linearization": state.lin,
-        }
-        return y, aux, stats
+        return y, aux, solve_stats(state, cost)
 
     @abc.abstractmethod
     def finish(self, graph: FactorGraph, values: Values, state) -> tuple:
         """After the last iteration: `(values, state, final_cost)` of the
         solution, with `state.lin` the linearisation at the returned values.
-        [`eqsmooth.solve.GaussNewton`][] and
-        [`eqsmooth.solve.LevenbergMarquardt`][] return the values and the
-        cost of their last linearisation; [`eqsmooth.solve.FixedStepGaussNewton`][]
-        takes its last step here (see
-        [`eqsmooth.solve.AbstractGraphSolver.steps_after_loop`][])."""
+        A converging solver returns the values and the cost of its last
+        linearisation; [`eqsmooth.solve.FixedStepGaussNewton`][] takes its
+        last step here (see [`eqsmooth.solve.AbstractStopping`][])."""
 
-    @abc.abstractmethod
+    # optimistix's names for the tolerances and the norm of its solvers.
+    @property
+    def rtol(self) -> float:
+        return self.stopping.relative_tolerance()
+
+    @property
+    def atol(self) -> float:
+        return self.stopping.absolute_tolerance()
+
+    @property
+    def norm(self):
+        return optx.max_norm
+
     def iteration_limit(self, max_steps: int) -> int:
         """The static iteration limit of a solve called with `max_steps`."""
+        return self.stopping.iteration_limit(max_steps)
 
-    @abc.abstractmethod
     def steps_after_loop(self) -> int:
         """How many steps `finish` takes after the last iteration."""
+        return self.stopping.steps_after_loop()
 
-    @abc.abstractmethod
     def at_max_steps(self) -> RESULTS:
         """The result when the iteration limit is reached before convergence."""
+        return self.stopping.at_max_steps()
 
-    @abc.abstractmethod
     def reaches_minimum(self) -> bool:
         """Whether the solve runs to a stationary point of the cost (which the
         implicit adjoint differentiates)."""
+        return self.stopping.reaches_minimum()
 
 
-class AbstractConvergingSolver(AbstractGraphSolver):
-    """A solver that iterates until its tolerances are met (or `max_steps`).
-
-    One iteration more than steps: the first iteration only linearises the
-    initial values (and solves for the first step), so the iteration limit
-    is `max_steps + 1`; reaching it before convergence gives
-    `RESULTS.nonlinear_max_steps_reached`. No step is taken after the loop.
-    """
-
-    def iteration_limit(self, max_steps: int) -> int:
-        return max_steps + 1
-
-    def steps_after_loop(self) -> int:
-        return 0
-
-    def at_max_steps(self) -> RESULTS:
-        return RESULTS.nonlinear_max_steps_reached
-
-    def reaches_minimum(self) -> bool:
-        return True
-
-
-class AbstractFixedStepSolver(AbstractGraphSolver):
-    """A solver that always runs exactly `num_steps` iterations.
-
-    [`eqsmooth.solve.least_squares`][] ignores its `max_steps` argument for
-    these solvers; reaching `num_steps` is success. The last step is taken
-    after the loop, in `finish`. The result is not a minimiser, so
-    [`eqsmooth.solve.ImplicitAdjoint`][] refuses these solvers.
-    """
-
-    num_steps: eqx.AbstractVar[int]
-
-    def iteration_limit(self, max_steps: int) -> int:
-        del max_steps
-        return self.num_steps
-
-    def steps_after_loop(self) -> int:
-        return 1
-
-    def at_max_steps(self) -> RESULTS:
-        return RESULTS.successful
-
-    def reaches_minimum(self) -> bool:
-        return False
+def solve_stats(state, cost) -> dict:
+    """The stats `postprocess` returns for the solution's `state` and cost."""
+    steps = jnp.maximum(state.step - 1, 0)
+    # The cost record: entry i is the cost after step i (0: the initial
+    # values), padded with the final cost.
+    history = state.cost_history
+    if history.shape[0]:
+        history = history.at[steps].set(cost, mode="drop")
+        history = jnp.where(jnp.arange(history.shape[0]) <= steps, history, cost)
+    return {
+        "num_steps": steps,
+        "num_accepted": state.num_accepted,
+        "initial_cost": state.initial_cost,
+        "final_cost": cost,
+        "cost_history": history,
+        # optimistix returns the state of the last iteration; a fixed-step
+        # solver takes its last step in `finish`, after it.
+        "linearization": state.lin,
+    }

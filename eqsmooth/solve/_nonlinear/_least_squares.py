@@ -14,25 +14,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import PyTree
 
 from ...factors import FactorGraph
-from ...factors._graph import graph_cost
+from ...factors._graph import graph_cost, Values
 from .._derivatives import recomputed, refuse_derivative
 from .._linear._default_solver import default_linear_solver
 from .._solution import raise_unless_successful, RESULTS, Solution
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._diagnose import failure_detail
-from ._graph_solver import (
-    AbstractGraphSolver,
-    FN_IS_GRAPH_RESIDUALS,
-    graph_residuals,
-    HISTORY,
-    VERBOSE,
-)
-
-
-Values = dict[str, PyTree]
+from ._graph_solver import AbstractGraphSolver, graph_residuals, HISTORY, VERBOSE
 
 
 def least_squares(
@@ -146,12 +136,7 @@ def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
         solver = eqx.tree_at(
             lambda s: s.linear_solver, solver, linear_solver, is_leaf=_is_none
         )
-    options = {
-        **options,
-        HISTORY: steps_cap + 1,
-        VERBOSE: verbose,
-        FN_IS_GRAPH_RESIDUALS: True,
-    }
+    options = {**options, HISTORY: steps_cap + 1, VERBOSE: verbose}
     sol = optx.least_squares(
         graph_residuals,
         solver,
@@ -173,7 +158,7 @@ def _solve(graph, values, solver, max_steps, adjoint, verbose, options):
         state.result,
     )
     history = stats["cost_history"]
-    if isinstance(adjoint, ImplicitAdjoint):
+    if not adjoint.differentiates_iterates():
         # Intermediate iterates have no implicit derivative.
         history = refuse_derivative(state.lin.cost, history, _HISTORY)
     stats = {
