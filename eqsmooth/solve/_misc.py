@@ -5,7 +5,7 @@ from collections.abc import Callable
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, PyTree
 
 from ._linearization import gradient, Linearization, Tangent
 
@@ -63,6 +63,17 @@ def axpy(alpha, x: Tangent, y: Tangent) -> Tangent:
     return {k: y[k] + alpha * x[k] for k in y}
 
 
+def tree_dot(a: PyTree[Array], b: PyTree[Array]) -> Float[Array, ""]:
+    """`Σ aᵢ bᵢ` over every leaf of two pytrees of the same structure (real)."""
+    products = jax.tree_util.tree_map(lambda x, y: jnp.sum(x * y), a, b)
+    return sum(jax.tree_util.tree_leaves(products))  # pyright: ignore[reportReturnType]
+
+
+def tree_axpy(alpha, x: PyTree[Array], y: PyTree[Array]) -> PyTree[Array]:
+    """`alpha x + y` leaf by leaf."""
+    return jax.tree_util.tree_map(lambda u, v: v + alpha * u, x, y)
+
+
 def finite_lin(lin: Linearization) -> Bool[Array, ""]:
     """Whether the cost, every residual and every Jacobian block are finite."""
     ok = jnp.isfinite(lin.cost)
@@ -74,15 +85,19 @@ def finite_lin(lin: Linearization) -> Bool[Array, ""]:
 
 
 def preconditioned_cg(
-    matvec: Callable[[Tangent], Tangent],
-    precondition: Callable[[Tangent], Tangent],
-    b: Tangent,
+    matvec: Callable[[PyTree[Array]], PyTree[Array]],
+    precondition: Callable[[PyTree[Array]], PyTree[Array]],
+    b: PyTree[Array],
     rtol,
     atol,
     max_steps: int,
     flexible: bool = False,
 ):
     """Solve `A x = b` for symmetric positive (semi)definite `A` by PCG.
+
+    `b` and `x` are any pytrees of arrays (a tangent dict, one array, a dict
+    of arrays): vector operations are tree-mapped, so `A` may be any lineax
+    operator's `mv`.
 
     Stops when `‖b − A x‖₂ ≤ max(rtol‖b‖₂, atol)` (the Euclidean norm, the
     usual inexact-Newton criterion, rather than lineax's per-component test),
@@ -95,35 +110,38 @@ def preconditioned_cg(
     Returns `(x, converged, breakdown, num_steps)`.
     """
     x0 = jax.tree_util.tree_map(jnp.zeros_like, b)
-    bnorm = jnp.sqrt(dot(b, b))
+    bnorm = jnp.sqrt(tree_dot(b, b))
     dtype = bnorm.dtype
     tol = jnp.maximum(jnp.asarray(rtol, dtype) * bnorm, jnp.asarray(atol, dtype))
     z0 = precondition(b)
-    rz0 = dot(b, z0)
+    rz0 = tree_dot(b, z0)
 
     def cond(carry):
         _, r, _, _, _, k, breakdown = carry
-        rnorm = jnp.sqrt(dot(r, r))
+        rnorm = jnp.sqrt(tree_dot(r, r))
         return (rnorm > tol) & (k < max_steps) & ~breakdown
 
     def body(carry):
         x, r, z, p, rz, k, _ = carry
         ap = matvec(p)
-        pap = dot(p, ap)
+        pap = tree_dot(p, ap)
         breakdown = ~(jnp.isfinite(pap) & (pap > 0) & jnp.isfinite(rz))
         alpha = jnp.where(breakdown, 0.0, rz / jnp.where(breakdown, 1.0, pap))
-        x = axpy(alpha, p, x)
-        r_new = axpy(-alpha, ap, r)
+        x = tree_axpy(alpha, p, x)
+        r_new = tree_axpy(-alpha, ap, r)
         z_new = precondition(r_new)
-        rz_new = dot(r_new, z_new)
-        num = dot(z_new, {k: r_new[k] - r[k] for k in r}) if flexible else rz_new
+        rz_new = tree_dot(r_new, z_new)
+        if flexible:
+            num = tree_dot(z_new, jax.tree_util.tree_map(jnp.subtract, r_new, r))
+        else:
+            num = rz_new
         beta = num / jnp.where(rz == 0, 1.0, rz)
-        p = axpy(beta, p, z_new)
+        p = tree_axpy(beta, p, z_new)
         return x, r_new, z_new, p, rz_new, k + 1, breakdown
 
     init = (x0, b, z0, z0, rz0, jnp.asarray(0), jnp.asarray(False))
     x, r, _, _, _, k, breakdown = lax.while_loop(cond, body, init)
-    converged = jnp.sqrt(dot(r, r)) <= tol
+    converged = jnp.sqrt(tree_dot(r, r)) <= tol
     return x, converged, breakdown, k
 
 

@@ -115,11 +115,10 @@ def raise_unless_successful(
     its persistent compilation cache nor reads one from it, so a second
     process would compile the whole solve again.
     """
-    # The code as a host array (a result code is a Module whose one leaf is its
-    # index), compared in numpy: an `==` of the codes would be an eager JAX
-    # operation (one more compilation, and dispatch on every solve), and
-    # `EnumerationItem.is_traced` is slower still.
-    (code,) = jax.tree_util.tree_leaves(sol.result)
+    # The code as a host array, compared in numpy: an `==` of the codes would
+    # be an eager JAX operation (one more compilation, and dispatch on every
+    # solve), and `EnumerationItem.is_traced` is slower still.
+    code = result_index(sol.result)
     try:
         code = np.asarray(code)
     except jax.errors.TracerArrayConversionError:
@@ -133,4 +132,20 @@ def raise_unless_successful(
     return sol
 
 
-(_SUCCESS,) = jax.tree_util.tree_leaves(RESULTS.successful)
+def result_index(result: RESULTS) -> Any:
+    """The index of an eqsmooth result code in [`eqsmooth.solve.RESULTS`][]: an
+    integer array (a tracer under a transformation), for host-side tests.
+
+    Only for reading a code; codes are made and converted as codes
+    (`RESULTS.where`, `promote_result`), never rebuilt from an index. An
+    equinox enumeration item is a Module whose one pytree leaf is its index.
+    """
+    if not isinstance(result, RESULTS):
+        raise TypeError(
+            f"result_index: expected an eqsmooth RESULTS code, got {result!r}"
+        )
+    (index,) = jax.tree_util.tree_leaves(result)
+    return index
+
+
+_SUCCESS = result_index(RESULTS.successful)

@@ -44,6 +44,7 @@ from ._linear_solver import (
     normal_operator_of,
     pivot_tolerance,
     register_symmetric_psd,
+    UnsupportedOperatorError,
 )
 from ._small_blocks import block_cholesky, block_gram, block_solve_lower
 
@@ -693,9 +694,9 @@ class BlockCyclicReduction(lx.AbstractLinearSolver):
     def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
         del options
         if not isinstance(operator, BlockTridiagonalOperator):
-            raise ValueError(
-                "BlockCyclicReduction needs a BlockTridiagonalOperator, got "
-                f"{type(operator).__name__}"
+            raise UnsupportedOperatorError(
+                "BlockCyclicReduction needs an eqsmooth.solve."
+                f"BlockTridiagonalOperator, got {type(operator).__name__}"
             )
         return cyclic_reduction_factor(operator.diagonal, operator.upper)
 

@@ -199,15 +199,15 @@ def _linear_solve(operator, b, linear_solver, options):
     (through `operator.mv`) and every solve, primal, tangent or transposed,
     keeps `throw=False`: the derivative of a failed solve is NaN, which a
     caller (e.g. [`eqsmooth.learn.train`][] with `on_nonfinite="skip"`) can
-    detect. Returns the solution and lineax's result code as an integer.
+    detect. Returns the solution and lineax's result (an `lx.RESULTS` item,
+    carried as the solve's non-differentiable auxiliary output).
     """
 
     def solve(_, rhs):
         sol = lx.linear_solve(
             operator, rhs, linear_solver, options=options, throw=False
         )
-        (code,) = jax.tree_util.tree_leaves(sol.result)  # the enumeration's integer
-        return sol.value, code
+        return sol.value, sol.result
 
     return jax.lax.custom_linear_solve(
         operator.mv, b, solve, symmetric=True, has_aux=True
@@ -250,10 +250,7 @@ def solve_normal(
         b = {k: -v for k, v in gradient(lin).items()}
     else:
         b = {g.name: rhs[g.name].astype(lin.dtype) for g in lin.layout}
-    solution, code = _linear_solve(operator, b, linear_solver, options)
-    lx_result = jax.tree_util.tree_unflatten(
-        jax.tree_util.tree_structure(lx.RESULTS.successful), [code]
-    )
+    solution, lx_result = _linear_solve(operator, b, linear_solver, options)
     value = {g.name: solution[g.name] for g in lin.layout}
     finite = all_finite(jax.tree_util.tree_leaves(value))
     failed = jnp.logical_not(finite)
@@ -265,13 +262,53 @@ def solve_normal(
     return value, promote_result(result)
 
 
+class UnsupportedOperatorError(TypeError, ValueError):
+    """A linear solver was given a lineax operator it cannot solve.
+
+    A `TypeError` (the operator has the wrong type); also a `ValueError`,
+    which these checks raised before, so that older `except ValueError`
+    clauses still catch it.
+    """
+
+
 def normal_operator_of(operator: lx.AbstractLinearOperator, who: str) -> NormalOperator:
-    """`operator` if it is a `NormalOperator`, else a `ValueError` naming `who`."""
+    """`operator` if it is a `NormalOperator`, else a `TypeError` naming `who`.
+
+    For the solvers that read the block structure of a linearisation (chains,
+    sparse patterns) and cannot solve a general lineax operator.
+    """
     if not isinstance(operator, NormalOperator):
-        raise ValueError(
+        raise UnsupportedOperatorError(
             f"{who} solves the normal equations of a linearisation: it needs an "
-            f"eqsmooth.solve.NormalOperator, got {type(operator).__name__}"
+            f"eqsmooth.solve.NormalOperator, got {type(operator).__name__} (for a "
+            "general symmetric positive semidefinite lineax operator use "
+            "eqsmooth.PCG() or eqsmooth.DenseCholesky())"
         )
+    return operator
+
+
+def symmetric_psd_operator(
+    operator: lx.AbstractLinearOperator, who: str
+) -> lx.AbstractLinearOperator:
+    """`operator` if lineax knows it is positive semidefinite (hence symmetric
+    and square) and real; else an error naming `who` and the tag."""
+    if not isinstance(operator, lx.AbstractLinearOperator):
+        raise UnsupportedOperatorError(
+            f"{who} needs a lineax.AbstractLinearOperator, got "
+            f"{type(operator).__name__}"
+        )
+    if not lx.is_positive_semidefinite(operator):
+        raise ValueError(
+            f"{who} needs a symmetric positive semidefinite operator: tag it with "
+            "lineax.positive_semidefinite_tag (e.g. lx.MatrixLinearOperator(A, "
+            f"lx.positive_semidefinite_tag)); got a {type(operator).__name__} "
+            "without that tag"
+        )
+    # lineax itself checks that a tagged operator's input and output
+    # structures agree (square), so only the entry type is left.
+    in_leaves = jax.tree_util.tree_leaves(operator.in_structure())
+    if any(jnp.issubdtype(a.dtype, jnp.complexfloating) for a in in_leaves):
+        raise ValueError(f"{who} solves real systems; the operator is complex")
     return operator
 
 

@@ -39,7 +39,12 @@ from ._block_tridiagonal import (
     cyclic_reduction_factor,
     cyclic_reduction_solve,
 )
-from ._linear_solver import AbstractNormalSolver, all_finite, NormalOperator
+from ._linear_solver import (
+    AbstractNormalSolver,
+    all_finite,
+    NormalOperator,
+    symmetric_psd_operator,
+)
 from ._small_blocks import block_cho_solve, block_cholesky
 
 
@@ -248,9 +253,16 @@ class PCG(AbstractNormalSolver):
     The preconditioner is the `preconditioner` field, applied to the
     operator being solved; lineax's convention
     `options={"preconditioner": M}` (a positive semidefinite lineax
-    operator approximating the inverse) overrides it. Any symmetric
-    positive semidefinite lineax operator can be solved; one that is not a
-    `NormalOperator` is preconditioned only through `options`.
+    operator approximating the inverse) overrides it.
+
+    Any real lineax operator tagged positive semidefinite
+    (`lineax.positive_semidefinite_tag`, which lineax reads as symmetric too)
+    can be solved: `lx.MatrixLinearOperator`, `lx.FunctionLinearOperator`,
+    `lx.PyTreeLinearOperator`, vectors being any pytree of arrays (CG's
+    vector operations are tree-mapped and only `operator.mv` is called).
+    One that is not a `NormalOperator` is preconditioned only through
+    `options` (the identity otherwise). An operator without the tag raises a
+    `ValueError` naming it.
 
     **Arguments:**
 
@@ -285,11 +297,7 @@ class PCG(AbstractNormalSolver):
             )
 
     def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
-        if not lx.is_positive_semidefinite(operator):
-            raise ValueError(
-                "PCG needs a positive semidefinite operator (tag it with "
-                "lineax.positive_semidefinite_tag)"
-            )
+        symmetric_psd_operator(operator, "PCG")
         M = options.get("preconditioner")
         if M is None:
             if isinstance(operator, NormalOperator):

@@ -217,12 +217,13 @@ class SparsaxCholesky(AbstractNormalSolver):
         self, operator: lx.AbstractLinearOperator, options: dict[str, Any]
     ) -> SparsaxFactorization:
         del options
+        op = normal_operator_of(operator, "SparsaxCholesky")
         if not jax.config.read("jax_enable_x64"):  # pyright: ignore[reportAttributeAccessIssue]
             raise ValueError(
                 "SparsaxCholesky solves in float64: turn on "
                 'jax.config.update("jax_enable_x64", True) first'
             )
-        state = assemble_sparse(normal_operator_of(operator, "SparsaxCholesky"))
+        state = assemble_sparse(op)
         ok = jnp.all(jnp.isfinite(state.data))
         return SparsaxFactorization(state.data, ok, state.pattern, state.layout)
 
