@@ -457,8 +457,8 @@ def main(argv=None):
 
             run_pair(cfg, k, a.results, out, a.work, a.sequences, a.methods, log)
     _, table = summarise(out, a.bootstrap_samples)
-    U.summarise(out, load_pairs(out))
     print(table)
+    print(U.markdown(U.summarise(out, load_pairs(out))))
 
 
 if __name__ == "__main__":

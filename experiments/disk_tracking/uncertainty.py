@@ -258,3 +258,43 @@ def summarise(out: Path, folds: list[dict]) -> dict:
     text = json.dumps(record, indent=1)
     eqs.learn.atomic_write(out / "uncertainty.json", lambda f: f.write(text.encode()))
     return record
+
+
+def markdown(record: dict) -> str:
+    """The tables of `uncertainty.json`: per row, mean ± se over folds."""
+
+    def ms(s, digits=3):
+        se = "" if s["stderr"] is None else f" ± {s['stderr']:.{digits}f}"
+        return f"{s['mean']:.{digits}f}{se}"
+
+    parts = []
+    for label in ("test_folds", "fresh_folds"):
+        if label not in record:
+            continue
+        r = record[label]
+        lines = [
+            f"Position marginals on the {label.replace('_', ' ')} {r['folds']} "
+            f"({r['sequences_per_fold']} sequences each), mean ± se over folds:",
+            "",
+            "| row | NLL (nats/frame) | NEES | 68% coverage | 95% coverage "
+            "| sequences in NEES band |",
+            "|---|---|---|---|---|---|",
+        ]
+        for m, row in r["rows"].items():
+            lines.append(
+                f"| {report.LABELS[m]} | {ms(row['nll'])} | {ms(row['nees'], 2)} | "
+                f"{ms(row['coverage_0.68'])} | {ms(row['coverage_0.95'])} | "
+                f"{ms(row['sequences_in_band'])} |"
+            )
+        lines += [
+            "",
+            "| a − b | ΔNLL | folds a lower | Δ95% coverage |",
+            "|---|---|---|---|",
+        ]
+        for k, d in r["paired"].items():
+            lines.append(
+                f"| {k} | {ms(d['nll'])} | {d['nll']['better_folds']}/"
+                f"{len(r['folds'])} | {ms(d['coverage_0.95'])} |"
+            )
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts) + "\n"
