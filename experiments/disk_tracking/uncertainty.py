@@ -177,12 +177,13 @@ def calibration_figure(rows: dict[str, list[dict]], path: Path, title: str) -> N
 
     fig, ax = plt.subplots(figsize=(6.2, 5.2))
     ax.plot([0, 1], [0, 1], "k:", lw=1, label="calibrated")
-    for m in PROBABILISTIC:
+    colours = plt.get_cmap("tab20").colors
+    for i, m in enumerate(PROBABILISTIC):
         if m not in rows:
             continue
         obs = [np.mean([r["coverage"][str(q)] for r in rows[m]]) for q in LEVELS]
         style = "-" if m.startswith("smoother") else "--"
-        ax.plot(LEVELS, obs, style, marker="o", ms=3, lw=1.2, label=m)
+        ax.plot(LEVELS, obs, style, color=colours[i], marker="o", ms=3, lw=1.2, label=m)
     ax.set_xlabel("expected coverage (χ²₂ ellipse of the position marginal)")
     ax.set_ylabel("observed coverage of the true position")
     ax.set_xlim(0, 1)
