@@ -147,22 +147,27 @@ def test_solution_routes_match_finite_differences(problem, adjoint):
     _assert_matches_fd(f, _logs0(problem))
 
 
-def test_optx_route_with_our_implicit_adjoint_state_is_differentiable():
-    # optimistix hands back the solver's state: its linearisation at the
-    # solution is differentiable as in eqsmooth's driver.
+def test_optx_route_with_our_implicit_adjoint_stats_are_differentiable():
+    # The solver's stats carry the linearisation at the solution,
+    # differentiable as in eqsmooth's driver; the last iteration's state
+    # optimistix hands back refuses a derivative (never a silent zero).
     import eqsmooth as eqs
 
-    def f(logs):
+    def f(logs, lin_of=lambda sol: sol.stats["linearization"]):
         sol = _optx_solve("loop", logs, adjoint=eqs.ImplicitAdjoint())
-        marg = eqs.marginal_covariances(sol.state.lin)["pose"]
+        marg = eqs.marginal_covariances(lin_of(sol))["pose"]
         return jnp.stack(
             [
                 jnp.sum(jnp.linalg.slogdet(marg)[1]),
                 jnp.sum(jnp.sin(3.0 * sol.value["pose"].unit_complex_xy)),
+                sol.stats["final_cost"],
             ]
         )
 
     _assert_matches_fd(f, _logs0("loop"))
+    state_lin = lambda logs: f(logs, lambda sol: sol.state.lin)[0]
+    with pytest.raises(ValueError, match="stats\\['linearization'\\]"):
+        jax.grad(state_lin)(_logs0("loop"))
 
 
 def test_optx_default_adjoint_is_right_on_euclidean_values():

@@ -35,7 +35,12 @@ import optimistix as optx
 
 from ...factors import FactorGraph
 from ...factors._graph import graph_cost, Values
-from .._derivatives import checked_derivative, recomputed, stop_arrays
+from .._derivatives import (
+    checked_derivative,
+    recomputed,
+    refuse_derivative,
+    stop_arrays,
+)
 from .._linear._default_solver import linear_solver_for
 from .._linear._linear_solver import solve_normal
 from .._linearization import Linearization, linearize_graph, retract_values, Tangent
@@ -364,19 +369,31 @@ class ImplicitAdjoint(AbstractAdjoint):
         # An eqsmooth solver: its loop runs stopped, and its own `finish` and
         # stats, in `postprocess`, see the solution with its implicit
         # derivative (`_Implicitly`).
+        (graph,) = graphs
         implicit = _Implicitly(solver, self)
         swap = lambda x: implicit if x is solver else x
         is_solver = lambda x: x is solver
         inputs = jax.tree_util.tree_map(swap, inputs, is_leaf=is_solver)
-        return primal_fn(inputs + (_stopped_while,))
+
+        def while_loop(cond, body, carry, max_steps):
+            # Every output of the loop (the state optimistix hands back as
+            # `Solution.state` included) is stopped, and refuses a derivative
+            # instead of giving a silent zero.
+            out = _lax_while(
+                cond, lambda c: stop_arrays(body(c)), stop_arrays(carry), max_steps
+            )
+            return refuse_derivative(graph, out, _LAST_ITERATION)
+
+        return primal_fn(inputs + (while_loop,))
 
 
-def _stopped_while(cond, body, carry, max_steps: int | None):
-    """The solver's loop with every output stopped (the body still closes over
-    the live problem, so no derivative flows through it)."""
-    return _lax_while(
-        cond, lambda c: stop_arrays(body(c)), stop_arrays(carry), max_steps
-    )
+_LAST_ITERATION = (
+    "Under eqsmooth's ImplicitAdjoint the loop's last state (optimistix's "
+    "Solution.state) has no derivative: the implicit adjoint differentiates the "
+    "solution only. Differentiate Solution.stats['linearization'] (the "
+    "linearisation at the solution) or stats['final_cost'], or solve with "
+    "eqsmooth.least_squares, whose Solution.state.lin is differentiable"
+)
 
 
 class _Implicitly(eqx.Module):

@@ -16,7 +16,7 @@ from .._linearization import (
     retract_values,
     unflatten_tangent,
 )
-from .._solution import RESULTS
+from .._solution import result_index, RESULTS
 
 
 def _rows(mask: np.ndarray) -> str:
@@ -143,17 +143,12 @@ def failure_detail(
     graph: FactorGraph, values: dict[str, PyTree], result: RESULTS
 ) -> str:
     """The detail of a failed solve's error (empty when there is nothing to add)."""
-    (code,) = jax.tree_util.tree_leaves(result)
-    code = np.asarray(code)
-    if np.all(code == _NONFINITE):
-        return nonfinite_rows(graph, values)
-    if np.all(code == _SINGULAR):
-        return singular_detail(graph, values)
-    if np.all(code == _DIVERGED):
-        return divergence_detail(graph, values)
+    code = np.asarray(result_index(result))
+    for kind, detail in (
+        (RESULTS.nonfinite_problem, nonfinite_rows),
+        (RESULTS.linear_solve_failed, singular_detail),
+        (RESULTS.nonlinear_divergence, divergence_detail),
+    ):
+        if np.all(code == np.asarray(result_index(kind))):
+            return detail(graph, values)
     return ""
-
-
-(_NONFINITE,) = jax.tree_util.tree_leaves(RESULTS.nonfinite_problem)
-(_SINGULAR,) = jax.tree_util.tree_leaves(RESULTS.linear_solve_failed)
-(_DIVERGED,) = jax.tree_util.tree_leaves(RESULTS.nonlinear_divergence)
