@@ -18,6 +18,9 @@ rewritten after each fold.
 
     python -m experiments.disk_tracking --quick --out results/disk_quick   # ~5 min
     python -m experiments.disk_tracking --folds 0 --out results/disk        # one fold
+
+More never-seen folds (11..20, the committed heads, no training) and the
+covariances' NLL/NEES/coverage: `python -m experiments.disk_tracking.fresh_more`.
 """
 
 import argparse
@@ -28,6 +31,7 @@ from pathlib import Path
 from experiments._cli import experiment_parser
 from experiments.disk_tracking import (
     fresh,
+    fresh_more,
     online,
     protocol,
     report,
@@ -176,6 +180,8 @@ def main(argv=None):
         report.update_docs(a.docs, table)
     if (a.out / "fresh").is_dir():
         table += "\n" + fresh.summarise(a.out)[1]
+        if (a.out / "fresh_more").is_dir():  # folds 11..: fresh_more.py
+            table += "\n" + fresh_more.summarise(a.out)[1]
         (a.out / "summary.md").write_text(table)
     if any(m.startswith("online_") for m in cfg.methods):
         table += "\n" + online.summarise(a.out)[1]
@@ -202,6 +208,8 @@ def main_fresh(cfg: train.Config, a: argparse.Namespace) -> None:
         log(f"fold {k}: fresh evaluation written to {path}")
     _, table = report.write_summary(a.out, cfg.num_folds)
     table += "\n" + fresh.summarise(a.out)[1]
+    if (a.out / "fresh_more").is_dir():  # folds 11..: fresh_more.py
+        table += "\n" + fresh_more.summarise(a.out)[1]
     (a.out / "summary.md").write_text(table)
     print("\n" + table + f"\nresults in {a.out}")
 
