@@ -400,20 +400,53 @@ def _start(
     return state, []
 
 
+class _RunConfig(eqx.Module):
+    """One `train` call's settings, as its loop reads them.
+
+    **Fields:**
+
+    - `seed`, `batch_size`, `num_steps`, `mesh`, `validation`, `checkpoints`,
+        `logging`, `on_nonfinite`: `train`'s arguments.
+    - `num_examples`: the number of training examples.
+    - `metadata`: what a checkpoint must match to be resumed.
+    - `writer`: whether this process writes checkpoints and logs (process 0).
+    - `step_fn`: the compiled optimiser step, `step_fn(model, opt_state,
+        batch) -> (model, opt_state, metrics)`.
+    - `augment`: the compiled augmentation, `augment(batch, key) -> batch`,
+        or `None`.
+    """
+
+    seed: int = eqx.field(static=True)
+    num_examples: int = eqx.field(static=True)
+    batch_size: int = eqx.field(static=True)
+    num_steps: int = eqx.field(static=True)
+    metadata: dict[str, int] = eqx.field(static=True)
+    writer: bool = eqx.field(static=True)
+    mesh: Mesh | None = eqx.field(static=True)
+    validation: Validation | None
+    checkpoints: Checkpoints | None
+    logging: Logging
+    on_nonfinite: str = eqx.field(static=True)
+    step_fn: Callable[..., tuple[PyTree, PyTree, dict]] = eqx.field(static=True)
+    augment: Callable[[Any, PRNGKeyArray], Any] | None = eqx.field(static=True)
+
+
 class _Run:
     """One `train` call's mutable state (current and best model, the log) and
     its loop over the steps."""
 
-    def __init__(self, state, history, data, valid, evaluator, logfile, **config):
+    def __init__(
+        self, state, history, data, valid, evaluator, logfile, config: _RunConfig
+    ):
         self.model, self.opt_state = state.model, state.opt_state
         self.best_model, self.best_metric = state.best_model, state.best_metric
         self.best_step, self.start = state.best_step, state.step
         self.history, self.data, self.valid = history, data, valid
         self.evaluator, self.logfile = evaluator, logfile
-        self.cfg = config
-        if config["mesh"] is not None:
+        self.config = config
+        if config.mesh is not None:
             self.model, self.opt_state, self.best_model = replicate(
-                (self.model, self.opt_state, self.best_model), config["mesh"]
+                (self.model, self.opt_state, self.best_model), config.mesh
             )
         self.t0 = time.perf_counter()
 
@@ -424,7 +457,7 @@ class _Run:
             self.logfile.flush()
 
     def validate(self, step: int) -> float:
-        v = float(self.evaluator(self.model, self.valid, self.cfg["batch_size"]))
+        v = float(self.evaluator(self.model, self.valid, self.config.batch_size))
         if step == 0 or v < self.best_metric:
             self.best_metric, self.best_model, self.best_step = v, self.model, step
         return v
@@ -435,27 +468,27 @@ class _Run:
             model=self.model,
             opt_state=self.opt_state,
             step=step,
-            seed=self.cfg["seed"],
+            seed=self.config.seed,
             best_model=self.best_model if validated else self.model,
             best_metric=self.best_metric,
             best_step=self.best_step if validated else step,
         )
-        save_checkpoint(Path(self.cfg["checkpoints"].path), state, self.cfg["metadata"])
+        save_checkpoint(Path(self.config.checkpoints.path), state, self.config.metadata)
 
     def batch(self, s: int, order: np.ndarray, pos: int):
-        c = self.cfg
-        examples = order[pos * c["batch_size"] : (pos + 1) * c["batch_size"]]
+        c = self.config
+        examples = order[pos * c.batch_size : (pos + 1) * c.batch_size]
         batch = _take(self.data, examples)
-        if c["augment"] is not None:
-            key = jax.random.fold_in(jax.random.key(c["seed"]), s)
-            batch = c["augment"](batch, key)
-        if c["mesh"] is None:
+        if c.augment is not None:
+            key = jax.random.fold_in(jax.random.key(c.seed), s)
+            batch = c.augment(batch, key)
+        if c.mesh is None:
             return examples, jax.tree_util.tree_map(jnp.asarray, batch)
-        return examples, shard_batch(batch, c["mesh"])
+        return examples, shard_batch(batch, c.mesh)
 
     def loop(self, bar) -> None:
-        c = self.cfg
-        num_steps, n, logging = c["num_steps"], c["num_examples"], c["logging"]
+        c = self.config
+        num_steps, n, logging = c.num_steps, c.num_examples, c.logging
         if self.evaluator is not None and self.start == 0:
             v = self.validate(0)
             self.write(
@@ -464,24 +497,24 @@ class _Run:
         epoch, order = -1, None
         skipped = 0  # non-finite steps dropped by this call (on_nonfinite="skip")
         for s in range(self.start, num_steps):
-            e, pos = divmod(s, n // c["batch_size"])
+            e, pos = divmod(s, n // c.batch_size)
             if e != epoch:
-                epoch, order = e, epoch_order(c["seed"], e, n)
+                epoch, order = e, epoch_order(c.seed, e, n)
             assert order is not None
             examples, batch = self.batch(s, order, pos)
-            model, opt_state, metrics = c["step_fn"](self.model, self.opt_state, batch)
+            model, opt_state, metrics = c.step_fn(self.model, self.opt_state, batch)
             if math.isfinite(float(metrics["loss"])) and math.isfinite(
                 float(metrics["grad_norm"])
             ):
                 self.model, self.opt_state = model, opt_state
-            elif c["on_nonfinite"] == "raise":
+            elif c.on_nonfinite == "raise":
                 raise _nonfinite_error(s, e, metrics, examples)
             else:
                 skipped += 1
             done = s + 1
             last = done == num_steps
             validate = self.evaluator is not None and (
-                done % c["validation"].every == 0 or last
+                done % c.validation.every == 0 or last
             )
             record = None
             if done % logging.every == 0 or validate or last:
@@ -493,8 +526,8 @@ class _Run:
                 self.write(record)
                 bar.set_postfix(loss=f"{record['loss']:.4g}")
             bar.update(1)
-            ckpt = c["checkpoints"]
-            if ckpt is not None and c["writer"] and (done % ckpt.every == 0 or last):
+            ckpt = c.checkpoints
+            if ckpt is not None and c.writer and (done % ckpt.every == 0 or last):
                 self.checkpoint(done)
             if logging.callback is not None:
                 logging.callback(done, _floats(metrics) if record is None else record)
@@ -503,7 +536,7 @@ class _Run:
             raise _all_skipped_error(ran)
 
     def result(self) -> "TrainResult":
-        final_step = max(self.start, self.cfg["num_steps"])
+        final_step = max(self.start, self.config.num_steps)
         if self.valid is None:
             self.best_model, self.best_step = self.model, final_step
         return TrainResult(
@@ -621,13 +654,23 @@ def train(
     step_fn = make_train_step(
         loss_fn, optimizer, has_aux=has_aux, filter_spec=filter_spec, mesh=mesh
     )
-    config = dict(seed=seed, metadata=metadata, writer=writer, num_examples=n)
-    config.update(batch_size=batch_size, num_steps=num_steps, mesh=mesh)
-    config.update(validation=validation, checkpoints=checkpoints, logging=logging)
-    config.update(on_nonfinite=on_nonfinite, step_fn=step_fn)
-    config.update(augment=None if augment is None else eqx.filter_jit(augment))
+    config = _RunConfig(
+        seed=seed,
+        num_examples=n,
+        batch_size=batch_size,
+        num_steps=num_steps,
+        metadata=metadata,
+        writer=writer,
+        mesh=mesh,
+        validation=validation,
+        checkpoints=checkpoints,
+        logging=logging,
+        on_nonfinite=on_nonfinite,
+        step_fn=step_fn,
+        augment=None if augment is None else eqx.filter_jit(augment),
+    )
     with open(log, "a") if log is not None else contextlib.nullcontext() as logfile:
-        run = _Run(state, history, data, valid, evaluator, logfile, **config)
+        run = _Run(state, history, data, valid, evaluator, logfile, config)
         with tqdm(
             total=num_steps,
             initial=min(state.step, num_steps),
