@@ -5,6 +5,7 @@ Laplace evidence, its scores and the MAP solves compile once.
 """
 
 import dataclasses
+import json
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -299,6 +300,14 @@ def test_null_data_names_nothing():
     mde = named["smallest_detectable"]
     assert np.isfinite(mde["quadratic drag"]) and mde["quadratic drag"] > 0
     assert added["coefficients"] == []
+    # The reports read as mappings of plain values; the typed state is apart.
+    import eqsmooth.discover as dc
+
+    assert isinstance(found.state, dc.FindState) and not found.state.failed
+    assert isinstance(named.state, dc.NameState) and named.state.active == ()
+    assert dict(found) == found.report and "state" not in found
+    assert found.get("where") is None and set(named) == set(named.report)
+    json.dumps(dc.to_json({"find": found, "name": named}))
 
 
 def test_constant_force_and_sensor_bias_are_equivalent():
@@ -762,8 +771,11 @@ def test_detection_with_clean_diagnostics_is_not_unnamed_structure(monkeypatch):
     data = _simulate(1, "drag", 0.02)
     found = dc.find(_model(), data)
     assert found["detected"]
-    found.state["alpha"] = 1e-300  # no candidate can pass the gate
-    monkeypatch.setattr(W, "_diagnostics_significant", lambda innov, alpha: False)
+    # No candidate can pass the gate.
+    found = eqx.tree_at(
+        lambda r: r.state, found, dataclasses.replace(found.state, alpha=1e-300)
+    )
+    monkeypatch.setattr(W, "innovations_significant", lambda innov, alpha: False)
     named = dc.name(found, data)
     assert named["named"] == [] and not named["unnamed_residual_structure"]
     assert named["alarms"]["detected"] and not named["alarms"]["unnamed_structure"]
@@ -890,10 +902,9 @@ def test_indefinite_information_claims_no_data_size():
             "ambiguous": [],
             "tentative": False,
         }
-        st = {"I_eff": np.asarray(info), "equivalence_corr": 0.95}
         best = types.SimpleNamespace(z=np.array([0.5, 0.0]))
         data = types.SimpleNamespace(num_sequences=8, length=128)
-        _classify_rivals(out, ["a", "b"], 0, [1], st, best, data)
+        _classify_rivals(out, ["a", "b"], 0, [1], np.asarray(info), 0.95, best, data)
         return out
 
     out = classify([[1.0, 1.04], [1.04, 1.0]])
@@ -1040,3 +1051,7 @@ def test_discovery_refuses_what_it_cannot_use():
         dc.name(found, other)
     with raises(ValueError, "add: data are not the sequences find analysed"):
         dc.add(found, named, other)
+    with raises(TypeError, "name: found must be the report", "the report of name"):
+        dc.name(named, data)
+    with raises(TypeError, "add: found and named must be the reports"):
+        dc.add(named, found, data)

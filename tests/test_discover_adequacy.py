@@ -121,10 +121,9 @@ def test_a_rival_the_data_can_separate_makes_no_set():
         "named": ["a"],
         "tentative": False,
     }
-    st = {"I_eff": info, "equivalence_corr": 0.95}
     best = SimpleNamespace(z=np.array([1.0, 0.0, 0.0]))
     data = SimpleNamespace(num_sequences=24, length=40)
-    _classify_rivals(out, names, 0, [1, 2], st, best, data)
+    _classify_rivals(out, names, 0, [1, 2], info, 0.95, best, data)
     rivals = {r["name"]: r for r in out["steps"][0]["rivals"]}
     assert rivals["b"]["separable"] and np.isclose(rivals["b"]["expected_gap"], 50.0)
     assert not rivals["c"]["separable"] and rivals["c"]["sequences_to_separate"] is None
@@ -134,9 +133,9 @@ def test_a_rival_the_data_can_separate_makes_no_set():
         "(no amount of data of this kind separates them)"
     )
     # Weaker information: b is kept, with the sequences that would separate.
-    st["I_eff"] = info / 20.0  # expected gap 2.5 < ln 20
+    weaker = info / 20.0  # expected gap 2.5 < ln 20
     out |= {"steps": [{"best": "a"}], "equivalence_sets": [], "ambiguous": []}
-    _classify_rivals(out, names, 0, [1], st, best, data)
+    _classify_rivals(out, names, 0, [1], weaker, 0.95, best, data)
     (rival,) = out["steps"][0]["rivals"]
     assert not rival["separable"]
     np.testing.assert_allclose(rival["sequences_to_separate"], 24 * np.log(20) / 2.5)

@@ -276,8 +276,10 @@ def test_student_t_diagnostics_do_not_alarm_on_innovation_size():
     from scipy import integrate, optimize
 
     import eqsmooth.discover as dc
-    from eqsmooth.discover._diagnostics import innovation_tests
-    from eqsmooth.discover._find import _diagnostics_significant
+    from eqsmooth.discover._diagnostics import (
+        innovation_tests,
+        innovations_significant,
+    )
 
     def expected_nll(scale):
         def integrand(x):
@@ -294,10 +296,10 @@ def test_student_t_diagnostics_do_not_alarm_on_innovation_size():
     robust = dc.ChainModel(*args, np.array([scale]), PRIOR, (), measurement_dof=4.0)
     out = innovation_tests(robust, data, xhat)
     assert out["nis_mean"] < 0.85 and out["nis_p_value"] < 1e-4, out["nis_mean"]
-    assert not out["nis_alarm"] and not _diagnostics_significant(out, 0.05)
+    assert not out["nis_alarm"] and not innovations_significant(out, 0.05)
     assert abs(out["diagnostic_nis_mean"] - 1.0) < 0.01, out["diagnostic_nis_mean"]
     assert 0.8 < out["diagnostic_scale"] < 0.9, out["diagnostic_scale"]
     std = float(robust.measurement_std[0])
     gaussian = dc.ChainModel(*args, np.array([std]), PRIOR, ())
     out = innovation_tests(gaussian, data, xhat)
-    assert out["nis_alarm"] and _diagnostics_significant(out, 0.05)
+    assert out["nis_alarm"] and innovations_significant(out, 0.05)

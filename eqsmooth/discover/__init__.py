@@ -17,6 +17,10 @@ from ._laplace import (
 )
 from ._model import ChainModel as ChainModel, Sequences as Sequences
 from ._name import bootstrap as bootstrap, name as name
-from ._report import StepReport as StepReport
+from ._report import (
+    FindState as FindState,
+    NameState as NameState,
+    StepReport as StepReport,
+)
 from ._score import score_test as score_test
 from ._show import discover as discover, show as show, to_json as to_json

@@ -10,13 +10,16 @@ from ._fit import (
 from ._model import (
     Sequences,
 )
+from ._report import FindState, NameState, StepReport
 from ._stats import (
     normal_quantile,
 )
 from ._validate import fingerprint
 
 
-def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> dict:
+def add(
+    found: StepReport, named: StepReport, data: Sequences, *, level: float = 0.95
+) -> dict:
     """Fit the named coefficients (and noise scales) and give confidence intervals.
 
     The coefficients maximise the Laplace marginal likelihood (not a plug-in
@@ -30,14 +33,19 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
     that did not converge, an information matrix that is not positive
     definite, a coefficient without a standard error).
     """
-    st = found.state
-    if "data" in st and st["data"] != fingerprint(data):
+    st, named_state = found.state, named.state
+    if not (isinstance(st, FindState) and isinstance(named_state, NameState)):
+        raise TypeError(
+            "add: found and named must be the reports of eqsmooth.discover.find "
+            "and eqsmooth.discover.name, in that order"
+        )
+    if st.fingerprint != fingerprint(data):
         raise ValueError(
             "add: data are not the sequences find analysed (their contents differ); "
             "fit the named effects on the data find and name were given"
         )
-    if st.get("failed"):
-        model = st["model"]
+    if st.failed:
+        model = st.model
         return {
             "model": fitted_model(model, null_z(model)),
             "log_marginal": float("nan"),
@@ -45,9 +53,9 @@ def add(found: dict, named: dict, data: Sequences, *, level: float = 0.95) -> di
             "noise_scales": {},
             "flags": ["no fit: find failed"],
         }
-    model, scales, nuis = st["model"], st["scales"], st["nuisance"]
-    active = named.state["active"]
-    start = named.state["evaluation"]
+    model, scales, nuis = st.model, st.scales, st.nuisance
+    active = list(named_state.active)
+    start = named_state.evaluation
     free = np.concatenate([np.asarray(active, int), nuis])
     ev = fit(model, data, free, start.z, start.xhat, scales) if len(free) else start
     flags = [] if ev.converged else ["fit did not converge"]

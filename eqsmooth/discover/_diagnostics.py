@@ -1,8 +1,10 @@
-"""Residual diagnostics shared by find and show: innovation tests, the
-localisation table, open-loop errors."""
+"""Residual diagnostics shared by find, name and show: innovation tests
+(and whether they raise an alarm), the localisation table, residual
+summaries and open-loop errors."""
 
 import numpy as np
 
+from ._fit import describe_error, EVALUATION_ERRORS
 from ._model import (
     ChainModel,
     diagnostic_innovations,
@@ -97,6 +99,44 @@ def innovation_tests(
         )
     out["whitened_innovations"] = e
     return out
+
+
+def safe_innovation_tests(model, data, xhat, flags: list[str]) -> dict:
+    """`innovation_tests`, or NaN p-values and a line in `flags` if the
+    diagnostic filter fails or gives non-finite innovations."""
+    try:
+        out = innovation_tests(model, data, xhat)
+        if np.all(np.isfinite(out["whitened_innovations"])):
+            return out
+        flags.append("diagnostic filter: non-finite innovations")
+    except EVALUATION_ERRORS as e:
+        flags.append(f"diagnostic filter: {describe_error(e)}")
+    m = np.asarray(data.measurements).shape[-1]
+    nan = float("nan")
+    return {
+        "nis_mean": nan,
+        "nis_expected": float(m),
+        "nis_p_value": nan,
+        "nis_alarm": model.measurement_dof is None,
+        "bias": [
+            {"channel": j, "mean_whitened": nan, "p_value": nan} for j in range(m)
+        ],
+        "whiteness": [
+            {"channel": j, "ljung_box_q": nan, "lags": 0, "p_value": nan}
+            for j in range(m)
+        ],
+    }
+
+
+def innovations_significant(innov: dict, alpha: float) -> bool:
+    """Whether the innovation tests raise an alarm at level `alpha`: the
+    smallest finite p-value of the NIS (when it may alarm), bias and
+    whiteness tests below `alpha` over their number (Bonferroni)."""
+    pvals = [innov["nis_p_value"]] if innov.get("nis_alarm", True) else []
+    pvals += [w["p_value"] for w in innov["whiteness"]]
+    pvals += [b["p_value"] for b in innov["bias"]]
+    pvals = [p for p in pvals if np.isfinite(p)]
+    return bool(pvals) and min(pvals) < alpha / len(pvals)
 
 
 def _residuals(model: ChainModel, data: Sequences, xhat: np.ndarray):
@@ -210,7 +250,7 @@ def localisation_table(
     return rows[:top]
 
 
-def _residual_summary(model, data, xhat) -> list[dict]:
+def residual_summary(model, data, xhat) -> list[dict]:
     rt, rm = _residuals(model, data, xhat)
     out = []
     for kind, r in (("transition", rt), ("measurement", rm)):

@@ -6,12 +6,14 @@ import numpy as np
 from ._adequacy import adequacy_test
 from ._candidates import check_features
 from ._diagnostics import (
-    _residual_summary,
-    innovation_tests,
+    innovations_significant,
     localisation_table,
     open_loop,
+    residual_summary,
+    safe_innovation_tests,
 )
 from ._fit import (
+    describe_error,
     evaluate,
     EVALUATION_ERRORS,
     feature_scales,
@@ -24,9 +26,10 @@ from ._model import (
     NUM_SCALES,
     Sequences,
 )
-from ._report import StepReport
-from ._score import _efficient_information, score_test
+from ._report import FindState, StepReport
+from ._score import score_test
 from ._stats import (
+    efficient_information,
     normal_quantile,
     normal_two_sided,
 )
@@ -55,7 +58,7 @@ def find(
     fit_noise: bool = True,
     covariance: str = "auto",
     localise: bool = False,
-) -> dict:
+) -> StepReport:
     """Find where the nominal model and the data disagree.
 
     Fits the noise scales of the nominal model (all candidate coefficients
@@ -88,8 +91,9 @@ def find(
         every block. It is computed only after a detection, so it raises no
         alarm of its own. One more compiled program per model structure.
 
-    **Returns:** a [`eqsmooth.discover.StepReport`][]: the report as a dict
-    (JSON-serialisable), with what later steps reuse as its `state`.
+    **Returns:** a [`eqsmooth.discover.StepReport`][]: the report (a
+    read-only mapping of JSON-serialisable values), with what later steps
+    reuse as its `state`, a [`eqsmooth.discover.FindState`][].
     """
     check_inputs("find", model, data)
     check_level("find", alpha)
@@ -105,13 +109,16 @@ def find(
     )
     model = model.with_coefficients(np.zeros(K))
     nuis = _nuisance(model, fit_noise)
-    settings = {"alpha": alpha, "fit_noise": fit_noise, "covariance": covariance}
+    # What a failed find hands on (the settings and the nominal model).
+    failed = FindState(
+        fingerprint(data), model, alpha, fit_noise, covariance, failed=True
+    )
     flags: list[str] = []
     z0 = null_z(model)
     try:
         ev0 = evaluate(model, data, z0, np.asarray(data.initial_states), np.ones(K))
     except EVALUATION_ERRORS as e:
-        return _failed_find(model, data, settings, f"nominal evidence: {_short(e)}")
+        return _failed_find(failed, f"nominal evidence: {describe_error(e)}")
     scales = feature_scales(model, data, ev0.xhat)
     if fit_noise:
         ev = fit(model, data, nuis, z0, ev0.xhat, scales)
@@ -123,14 +130,12 @@ def find(
     try:
         ev = evaluate(model, data, ev.z, ev.xhat, scales, everything)
     except EVALUATION_ERRORS as e:
-        return _failed_find(model, data, settings, f"information matrix: {_short(e)}")
+        return _failed_find(failed, f"information matrix: {describe_error(e)}")
     if not (np.all(np.isfinite(ev.hessian)) and np.all(np.isfinite(ev.scores))):
-        return _failed_find(
-            model, data, settings, "information matrix or scores are not finite"
-        )
+        return _failed_find(failed, "information matrix or scores are not finite")
     nominal = fitted_model(model, ev.z)
     test = _candidate_indices(model)
-    I_eff = _efficient_information(-ev.hessian, test, nuis)
+    I_eff = efficient_information(-ev.hessian, test, nuis)
     g = np.sum(ev.scores, axis=0)[test]
     raw = np.diag(-ev.hessian)[test]
     # A candidate whose information is (almost) all explained by the nuisance
@@ -146,7 +151,7 @@ def find(
     # 7% on 200 null sets of the driven oscillator).
     level = alpha / 2
     per_candidate = _candidate_table(model, I_eff, g, raw, ident, scales, level)
-    innov = _safe_innovation_tests(nominal, data, ev.xhat, flags)
+    innov = safe_innovation_tests(nominal, data, ev.xhat, flags)
     report = _report(
         model, data, nominal, ev, innov, flags, decision, per_candidate, ident, level
     )
@@ -155,18 +160,19 @@ def find(
         report["where"] = adequacy_test(
             model, data, ev.z, ev.xhat, nuis, alpha, everything_acting
         )
-    state = {
-        "data": fingerprint(data),
-        "model": model,
-        "evaluation": ev,
-        "scales": scales,
-        "nuisance": nuis,
-        "I_eff": I_eff,
-        "alpha": alpha,
-        "settings": settings,
-        "identifiable": ident,
-        "diagnostics_significant": _diagnostics_significant(innov, level),
-    }
+    state = FindState(
+        failed.fingerprint,
+        model,
+        alpha,
+        fit_noise,
+        covariance,
+        evaluation=ev,
+        scales=scales,
+        nuisance=nuis,
+        efficient_information=I_eff,
+        identifiable=ident,
+        diagnostics_significant=innovations_significant(innov, level),
+    )
     return StepReport(report, state)
 
 
@@ -185,7 +191,7 @@ def _report(
             "prior": float(np.exp(ev.z[K + 2])),
         },
         "open_loop": open_loop(nominal, data, ev.xhat),
-        "residuals": _residual_summary(nominal, data, ev.xhat),
+        "residuals": residual_summary(nominal, data, ev.xhat),
         "nis": {
             "mean": innov["nis_mean"],
             "expected": innov["nis_expected"],
@@ -241,14 +247,6 @@ def _candidate_table(model, I_eff, g, raw, ident, scales, alpha) -> list[dict]:
     return per_candidate
 
 
-def _diagnostics_significant(innov: dict, alpha: float) -> bool:
-    pvals = [innov["nis_p_value"]] if innov.get("nis_alarm", True) else []
-    pvals += [w["p_value"] for w in innov["whiteness"]]
-    pvals += [b["p_value"] for b in innov["bias"]]
-    pvals = [p for p in pvals if np.isfinite(p)]
-    return bool(pvals) and min(pvals) < alpha / len(pvals)
-
-
 def _noise_check(innov: dict, log_scales: np.ndarray, alpha: float) -> dict:
     """Is the measurement noise heavy-tailed, or far from its assumed size?
 
@@ -270,40 +268,7 @@ def _noise_check(innov: dict, log_scales: np.ndarray, alpha: float) -> dict:
     }
 
 
-def _short(e: BaseException) -> str:
-    text = str(e).strip().splitlines()
-    return f"{type(e).__name__}: {text[0] if text else ''}"
-
-
-def _safe_innovation_tests(model, data, xhat, flags: list[str]) -> dict:
-    """Innovation tests, or NaN p-values and a flag if the filter fails."""
-    try:
-        out = innovation_tests(model, data, xhat)
-        if np.all(np.isfinite(out["whitened_innovations"])):
-            return out
-        flags.append("diagnostic filter: non-finite innovations")
-    except EVALUATION_ERRORS as e:
-        flags.append(f"diagnostic filter: {_short(e)}")
-    m = np.asarray(data.measurements).shape[-1]
-    nan = float("nan")
-    return {
-        "nis_mean": nan,
-        "nis_expected": float(m),
-        "nis_p_value": nan,
-        "nis_alarm": model.measurement_dof is None,
-        "bias": [
-            {"channel": j, "mean_whitened": nan, "p_value": nan} for j in range(m)
-        ],
-        "whiteness": [
-            {"channel": j, "ljung_box_q": nan, "lags": 0, "p_value": nan}
-            for j in range(m)
-        ],
-    }
-
-
-def _failed_find(
-    model: ChainModel, data: Sequences, settings: dict, why: str
-) -> "StepReport":
+def _failed_find(state: FindState, why: str) -> StepReport:
     """The report of a find whose evidence could not be evaluated (no raise)."""
     report = {
         "status": "failed",
@@ -313,16 +278,9 @@ def _failed_find(
             "statistic": float("nan"),
             "df": 0,
             "p_value": float("nan"),
-            "covariance": settings["covariance"],
+            "covariance": state.covariance,
         },
         "candidates": [],
         "not_identifiable": [],
-    }
-    state = {
-        "failed": True,
-        "data": fingerprint(data),
-        "model": model,
-        "settings": settings,
-        "alpha": settings["alpha"],
     }
     return StepReport(report, state)

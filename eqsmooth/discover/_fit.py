@@ -200,6 +200,12 @@ EVALUATION_ERRORS = (
 )
 
 
+def describe_error(e: BaseException) -> str:
+    """One line for a report's flags: the error's type and first line."""
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0] if text else ''}"
+
+
 def _bounded_step(step, d, free, num_coefficients, radius):
     """Shrink a Newton step into the trust region and the log-scale bound."""
     size = float(np.linalg.norm(step * d))

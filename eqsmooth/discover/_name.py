@@ -7,7 +7,8 @@ import equinox as eqx
 import numpy as np
 
 from ._adequacy import adequacy_test, describe_region
-from ._find import _diagnostics_significant, _safe_innovation_tests, find
+from ._diagnostics import innovations_significant, safe_innovation_tests
+from ._find import find
 from ._fit import (
     covers,
     evaluate,
@@ -19,7 +20,7 @@ from ._fit import (
 from ._model import (
     Sequences,
 )
-from ._report import StepReport
+from ._report import FindState, NameState, StepReport
 from ._stats import (
     chi2_quantile,
     chi2_sf,
@@ -47,11 +48,11 @@ def _forward_step(model, data, st, current, active, remaining, out):
     runner-ups within ln 20)` of the best one if it passes the Bonferroni
     gate, else None."""
     names = [c.name for c in model.candidates]
-    scales = st["scales"]
+    scales = st.scales
     # Every trial starts at `current`: one Hessian over all their parameters
     # serves them all (a column per parameter, not per parameter and trial),
     # and only the chosen fit gets a Hessian at its optimum (below).
-    union = np.unique(np.concatenate([active, remaining, st["nuisance"]]).astype(int))
+    union = np.unique(np.concatenate([active, remaining, st.nuisance]).astype(int))
     start = None
     if covers(current, union):
         start = current
@@ -62,7 +63,7 @@ def _forward_step(model, data, st, current, active, remaining, out):
             start = None  # each fit then tries its own start (and flags it)
     trials = []
     for k in remaining:
-        free = np.concatenate([np.asarray(active + [k], int), st["nuisance"]])
+        free = np.concatenate([np.asarray(active + [k], int), st.nuisance])
         trials.append(
             (
                 k,
@@ -88,7 +89,7 @@ def _forward_step(model, data, st, current, active, remaining, out):
     best_k, best = trials[0]
     lr = 2.0 * (best.log_marginal - current.log_marginal)
     p = chi2_sf(lr, 1)
-    gate = st["alpha"] / len(remaining)
+    gate = st.alpha / len(remaining)
     step = {
         "candidates": [
             {
@@ -105,7 +106,7 @@ def _forward_step(model, data, st, current, active, remaining, out):
     out["steps"].append(step)
     if p >= gate:
         return None
-    free = np.concatenate([np.asarray(active + [best_k], int), st["nuisance"]])
+    free = np.concatenate([np.asarray(active + [best_k], int), st.nuisance])
     try:
         best = with_hessian(model, data, best, scales, free)
     except EVALUATION_ERRORS:
@@ -176,7 +177,9 @@ def _definite_pair(info, a: int, b: int) -> bool:
     return bool(iaa > 0 and ibb > 0 and iab * iab <= iaa * ibb)
 
 
-def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
+def _classify_rivals(
+    out, names, best_k, close, info, equivalence_corr, best, data
+) -> None:
     """Runner-ups within ln 20 of the named candidate.
 
     A rival is kept in a set only when the data cannot separate the two: the
@@ -187,8 +190,6 @@ def _classify_rivals(out, names, best_k, close, st, best, data) -> None:
     could separate is recorded but does not make a set (its small observed
     margin is then the adequacy test's business).
     """
-    info = st["I_eff"]
-    equivalence_corr = st["equivalence_corr"]
     B, T = data.num_sequences, data.length
     coefficient = float(best.z[best_k])
     equiv, amb, rivals = [names[best_k]], [names[best_k]], []
@@ -385,8 +386,8 @@ def _leftover(out: dict, model, data, current, alpha: float) -> bool:
     """Whether the named model still fails its innovation diagnostics; records
     them and the alarms and flags that follow in `out`."""
     final = fitted_model(model, current.z)
-    innov = _safe_innovation_tests(final, data, current.xhat, out["flags"])
-    leftover = _diagnostics_significant(innov, alpha)
+    innov = safe_innovation_tests(final, data, current.xhat, out["flags"])
+    leftover = innovations_significant(innov, alpha)
     out["leftover_diagnostics"] = {
         "nis_p_value": innov["nis_p_value"],
         "bias_p_values": [b["p_value"] for b in innov["bias"]],
@@ -404,7 +405,7 @@ def _leftover(out: dict, model, data, current, alpha: float) -> bool:
 
 
 def name(
-    found: dict,
+    found: StepReport,
     data: Sequences,
     *,
     max_terms: int = 3,
@@ -412,7 +413,7 @@ def name(
     adequacy: bool = True,
     shape_tolerance: float = 0.2,
     shape_power: float = 0.9,
-) -> dict:
+) -> StepReport:
     """Name the missing effect(s) by forward selection on the Laplace evidence.
 
     Not significant in the decision test: "no missing effect detected" with
@@ -483,7 +484,8 @@ def name(
     - `shape_power`: the probability with which the adequacy test must
         detect such a departure for the name to be confident (in `(0, 1)`).
 
-    **Returns:** a [`eqsmooth.discover.StepReport`][] with `verdict` (a
+    **Returns:** a [`eqsmooth.discover.StepReport`][] (its `state` a
+    [`eqsmooth.discover.NameState`][]) with `verdict` (a
     sentence), `named` (list of names),
     `steps` (the selection table), `equivalence_sets`, `ambiguous`,
     `tentative`, `adequacy` (when something was named: `significant`,
@@ -500,13 +502,13 @@ def name(
         )
     if not 0.0 < shape_power < 1.0:
         raise ValueError(f"name: shape_power must lie in (0, 1), got {shape_power}")
-    st = getattr(found, "state", None)
-    if not isinstance(st, dict) or "model" not in st:
+    st = found.state if isinstance(found, StepReport) else None
+    if not isinstance(st, FindState):
         raise TypeError(
             "name: found must be the report eqsmooth.discover.find returned, got "
-            f"{type(found).__name__}"
+            + (f"{type(found).__name__}" if st is None else "the report of name")
         )
-    if "data" in st and st["data"] != fingerprint(data):
+    if st.fingerprint != fingerprint(data):
         raise ValueError(
             "name: data are not the sequences find analysed (their contents differ); "
             "name the effect on the data find was given, or run find on these"
@@ -522,24 +524,24 @@ def name(
         "flags": [],
         "alarms": dict.fromkeys(_ALARMS, False),
     }
-    if st.get("failed"):
+    if st.failed:
         out["verdict"] = "no decision: " + "; ".join(found["flags"])
-        return StepReport(out, {"evaluation": None, "active": []})
-    model, ev0 = st["model"], st["evaluation"]
-    alpha = st["alpha"]
+        return StepReport(out, NameState(None, ()))
+    model, ev0 = st.model, st.evaluation
+    alpha = st.alpha
     names = [c.name for c in model.candidates]
     out["alarms"]["detected"] = bool(found["detected"])
     if not found["detected"]:
         mde = {c["name"]: c["smallest_detectable"] for c in found["candidates"]}
         out["verdict"] = "no missing effect detected"
-        if st["diagnostics_significant"]:
+        if st.diagnostics_significant:
             # The innovations are not white / not consistent, yet no candidate
             # scores: something the library does not contain.
             out["verdict"] = "unnamed residual structure (no candidate explains it)"
             out["unnamed_residual_structure"] = True
             out["alarms"]["unnamed_structure"] = True
         out["smallest_detectable"] = mde
-        return StepReport(out, {"evaluation": ev0, "active": []})
+        return StepReport(out, NameState(ev0, ()))
     active: list[int] = []
     current = ev0
     for _ in range(max_terms):
@@ -548,9 +550,7 @@ def name(
         remaining = [
             k
             for k in range(len(names))
-            if k not in active
-            and st["identifiable"][k]
-            and _family(model, k) not in taken
+            if k not in active and st.identifiable[k] and _family(model, k) not in taken
         ]
         if not remaining:
             break
@@ -563,7 +563,8 @@ def name(
             names,
             best_k,
             close,
-            st | {"equivalence_corr": equivalence_corr},
+            st.efficient_information,
+            equivalence_corr,
             current,
             data,
         )
@@ -576,7 +577,7 @@ def name(
         rivals = out["equivalence_sets"] + out["ambiguous"]
         acting = set(active) | {model.index(nm) for group in rivals for nm in group}
         out["adequacy"] = adequacy_test(
-            model, data, current.z, current.xhat, st["nuisance"], alpha, sorted(acting)
+            model, data, current.z, current.xhat, st.nuisance, alpha, sorted(acting)
         )
         out["alarms"]["partial"] = out["adequacy"]["significant"]
         out["shape_check"] = _shape_check(
@@ -589,14 +590,14 @@ def name(
     unchecked = out["shape_check"] is not None and not out["shape_check"]["checked"]
     out["tentative"] = bool(out["named"]) and (leftover or unchecked)
     out["verdict"] = _verdict(out, leftover)
-    return StepReport(out, {"evaluation": current, "active": active})
+    return StepReport(out, NameState(current, tuple(active)))
 
 
 def bootstrap(
-    found: dict,
+    found: StepReport,
     data: Sequences,
     *,
-    named: dict | None = None,
+    named: StepReport | None = None,
     num_resamples: int = 20,
     seed: int = 0,
     max_terms: int = 3,
@@ -632,8 +633,7 @@ def bootstrap(
     if num_resamples < 1:
         raise ValueError(f"bootstrap: num_resamples must be >= 1, got {num_resamples}")
     st = found.state
-    model = st["model"]
-    settings = st["settings"]
+    model = st.model
     if named is None:
         named = name(found, data, max_terms=max_terms)
     reference = set(named["named"])
@@ -646,7 +646,13 @@ def bootstrap(
     B = data.num_sequences
     for _ in range(num_resamples):
         sample = data.take(rng.integers(0, B, size=B))
-        f = find(model, sample, **settings)
+        f = find(
+            model,
+            sample,
+            alpha=st.alpha,
+            fit_noise=st.fit_noise,
+            covariance=st.covariance,
+        )
         n = name(f, sample, max_terms=max_terms, adequacy=False)
         detected += int(f["detected"])
         chosen = set(n["named"])

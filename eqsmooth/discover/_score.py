@@ -13,15 +13,6 @@ from ._stats import (
 # ---------------------------------------------------------------------------
 
 
-def _efficient_information(info: np.ndarray, test: np.ndarray, nuis: np.ndarray):
-    Icc = info[np.ix_(test, test)]
-    if len(nuis):
-        Icn = info[np.ix_(test, nuis)]
-        Inn = info[np.ix_(nuis, nuis)]
-        return Icc - Icn @ np.linalg.pinv(Inn) @ Icn.T
-    return Icc
-
-
 def _opg_statistic(G, test, nuisance) -> tuple[float, int]:
     """The score statistic with the outer product of the per-sequence scores
     as covariance (regressing 1 on the standardised scores), and its degrees

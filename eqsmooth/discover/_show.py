@@ -1,10 +1,15 @@
 """Show: the held-out gap before and after, and the whole workflow in one call."""
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from ._add import add
-from ._find import _safe_innovation_tests, _short, find
+from ._diagnostics import safe_innovation_tests
+from ._find import find
 from ._fit import (
+    describe_error,
     evaluate,
     EVALUATION_ERRORS,
     fitted_model,
@@ -16,6 +21,7 @@ from ._model import (
     Sequences,
 )
 from ._name import bootstrap, name
+from ._report import StepReport
 
 
 def _model_metrics(
@@ -38,9 +44,9 @@ def _model_metrics(
             "nis_p_value": nan,
             "whiteness_p_values": [],
             "k_step_rmse": [nan] * horizon,
-            "flags": [f"held-out evaluation: {_short(e)}"],
+            "flags": [f"held-out evaluation: {describe_error(e)}"],
         }
-    innov = _safe_innovation_tests(model, data, ev.xhat, flags)
+    innov = safe_innovation_tests(model, data, ev.xhat, flags)
     return {
         "flags": flags,
         "log_marginal_per_step": ev.log_marginal / (B * T),
@@ -146,18 +152,21 @@ def discover(
             num_resamples=bootstrap_resamples,
             max_terms=max_terms,
         )
-    if heldout is not None and not found.state.get("failed"):
-        before = fitted_model(found.state["model"], found.state["evaluation"].z)
+    if heldout is not None and not found.state.failed:
+        before = fitted_model(found.state.model, found.state.evaluation.z)
         report["show"] = show(
             before, added["model"], heldout, horizon=horizon, burn_in=burn_in
         )
     return report
 
 
-def to_json(report: dict) -> dict:
-    """A copy of a report without internal state, models or arrays."""
+def to_json(report: Mapping[str, Any]) -> dict:
+    """A copy of a report (a [`eqsmooth.discover.StepReport`][] or a dict that
+    holds them) without internal state, models or arrays."""
 
     def clean(x):
+        if isinstance(x, StepReport):
+            return clean(x.report)
         if isinstance(x, dict):
             return {
                 str(k): clean(v)

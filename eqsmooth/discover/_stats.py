@@ -1,4 +1,5 @@
-"""Small statistics helpers (chi-square tails, whiteness) without scipy.
+"""Small statistics helpers (chi-square tails, whiteness, the information
+after nuisance parameters) without scipy.
 
 Plain Python floats: these run once per test outside compiled code, where
 JAX's special functions would each compile a small program on first use
@@ -174,3 +175,18 @@ def ljung_box(e, lags) -> tuple[float, float]:
         q += rho * rho / (T - k)
     q *= B * T * (T + 2)
     return float(q), chi2_sf(q, lags)
+
+
+def efficient_information(
+    info: np.ndarray, test: np.ndarray, nuisance: np.ndarray
+) -> np.ndarray:
+    """The information of the `test` parameters after the `nuisance` ones:
+    the Schur complement `I_tt − I_tn I_nn⁺ I_nt` of the information matrix
+    `info` (a pseudo-inverse, since noise scales the data cannot identify
+    leave `I_nn` singular)."""
+    Icc = info[np.ix_(test, test)]
+    if len(nuisance):
+        Icn = info[np.ix_(test, nuisance)]
+        Inn = info[np.ix_(nuisance, nuisance)]
+        return Icc - Icn @ np.linalg.pinv(Inn) @ Icn.T
+    return Icc
