@@ -22,9 +22,9 @@ call, so the script also times `least_squares(..., FixedStepGaussNewton(
 solver, num_steps=N))` (N = `--solve-steps`) and reports
 `solve_ms_per_step` = its median / N and `solve_compile_s`.
 
-    python benchmarks/chain.py                 # T = 1e2 .. 1e5
-    python benchmarks/chain.py --quick         # T = 1e2, 1e3
-    python benchmarks/chain.py --json benchmarks/results/chain.json
+    python -m benchmarks.chain                 # T = 1e2 .. 1e5
+    python -m benchmarks.chain --quick         # T = 1e2, 1e3
+    python -m benchmarks.chain --json benchmarks/results/chain.json
 
 `--stages` splits one BlockTridiagonal iteration into its parts, each jitted
 on its own through the public API: `linearize` (`eqs.linearize`),
@@ -37,31 +37,30 @@ reaches on a large matrix product (`peak_gflops`, the compute limit) and
 on summing a 128 MiB array (`read_GBps`, the memory limit), measured in the
 same process.
 
-    python benchmarks/chain.py --stages --problems se2vel --sizes 10000 100000 \\
+    python -m benchmarks.chain --stages --problems se2vel --sizes 10000 100000 \\
         --json benchmarks/results/chain_stages.json
 """
 
-import argparse
 import resource
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import markdown_table, time_fn, write_json
 
 import eqsmooth as eqs
 
+from ._common import (
+    cli,
+    disk_dynamics,
+    disk_position,
+    print_and_save,
+    record,
+    time_fn,
+    xla_cost,
+)
+
 
 jax.config.update("jax_enable_x64", True)
-
-
-def _disk_dyn(a, b, data, params):
-    p, v = a[:2], a[2:]
-    return b - jnp.concatenate([p + v, v - 0.05 * p - 0.0075 * jnp.sign(v) * v * v])
-
-
-def _disk_meas(x, data, params):
-    return x[:2] - data
 
 
 def disk_problem(T: int, seed: int = 0):
@@ -71,13 +70,10 @@ def disk_problem(T: int, seed: int = 0):
     steps = (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]))
     dyn_noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 2.0, 2.0]))
     meas_noise = eqs.IsotropicNoise.from_sigma(5.0)
-    graph = eqs.FactorGraph(
-        [
-            eqs.FunctionFactor(_disk_dyn, steps, dyn_noise),
-            eqs.FunctionFactor(_disk_meas, (eqs.Var("x", t),), meas_noise, data=meas),
-        ]
-    )
-    return graph, {"x": jnp.concatenate([meas, jnp.zeros((T, 2))], axis=1)}
+    dyn = eqs.FunctionFactor(disk_dynamics, steps, dyn_noise)
+    fix = eqs.FunctionFactor(disk_position, (eqs.Var("x", t),), meas_noise, data=meas)
+    init = jnp.concatenate([meas, jnp.zeros((T, 2))], axis=1)
+    return eqs.FactorGraph([dyn, fix]), {"x": init}
 
 
 DT = 0.1
@@ -108,16 +104,13 @@ def se2vel_problem(T: int, seed: int = 0):
     steps += (eqs.Var("pose", t[1:]), eqs.Var("vel", t[1:]))
     dyn_noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.05, 0.05, 0.01, 0.5, 0.1]))
     iso = eqs.IsotropicNoise.from_sigma
+    prior_noise = eqs.IsotropicNoise(sqrt_precision=100.0)
     graph = eqs.FactorGraph(
         [
             eqs.FunctionFactor(_car_dyn, steps, dyn_noise),
             eqs.FunctionFactor(_car_vel, (v,), iso(0.5), data=vel),
             eqs.FunctionFactor(_car_gps, (pose,), iso(2.0), data=gps),
-            eqs.PriorFactor(
-                eqs.Var("pose", [0]),
-                eqs.SE2.identity((1,)),
-                eqs.IsotropicNoise(sqrt_precision=100.0),
-            ),
+            eqs.PriorFactor(eqs.Var("pose", [0]), eqs.SE2.identity((1,)), prior_noise),
         ]
     )
     poses = eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3))))
@@ -152,14 +145,13 @@ def vehicle_problem(T: int, seed: int = 0, closed_form: bool = True):
         dyn = eqs.FunctionFactor(_vehicle_motion_residual, (prev, next), dyn_noise)
     iso = eqs.IsotropicNoise.from_sigma
     first = eqs.factors.VehicleState(eqs.SE2.identity((1,)), jnp.asarray(vel[:1]))
+    prior_noise = eqs.IsotropicNoise(sqrt_precision=100.0)
     graph = eqs.FactorGraph(
         [
             dyn,
             eqs.factors.VelocityMeasurementFactor(x, vel, iso(0.5)),
             eqs.FunctionFactor(_vehicle_gps, (x,), iso(2.0), data=jnp.asarray(gps)),
-            eqs.PriorFactor(
-                eqs.Var("x", [0]), first, eqs.IsotropicNoise(sqrt_precision=100.0)
-            ),
+            eqs.PriorFactor(eqs.Var("x", [0]), first, prior_noise),
         ]
     )
     poses = eqs.SE2.exp(jnp.asarray(rng.normal(scale=0.1, size=(T, 3))))
@@ -202,19 +194,10 @@ def measure(problem, T, graph, values, name, ls, solve_steps) -> dict:
     first, median, _ = time_fn(it, graph, values, repeats=7 if T < 1e5 else 5)
     faults, sys_s = _faults_per_call(it, graph, values)
     mem = it.lower(graph, values).compile().memory_analysis()
-    rec = {
-        "benchmark": "chain",
-        "config": {"problem": problem, "T": T, "solver": name, "dtype": "float64"},
-        "problem": problem,
-        "T": T,
-        "solver": name,
-        "median_s": median,
-        "median_ms": median * 1e3,
-        "compile_s": first - median,
-        "temp_MiB": getattr(mem, "temp_size_in_bytes", 0) / 2**20,
-        "page_faults": faults,
-        "sys_ms": sys_s * 1e3,
-    }
+    config = {"problem": problem, "T": T, "solver": name, "dtype": "float64"}
+    rec = record("chain", config, median_s=median, median_ms=median * 1e3)
+    rec |= {"compile_s": first - median, "page_faults": faults, "sys_ms": sys_s * 1e3}
+    rec["temp_MiB"] = getattr(mem, "temp_size_in_bytes", 0) / 2**20
     text = ""
     if solve_steps > 0 and name != "DenseCholesky":
         solve = make_solve(ls, solve_steps)
@@ -251,12 +234,6 @@ def scaling(records) -> None:
             large["solve_ratio_1e5_over_1e4"] = ratio
             line += f", {ratio:.2f} per step inside a solve"
         print(line + " (BlockTridiagonal)")
-
-
-def _cost(fn, *args) -> dict:
-    c = fn.lower(*args).compile().cost_analysis()
-    c = c[0] if isinstance(c, list) else c
-    return {"flops": c.get("flops", 0.0), "bytes": c.get("bytes accessed", 0.0)}
 
 
 def machine_limits() -> dict:
@@ -299,21 +276,12 @@ def stages(problem, T, graph, values, limits) -> list[dict]:
     records = []
     for stage, (fn, *args) in parts.items():
         _, median, _ = time_fn(fn, *args, repeats=7 if T < 1e5 else 5)
-        work = _cost(fn, *args)
-        rec = {
-            "benchmark": "chain_stages",
-            "config": {"problem": problem, "T": T, "stage": stage},
-            "problem": problem,
-            "T": T,
-            "stage": stage,
-            "median_s": median,
-            "median_ms": median * 1e3,
-            "us_per_step": median / T * 1e6,
-            "mflops": work["flops"] / 1e6,
-            "MiB_accessed": work["bytes"] / 2**20,
-            "gflops": work["flops"] / median / 1e9,
-            "GBps": work["bytes"] / median / 1e9,
-        } | limits
+        flops, nbytes = xla_cost(fn.lower(*args).compile()).values()
+        config = {"problem": problem, "T": T, "stage": stage}
+        rec = record("chain_stages", config, median_s=median, median_ms=median * 1e3)
+        rec |= {"us_per_step": median / T * 1e6, "mflops": flops / 1e6}
+        rec |= {"MiB_accessed": nbytes / 2**20, "gflops": flops / median / 1e9}
+        rec |= {"GBps": nbytes / median / 1e9} | limits
         print(
             f"{problem} T={T} {stage:10s} {median * 1e3:8.2f} ms "
             f"{rec['us_per_step']:6.3f} us/step {rec['mflops']:8.1f} MFLOP "
@@ -329,27 +297,21 @@ STAGE_COLUMNS = ["problem", "T", "stage", "median_ms", "us_per_step", "mflops"]
 STAGE_COLUMNS += ["MiB_accessed", "gflops", "GBps"]
 
 
+# The largest T each linear solver is timed at.
+LARGEST = {"BlockTridiagonal": 10**9, "PCG": 10_000, "DenseCholesky": 1000}
+LARGEST["SparseLU"] = 10_000
 COLUMNS = ["problem", "T", "solver", "median_ms", "compile_s", "temp_MiB"]
 COLUMNS += ["page_faults", "sys_ms", "solve_ms_per_step", "solve_compile_s"]
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = cli(__doc__)
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--json", default=None)
     parser.add_argument("--sizes", type=int, nargs="*", default=None)
     parser.add_argument("--problems", nargs="*", default=["disk", "se2vel"])
-    parser.add_argument(
-        "--solvers",
-        nargs="*",
-        default=["BlockTridiagonal", "PCG", "DenseCholesky", "SparseLU"],
-    )
-    parser.add_argument(
-        "--solve-steps", type=int, default=10, help="N of the timed solve (0: skip)"
-    )
-    parser.add_argument(
-        "--tail-size", type=int, default=None, help="BlockTridiagonal(tail_size=...)"
-    )
+    parser.add_argument("--solvers", nargs="*", default=list(LARGEST))
+    parser.add_argument("--solve-steps", type=int, default=10, help="0: no solve")
+    parser.add_argument("--tail-size", type=int, help="BlockTridiagonal(tail_size=)")
     parser.add_argument("--stages", action="store_true", help="the parts of a step")
     args = parser.parse_args(argv)
     sizes = args.sizes or ([100, 1000] if args.quick else [100, 1000, 10_000, 100_000])
@@ -365,12 +327,8 @@ def main(argv=None):
         records = []
         for problem in args.problems:
             for T in sizes:
-                graph, values = builders[problem](T)
-                records += stages(problem, T, graph, values, limits)
-        print(markdown_table(records, STAGE_COLUMNS))
-        if args.json:
-            write_json(args.json, records)
-        return
+                records += stages(problem, T, *builders[problem](T), limits)
+        return print_and_save(records, STAGE_COLUMNS, args.json)
     tail = {} if args.tail_size is None else {"tail_size": args.tail_size}
     solvers = {
         "BlockTridiagonal": eqs.BlockTridiagonal(**tail),
@@ -378,22 +336,16 @@ def main(argv=None):
         "DenseCholesky": eqs.DenseCholesky(),
         "SparseLU": eqs.solve.SparseLU(),
     }
-    largest = {"DenseCholesky": 1000, "PCG": 10_000, "SparseLU": 10_000}
     records = []
     for problem in args.problems:
         for T in sizes:
             graph, values = builders[problem](T)
             for name in args.solvers:
-                if T <= largest.get(name, T):
-                    rec = measure(
-                        problem, T, graph, values, name, solvers[name], args.solve_steps
-                    )
-                    records.append(rec)
+                if T <= LARGEST[name]:
+                    ls, steps = solvers[name], args.solve_steps
+                    records.append(measure(problem, T, graph, values, name, ls, steps))
     scaling(records)
-    print()
-    print(markdown_table(records, COLUMNS))
-    if args.json:
-        write_json(args.json, records)
+    print_and_save(records, COLUMNS, args.json)
 
 
 if __name__ == "__main__":

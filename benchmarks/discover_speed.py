@@ -3,10 +3,11 @@
 Each case runs in a fresh process (`--child`), so the first call includes
 every compilation; the later calls reuse them. Cases:
 
-- `oscillator`: the 1-D oscillator of `discover.py` (10 candidates) with
+- `oscillator`: the 1-D oscillator of
+  `experiments/discovery_validation/oscillator.py` (10 candidates) with
   viscous damping at SNR 0.4, B = 24 × T = 40.
-- `pendulum`: the continuous-time pendulum of `discover_continuous.py`
-  (an `Integrator` model, 10 candidates inside the vector field) with
+- `pendulum`: the continuous-time pendulum of `continuous.py` there (an
+  `Integrator` model, 10 candidates inside the vector field) with
   viscous damping at SNR 1, B = 24 × T = 40.
 
 Reported per case: the first call (with compilation), the median of the
@@ -19,53 +20,45 @@ call reads what the first run compiled. `--eqsmooth PATH` times another
 checkout (e.g. a worktree of an earlier commit, for a before/after run in
 one command).
 
-    python benchmarks/discover_speed.py --json benchmarks/results/discover_speed.json
-    rm -rf /tmp/dc_cache; for run in cold warm; do python benchmarks/discover_speed.py \
-        --cases oscillator --flags fast --repeats 1 --cache /tmp/dc_cache \
-        --label "cache $run" --json benchmarks/results/discover_speed.json; done
+    python -m benchmarks.discover_speed \\
+        --json benchmarks/results/discover_speed.json
+    rm -rf /tmp/dc_cache; for run in cold warm; do \\
+        python -m benchmarks.discover_speed --cases oscillator --flags fast \\
+        --repeats 1 --cache /tmp/dc_cache --label "cache $run" \\
+        --json benchmarks/results/discover_speed.json; done
     # the same with EQX_ON_ERROR=nan set, to a new folder (no host callbacks)
 """
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 
-HERE = Path(__file__).resolve().parent
 CASES = ("oscillator", "pendulum")
 
 
 def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
-    if cache:
-        import eqsmooth
+    # Before JAX starts: the flags and the cache are set up first.
+    import eqsmooth
 
+    if cache:
         eqsmooth.enable_compilation_cache(cache, fast_compile=flags == "fast")
     elif flags == "fast":
-        import eqsmooth
-
         eqsmooth.set_xla_cpu_flags(fast_compile=True)
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jax import monitoring
+    from ._common import compile_log, git
 
-    compiles = {"n": 0, "s": 0.0}
+    compiles = compile_log()
+    import numpy as np
 
-    def on_event(name, duration, **kwargs):
-        if "backend_compile" in name:
-            compiles["n"] += 1
-            compiles["s"] += duration
-
-    monitoring.register_event_duration_secs_listener(on_event)
     import eqsmooth.discover as dc
 
     if case == "oscillator":
-        import discover as d1
+        from experiments.discovery_validation import oscillator as d1
 
         coef = d1.calibrate([0.4])["viscous"][0.4]
         model = d1.MODEL
@@ -74,8 +67,7 @@ def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
             _, y, _ = d1.simulate(d1.rng_for(1, 0.4, seed), "viscous", coef)
             return d1.sequences(y)
     else:
-        import discover_continuous as d3
-        import numpy as np
+        from experiments.discovery_validation import continuous as d3
 
         coef = d3.coefficient("viscous damping", 1.0)
         model = d3.MODELS["rate"]
@@ -84,8 +76,7 @@ def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
             rng = np.random.default_rng([2026, 37, 99, seed])
             return d3.simulate(rng, "viscous damping", coef)[0]
 
-    times, names = [], []
-    first = None
+    times, names, first = [], [], None
     for seed in range(repeats + 1):
         d = data(seed)
         t0 = time.perf_counter()
@@ -95,34 +86,17 @@ def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
         dt = time.perf_counter() - t0
         names.append(list(named["named"]))
         if first is None:
-            first = {
-                "seconds": dt,
-                "compiles": compiles["n"],
-                "compile_s": compiles["s"],
-            }
+            first = {"s": dt, "n": len(compiles), "c": sum(c[1] for c in compiles)}
         else:
             times.append(dt)
-    from _common import git
-
-    import eqsmooth
-
     where = Path(eqsmooth.__file__).resolve().parent
-    return {
-        "case": case,
-        "flags": flags,
-        "cache": cache,
-        "eqsmooth": str(where),
-        "eqsmooth_git": git("rev-parse", "--short", "HEAD", where=where),
-        "eqsmooth_dirty": bool(
-            git("status", "--porcelain", "--untracked-files=no", where=where)
-        ),
-        "first_call_s": first["seconds"],
-        "first_call_compiles": first["compiles"],
-        "first_call_compile_s": first["compile_s"],
-        "later_calls_s": times,
-        "later_median_s": statistics.median(times),
-        "named": names,
-    }
+    status = git("status", "--porcelain", "--untracked-files=no", where=where)
+    rec = {"case": case, "flags": flags, "cache": cache, "eqsmooth": str(where)}
+    rec["eqsmooth_git"] = git("rev-parse", "--short", "HEAD", where=where)
+    rec |= {"eqsmooth_dirty": bool(status), "first_call_s": first["s"]}
+    rec |= {"first_call_compiles": first["n"], "first_call_compile_s": first["c"]}
+    rec |= {"later_calls_s": times, "later_median_s": statistics.median(times)}
+    return rec | {"named": names}
 
 
 def main(argv=None):
@@ -147,35 +121,16 @@ def main(argv=None):
         case, flags = args.child.split(":")
         print(json.dumps(child(case, args.repeats, flags, args.cache)))
         return
-    from _common import machine, write_json
+    from ._common import cli_command, machine, run_child, write_json
 
-    env = dict(os.environ)
-    if args.eqsmooth:
-        env["PYTHONPATH"] = os.pathsep.join([args.eqsmooth, env.get("PYTHONPATH", "")])
     path = Path(args.json) if args.json else None
     records = json.loads(path.read_text())["records"] if path and path.exists() else []
-    command = "python " + " ".join(["discover_speed.py", *sys.argv[1:]])
     for case in args.cases:
         for flags in args.flags:
-            out = subprocess.run(
-                [
-                    sys.executable,
-                    __file__,
-                    "--child",
-                    f"{case}:{flags}",
-                    "--repeats",
-                    str(args.repeats),
-                    *(["--cache", args.cache] if args.cache else []),
-                ],
-                capture_output=True,
-                text=True,
-                env=env,
-                cwd=HERE,
-            )
-            if out.returncode:
-                raise RuntimeError(f"{case} {flags}: {out.stderr[-2000:]}")
-            rec = json.loads(out.stdout.strip().splitlines()[-1])
-            rec |= {"label": args.label, "command": command}
+            child_args = ["--child", f"{case}:{flags}", "--repeats", str(args.repeats)]
+            child_args += ["--cache", args.cache] if args.cache else []
+            rec = run_child("discover_speed", child_args, args.eqsmooth)
+            rec |= {"label": args.label, "command": cli_command()}
             records.append(rec)
             print(
                 f"{args.label} {case} {flags}: first {rec['first_call_s']:.1f} s "

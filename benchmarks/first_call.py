@@ -15,15 +15,16 @@ and `cache_read_s`; `--staged` instead times `.trace`, `.lower()`,
 `.compile()` and the first run of one outer `jax.jit` apart. `cache_hits` /
 `cache_misses` are JAX's events; `not_written_callbacks` counts programs JAX
 would not cache because they use host callbacks (as `eqx.error_if` does).
-`--trees LABEL=PATH ...` runs every case with `PYTHONPATH=PATH` per label,
-alternating (before and after in one command); `--xla-flags LABEL=FLAGS`
-likewise for `XLA_FLAGS`; `--parts` compiles pieces of the pose2 solve.
+`--trees LABEL=PATH ...` runs every case with eqsmooth imported from the
+checkout PATH per label, alternating (before and after in one command);
+`--xla-flags LABEL=FLAGS` likewise for `XLA_FLAGS`; `--parts` compiles
+pieces of the pose2 solve.
 
-    python benchmarks/first_call.py --json benchmarks/results/first_call.json
-    python benchmarks/first_call.py --cases pose2 --trees before=/tmp/main after=.
-    python benchmarks/first_call.py --cases pose2 --xla-flags default= \\
+    python -m benchmarks.first_call --json benchmarks/results/first_call.json
+    python -m benchmarks.first_call --cases pose2 --trees before=/tmp/main after=.
+    python -m benchmarks.first_call --cases pose2 --xla-flags default= \\
         fast=--xla_cpu_use_fusion_emitters=false
-    python benchmarks/first_call.py --parts \\
+    python -m benchmarks.first_call --parts \\
         --json benchmarks/results/first_call_parts.json
 """
 
@@ -36,13 +37,9 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 
-HERE = Path(__file__).resolve().parent
 CASES = ("pose2", "chain1e4", "chain1e5", "train200")
 
 
@@ -51,10 +48,9 @@ CASES = ("pose2", "chain1e4", "chain1e5", "train200")
 
 
 def _pose2_case():
-    sys.path.insert(0, str(HERE))
-    from _common import pose2_problem
-
     import eqsmooth as eqs
+
+    from ._common import pose2_problem
 
     solver = eqs.LevenbergMarquardt()
 
@@ -65,10 +61,9 @@ def _pose2_case():
 
 
 def _chain_case(T: int):
-    sys.path.insert(0, str(HERE))
-    from chain import se2vel_problem
-
     import eqsmooth as eqs
+
+    from .chain import se2vel_problem
 
     graph, values = se2vel_problem(T)
     solver = eqs.GaussNewton()
@@ -82,12 +77,12 @@ def _chain_case(T: int):
 
 
 def _train_case(T: int, K: int = 3):
-    sys.path.insert(0, str(HERE))
     import equinox as eqx
     import jax.numpy as jnp
-    from train_step import BATCH, build_graph, eqsmooth_step, MEAS_SIGMA, simulate
 
     import eqsmooth as eqs
+
+    from .train_step import BATCH, build_graph, eqsmooth_step, MEAS_SIGMA, simulate
 
     truths, meas = simulate(T, BATCH, jnp.float64)
     graphs = eqx.filter_vmap(lambda m: build_graph(m, jnp.float64))(meas)
@@ -163,19 +158,14 @@ def _eager(fn, args, rec, durations):
     import jax
 
     jax.block_until_ready(eqx.filter(fn(*args), eqx.is_array))
-    prefix = "/jax/core/compile/"
-    trace = durations.get(prefix + "jaxpr_trace_duration", [0.0])
-    rec.update(
-        # Nested jits are traced inside the outer one: the outermost trace is
-        # the longest and includes them.
-        trace_s=max(trace),
-        lower_s=sum(durations.get(prefix + "jaxpr_to_mlir_module_duration", [])),
-        compile_s=sum(durations.get(prefix + "backend_compile_duration", [])),
-        cache_read_s=sum(
-            durations.get("/jax/compilation_cache/cache_retrieval_time_sec", [])
-        ),
-        programs_traced=len(trace),
-    )
+    get = lambda name: durations.get(name, [])
+    trace = get("/jax/core/compile/jaxpr_trace_duration") or [0.0]
+    # Nested jits are traced inside the outer one: the outermost trace is the
+    # longest and includes them.
+    rec |= {"trace_s": max(trace), "programs_traced": len(trace)}
+    rec["lower_s"] = sum(get("/jax/core/compile/jaxpr_to_mlir_module_duration"))
+    rec["compile_s"] = sum(get("/jax/core/compile/backend_compile_duration"))
+    rec["cache_read_s"] = sum(get("/jax/compilation_cache/cache_retrieval_time_sec"))
     return lambda: fn(*args)
 
 
@@ -200,9 +190,8 @@ def child(case: str, cache_dir: str | None, staged: bool) -> dict:
         raise ValueError(f"unknown case {case!r}; known: {CASES}")
     jax.block_until_ready(eqx.filter(args, eqx.is_array))
     build_s = time.perf_counter() - t
-    events.clear()
-    durations.clear()
-    not_written.clear()
+    for collected in (events, durations, not_written):
+        collected.clear()
     rec = {"case": case, "import_s": import_s, "build_s": build_s}
     c0, t0 = time.process_time(), time.perf_counter()
     if staged:
@@ -215,17 +204,13 @@ def child(case: str, cache_dir: str | None, staged: bool) -> dict:
         t = time.perf_counter()
         jax.block_until_ready(eqx.filter(call(), eqx.is_array))
         times.append(time.perf_counter() - t)
-    rec.update(
-        first_answer_s=first,
-        first_answer_cpu_s=first_cpu,
-        steady_s=statistics.median(times),
-        cache_hits=events.get("/jax/compilation_cache/cache_hits", 0),
-        cache_misses=events.get("/jax/compilation_cache/cache_misses", 0),
-        not_written_callbacks=sum("host callbacks" in m for m in not_written),
-        not_written=not_written[:5],
-        process_s=time.perf_counter() - _T0,
-    )
-    return rec
+    rec |= dict(first_answer_s=first, first_answer_cpu_s=first_cpu)
+    rec["steady_s"] = statistics.median(times)
+    rec["cache_hits"] = events.get("/jax/compilation_cache/cache_hits", 0)
+    rec["cache_misses"] = events.get("/jax/compilation_cache/cache_misses", 0)
+    rec["not_written_callbacks"] = sum("host callbacks" in m for m in not_written)
+    rec["not_written"] = not_written[:5]
+    return rec | {"process_s": time.perf_counter() - _T0}
 
 
 def parts() -> list[dict]:
@@ -237,21 +222,18 @@ def parts() -> list[dict]:
 
     jax.config.update("jax_enable_x64", True)
     _, (graph, values) = _pose2_case()
-    lin = eqs.linearize(graph, values)
-    gn = eqs.GaussNewton()
+    lin, gn, gv = eqs.linearize(graph, values), eqs.GaussNewton(), (graph, values)
+    dense = lambda lin: eqs.solve.solve_normal(eqs.DenseCholesky(), lin)
     pieces = {
-        "linearize alone": (eqs.linearize, (graph, values)),
-        "one dense normal solve alone": (
-            lambda lin: eqs.solve.solve_normal(eqs.DenseCholesky(), lin),
-            (lin,),
-        ),
+        "linearize alone": (eqs.linearize, gv),
+        "one dense normal solve alone": (dense, (lin,)),
         "GaussNewton solve, throw=False": (
             lambda g, v: eqs.least_squares(g, v, gn, throw=False).value,
-            (graph, values),
+            gv,
         ),
         "GaussNewton solve, throw=True (error_if under jit)": (
             lambda g, v: eqs.least_squares(g, v, gn).value,
-            (graph, values),
+            gv,
         ),
     }
     out = []
@@ -275,25 +257,14 @@ def parts() -> list[dict]:
 # The parent: subprocesses per case, tree and cache state.
 
 
-def run_child(
-    case: str, cache_dir: str | None, tree: str, env_extra: dict, staged: bool
-) -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(tree).resolve()), str(HERE)])
-    env.update(env_extra)
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case]
-    if cache_dir:
-        cmd += ["--cache-dir", cache_dir]
-    if staged:
-        cmd += ["--staged"]
+def run_case(case: str, cache_dir: str, tree: str, env: dict, staged: bool) -> dict:
+    """One case in a fresh process, eqsmooth imported from `tree`."""
+    from ._common import run_child
+
+    args = ["--child", case, "--cache-dir", cache_dir] + ["--staged"] * staged
     t = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t
-    if proc.returncode != 0:
-        raise RuntimeError(f"{case} in {tree} failed:\n{proc.stderr[-4000:]}")
-    rec = json.loads(proc.stdout.strip().splitlines()[-1])
-    rec["wall_s"] = wall
-    return rec
+    rec = run_child("first_call", args, tree, env)
+    return rec | {"wall_s": time.perf_counter() - t}
 
 
 def cold_warm(case, rep, label, tree, env, staged) -> list[dict]:
@@ -301,17 +272,12 @@ def cold_warm(case, rep, label, tree, env, staged) -> list[dict]:
     out = []
     with tempfile.TemporaryDirectory(prefix="eqs_jax_cache_") as cache:
         for state in ("cold", "warm"):
-            rec = run_child(case, cache, tree, env, staged)
+            rec = run_case(case, cache, tree, env, staged)
             config = {"case": case, "tree": label, "process": state}
-            rec.update(
-                benchmark="first_call",
-                config=config | {"env": env, "staged": staged},
-                tree=label,
-                process=state,
-                repeat=rep,
-                load_average=os.getloadavg(),
-                median_s=rec["steady_s"],
-            )
+            config |= {"env": env, "staged": staged}
+            rec |= dict(benchmark="first_call", config=config, tree=label)
+            rec |= dict(process=state, repeat=rep, load_average=os.getloadavg())
+            rec["median_s"] = rec["steady_s"]
             out.append(rec)
             print(
                 f"{case:9s} {label:7s} {state:5s} first answer "
@@ -347,15 +313,15 @@ def main(argv=None):
     if args.child:
         print(json.dumps(child(args.child, args.cache_dir, args.staged)))
         return
-    sys.path.insert(0, str(HERE))
-    from _common import machine, markdown_table, write_json
+    # Not at the top: a child times its own imports (of JAX among them).
+    from ._common import machine, print_and_save, ROOT, write_json
 
     if args.parts:
         records = parts()
         if args.json:
             write_json(args.json, records)
         return
-    trees = dict(t.split("=", 1) for t in (args.trees or [f"this={HERE.parent}"]))
+    trees = dict(t.split("=", 1) for t in (args.trees or [f"this={ROOT}"]))
     env_extra = dict(e.split("=", 1) for e in args.env)
     flag_sets = dict(f.split("=", 1) for f in (args.xla_flags or []))
     # (label, tree, environment) per variant: every tree with every flag set.
@@ -371,10 +337,7 @@ def main(argv=None):
         for rep in range(args.repeats):
             for variant in variants:
                 records += cold_warm(case, rep, *variant, args.staged)
-    print()
-    print(markdown_table(records, COLUMNS))
-    if args.json:
-        write_json(args.json, records, {"machine_at_start": machine()})
+    print_and_save(records, COLUMNS, args.json, {"machine_at_start": machine()})
 
 
 if __name__ == "__main__":

@@ -18,16 +18,15 @@ CustomFactors with numeric Jacobians: its values compare, its time does
 not). `--first-window-only`: GTSAM's own graph error at the first
 marginalisation, for GTSAM's answer and eqsmooth's.
 
-    python benchmarks/fixed_lag.py --json benchmarks/results/fixed_lag.json
-    python benchmarks/fixed_lag.py --closures \
+    python -m benchmarks.fixed_lag --json benchmarks/results/fixed_lag.json
+    python -m benchmarks.fixed_lag --closures \
         --json benchmarks/results/fixed_lag_closures.json
-    python benchmarks/fixed_lag.py --first-window-only --lags 4 10 50 \
+    python -m benchmarks.fixed_lag --first-window-only --lags 4 10 50 \
         --json benchmarks/results/fixed_lag_first_window.json
-    python benchmarks/fixed_lag.py --se2vel --steps 100 --lags 10 50 \
+    python -m benchmarks.fixed_lag --se2vel --steps 100 --lags 10 50 \
         --json benchmarks/results/fixed_lag_se2vel.json
 """
 
-import argparse
 import statistics
 import time
 
@@ -35,9 +34,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import machine, optional, time_host, write_json
 
 import eqsmooth as eqs
+
+from ._common import cli, optional, time_host, write_json
 
 
 jax.config.update("jax_enable_x64", True)
@@ -47,40 +47,28 @@ COV0 = 1e-4
 
 def problem(T: int, span: int, closures: bool, seed: int = 0):
     rng = np.random.default_rng(seed)
-    u = np.column_stack(
-        [np.ones(T - 1), np.zeros(T - 1), 0.1 * np.sin(np.arange(T - 1) / 7)]
-    )
+    turn = 0.1 * np.sin(np.arange(T - 1) / 7)
+    u = np.column_stack([np.ones(T - 1), np.zeros(T - 1), turn])
     truth = [eqs.SE2.identity(dtype=jnp.float64)]
     for k in range(T - 1):
         truth.append(truth[-1] @ eqs.SE2.exp(jnp.asarray(u[k])))
     truth = eqs.SE2(jnp.stack([p.parameters() for p in truth]))
-    noisy = lambda x, s: (
-        x @ eqs.SE2.exp(jnp.asarray(s * rng.normal(size=(x.parameters().shape[0], 3))))
-    )  # noqa: E731
+    noise = lambda n, s: eqs.SE2.exp(jnp.asarray(s * rng.normal(size=(n, 3))))
+    diag = lambda s: eqs.DiagonalNoise.from_sigmas(jnp.asarray(s))
     t = np.arange(T)
-    odo = noisy(truth[t[:-1]].inverse() @ truth[t[1:]], ODO)
-    fix = noisy(truth, FIX)
-    diag = lambda s: eqs.DiagonalNoise.from_sigmas(jnp.asarray(s))  # noqa: E731
-    data = dict(
-        trans=eqs.BetweenFactor(
-            eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]), odo, diag(ODO)
-        ),
-        fix=eqs.PriorFactor(eqs.Var("x", t), fix, diag(FIX)),
-        closures=(),
-        pairs=[],
-    )
+    odo = truth[t[:-1]].inverse() @ truth[t[1:]] @ noise(T - 1, ODO)
+    fix = truth @ noise(T, FIX)
+    trans = eqs.BetweenFactor(eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]), odo, diag(ODO))
+    data = dict(trans=trans, fix=eqs.PriorFactor(eqs.Var("x", t), fix, diag(FIX)))
+    data |= dict(odo=np.asarray(odo.parameters()), fixes=np.asarray(fix.parameters()))
+    data |= dict(closures=(), pairs=[])
     if closures:
         b = np.arange(span, T, 4)
         a = b - span
-        rel = noisy(truth[a].inverse() @ truth[b], LOOP)
-        data["closures"] = eqs.BetweenFactor(
-            eqs.Var("x", a), eqs.Var("x", b), rel, diag(LOOP)
-        )
+        rel = truth[a].inverse() @ truth[b] @ noise(len(a), LOOP)
+        va, vb = eqs.Var("x", a), eqs.Var("x", b)
+        data["closures"] = eqs.BetweenFactor(va, vb, rel, diag(LOOP))
         data["pairs"] = list(zip(a.tolist(), b.tolist(), np.asarray(rel.parameters())))
-    data["odo"], data["fixes"] = (
-        np.asarray(odo.parameters()),
-        np.asarray(fix.parameters()),
-    )
     return data
 
 
@@ -89,43 +77,25 @@ def timed_fixed_lag(
 ):
     """eqsmooth's fixed-lag estimates (compiled), the first call's seconds and
     the median seconds per update over `repeats` runs."""
+    options = dict(lag=lag, solver=solver, adjoint=adjoint)
 
     @eqx.filter_jit
     def run(trans, meas, closures):
-        return eqs.filters.fixed_lag_smoother(
-            trans,
-            meas,
-            mean0,
-            cov0,
-            lag=lag,
-            closures=closures,
-            solver=solver,
-            adjoint=adjoint,
-        ).mean
+        smoother = eqs.filters.fixed_lag_smoother
+        return smoother(trans, meas, mean0, cov0, closures=closures, **options).mean
 
-    first, times, mean = time_host(
-        lambda: jax.block_until_ready(run(trans, meas, closures)), repeats
-    )
+    call = lambda: jax.block_until_ready(run(trans, meas, closures))
+    first, times, mean = time_host(call, repeats)
     return mean, first, statistics.median(times) / (trans.num_rows + 1)
 
 
-def ours(data, lag: int, solver, adjoint, repeats: int):
-    mean0 = eqs.SE2.identity(dtype=jnp.float64)
-    return timed_fixed_lag(
-        data["trans"],
-        data["fix"],
-        mean0,
-        COV0 * jnp.eye(3),
-        lag,
-        solver,
-        adjoint,
-        repeats,
-        data["closures"],
-    )
+def _pose(gtsam, r):
+    """GTSAM's Pose2 of SE(2) parameters `(cos, sin, x, y)`."""
+    return gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))
 
 
 def gtsam_run(gtsam, smoother, data):
-    pose = lambda r: gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))  # noqa: E731
+    pose = lambda r: _pose(gtsam, r)
     diag = gtsam.noiseModel.Diagonal.Sigmas
     closes = {}
     for a, b, rel in data["pairs"]:
@@ -159,11 +129,10 @@ def gtsam_smoothers(gtsam, lag: int):
     lm.setRelativeErrorTol(1e-12)
     lm.setAbsoluteErrorTol(1e-14)
     lm.setMaxIterations(100)
+    held = float(lag - 2)
     return {
-        "BatchFixedLagSmoother": gtsam.BatchFixedLagSmoother(float(lag - 2), lm),
-        "IncrementalFixedLagSmoother": gtsam.IncrementalFixedLagSmoother(
-            float(lag - 2)
-        ),
+        "BatchFixedLagSmoother": gtsam.BatchFixedLagSmoother(held, lm),
+        "IncrementalFixedLagSmoother": gtsam.IncrementalFixedLagSmoother(held),
     }
 
 
@@ -174,13 +143,10 @@ def first_marginal_window(gtsam, lag: int) -> dict:
     `lag - 1` plus update `lag`'s factors) and of eqsmooth's window (30
     fixed Gauss-Newton steps)."""
     data = problem(lag + 1, 1, False)
+    mean0 = eqs.SE2.identity(dtype=jnp.float64)
+    solver = eqs.FixedStepGaussNewton(num_steps=30)
     sol = eqs.filters.fixed_lag_smoother(
-        data["trans"],
-        data["fix"],
-        eqs.SE2.identity(dtype=jnp.float64),
-        COV0 * jnp.eye(3),
-        lag=lag,
-        solver=eqs.FixedStepGaussNewton(num_steps=30),
+        data["trans"], data["fix"], mean0, COV0 * jnp.eye(3), lag=lag, solver=solver
     )
     ours = np.asarray(sol.windows[lag].parameters())
     lm = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"].params()
@@ -189,7 +155,7 @@ def first_marginal_window(gtsam, lag: int) -> dict:
     gtsam_run(gtsam, smoother, head)
     graph = gtsam.NonlinearFactorGraph(smoother.getFactors())
     init = gtsam.Values(smoother.calculateEstimate())
-    pose = lambda r: gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))  # noqa: E731
+    pose = lambda r: _pose(gtsam, r)
     odo = pose(data["odo"][lag - 1])
     sig = gtsam.noiseModel.Diagonal.Sigmas
     graph.add(gtsam.BetweenFactorPose2(lag - 1, lag, odo, sig(ODO)))
@@ -307,17 +273,9 @@ def gtsam_se2vel(gtsam, smoother, gps, T: int):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         if t == 0:
-            sig = np.sqrt(COV0) * np.ones(3)
-            graph.add(
-                gtsam.PriorFactorPose2(
-                    P(0), gtsam.Pose2(), gtsam.noiseModel.Diagonal.Sigmas(sig)
-                )
-            )
-            graph.add(
-                gtsam.PriorFactorVector(
-                    V(0), VEL0, gtsam.noiseModel.Diagonal.Sigmas(sig)
-                )
-            )
+            sig = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(COV0) * np.ones(3))
+            graph.add(gtsam.PriorFactorPose2(P(0), gtsam.Pose2(), sig))
+            graph.add(gtsam.PriorFactorVector(V(0), VEL0, sig))
             values.insert(P(0), gtsam.Pose2())
             values.insert(V(0), VEL0)
         else:
@@ -362,7 +320,7 @@ def se2vel_first_window(gtsam, lag: int) -> dict:
     mine = gtsam.Values()
     params, vel = np.asarray(window["pose"].parameters()), np.asarray(window["vel"])
     for i, (r, v) in enumerate(zip(params, vel)):
-        mine.insert(P(i + 1), gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0])))
+        mine.insert(P(i + 1), _pose(gtsam, r))
         mine.insert(V(i + 1), v)
     return dict(gtsam_error=graph.error(theirs), eqsmooth_error=graph.error(mine))
 
@@ -375,9 +333,9 @@ def se2vel_record(gtsam, T: int, lag: int, repeats: int) -> dict:
         cov0 = COV0 * jnp.eye(6)
         return timed_fixed_lag(trans, meas, mean0, cov0, lag, solver, adjoint, repeats)
 
-    fs = eqs.FixedStepGaussNewton(num_steps=3), eqs.solve.UnrolledAdjoint()
+    fs = eqs.FixedStepGaussNewton(num_steps=3), eqs.UnrolledAdjoint()
     # undamped Gauss-Newton does not converge in every window of this chain
-    lm = eqs.LevenbergMarquardt(), eqs.solve.ImplicitAdjoint()
+    lm = eqs.LevenbergMarquardt(), eqs.ImplicitAdjoint()
     means = {}
     for name, (solver, adjoint) in (("eqsmooth_fixed3", fs), ("eqsmooth_lm", lm)):
         means[name], first, per = run(solver, adjoint)
@@ -405,88 +363,61 @@ def tangent_diff(a, b) -> np.ndarray:
     return np.abs(np.asarray(eqs.local(a, b, batch_ndim=1))).max(axis=1)
 
 
+def chain_record(gtsam, data, lag: int, a) -> dict:
+    """eqsmooth's three solvers and GTSAM's two smoothers on the pose chain."""
+    rec = dict(benchmark="fixed_lag", T=a.steps, lag=lag)
+    rec |= dict(closures=a.closures, span=a.span)
+    implicit = eqs.ImplicitAdjoint()
+    solvers = dict(
+        eqsmooth_lm=(eqs.LevenbergMarquardt(), implicit),  # the default
+        eqsmooth_gn=(eqs.GaussNewton(), implicit),
+        eqsmooth_fixed3=(eqs.FixedStepGaussNewton(num_steps=3), eqs.UnrolledAdjoint()),
+    )
+    mean0, cov0 = eqs.SE2.identity(dtype=jnp.float64), COV0 * jnp.eye(3)
+    problem_args = (data["trans"], data["fix"], mean0, cov0, lag)
+    means = {}
+    for name, (solver, adjoint) in solvers.items():
+        run = (*problem_args, solver, adjoint, a.repeats, data["closures"])
+        means[name], first, per = timed_fixed_lag(*run)
+        rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
+    ref = means["eqsmooth_lm"]
+    for name in ("eqsmooth_gn", "eqsmooth_fixed3"):
+        rec[name]["max_diff"] = float(tangent_diff(means[name], ref).max())
+    for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
+        est, median = gtsam_run(gtsam, smoother, data)
+        diff = tangent_diff(est, ref)
+        rec[name] = dict(ms_per_update=1e3 * median, max_diff=float(diff.max()))
+        rec[name]["max_diff_before"] = float(diff[: min(lag, a.steps)].max())
+    if gtsam and not a.closures:
+        rec["first_marginal_window"] = first_marginal_window(gtsam, lag)
+    return rec
+
+
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = cli(__doc__)
     ap.add_argument("--steps", type=int, default=500)
     ap.add_argument("--lags", type=int, nargs="+", default=[10, 50, 200])
     ap.add_argument("--closures", action="store_true")
-    ap.add_argument(
-        "--span", type=int, default=8, help="loop-closure span (< every lag)"
-    )
+    ap.add_argument("--span", type=int, default=8, help="closure span (< every lag)")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument(
-        "--first-window-only",
-        action="store_true",
-        help="only the GTSAM-error check at the first marginalisation (no timing)",
-    )
-    ap.add_argument(
-        "--se2vel",
-        action="store_true",
-        help="the SE(2) + velocity chain (GTSAM through Python CustomFactors: its "
-        "values are comparable, its time per update is not)",
-    )
-    ap.add_argument("--json")
+    ap.add_argument("--first-window-only", action="store_true", help="no timing")
+    ap.add_argument("--se2vel", action="store_true", help="SE(2) + velocity chain")
     a = ap.parse_args()
     gtsam = optional("gtsam", " (GTSAM's fixed-lag smoothers)")
-    if a.se2vel:
-        records = [se2vel_record(gtsam, a.steps, lag, a.repeats) for lag in a.lags]
-        for r in records:
-            print(r, flush=True)
-        if a.json:
-            write_json(a.json, records, dict(command="--se2vel"))
-        return
-    if a.first_window_only:
-        records = [dict(lag=lag, **first_marginal_window(gtsam, lag)) for lag in a.lags]
-        print(records)
-        if a.json:
-            write_json(a.json, records, dict(command="--first-window-only"))
-        return
-    data = problem(a.steps, a.span, a.closures)
+    chain = not (a.se2vel or a.first_window_only)
+    data = problem(a.steps, a.span, a.closures) if chain else None
     records = []
     for lag in a.lags:
-        rec = dict(
-            benchmark="fixed_lag", T=a.steps, lag=lag, closures=a.closures, span=a.span
-        )
-        implicit = eqs.solve.ImplicitAdjoint()
-        solvers = dict(
-            eqsmooth_lm=(eqs.LevenbergMarquardt(), implicit),  # the default
-            eqsmooth_gn=(eqs.GaussNewton(), implicit),
-            eqsmooth_fixed3=(
-                eqs.FixedStepGaussNewton(num_steps=3),
-                eqs.solve.UnrolledAdjoint(),
-            ),
-        )
-        means = {}
-        for name, (solver, adjoint) in solvers.items():
-            means[name], first, per = ours(data, lag, solver, adjoint, a.repeats)
-            rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
-        ref = means["eqsmooth_lm"]
-        for name in ("eqsmooth_gn", "eqsmooth_fixed3"):
-            rec[name]["max_diff"] = float(tangent_diff(means[name], ref).max())
-        for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
-            est, median = gtsam_run(gtsam, smoother, data)
-            diff = tangent_diff(est, ref)
-            rec[name] = dict(
-                ms_per_update=1e3 * median,
-                max_diff=float(diff.max()),
-                max_diff_before=float(diff[: min(lag, a.steps)].max()),
-            )
-        if gtsam and not a.closures:
-            rec["first_marginal_window"] = first_marginal_window(gtsam, lag)
+        if a.se2vel:
+            rec = se2vel_record(gtsam, a.steps, lag, a.repeats)
+        elif a.first_window_only:
+            rec = dict(lag=lag, **first_marginal_window(gtsam, lag))
+        else:
+            rec = chain_record(gtsam, data, lag, a)
         print(rec, flush=True)
         records.append(rec)
     if a.json:
-        write_json(
-            a.json,
-            records,
-            dict(
-                machine=machine(),
-                command=" ".join(
-                    ["python benchmarks/fixed_lag.py"]
-                    + [f"--{k}={v}" for k, v in vars(a).items() if k != "json"]
-                ),
-            ),
-        )
+        write_json(a.json, records, dict(options=vars(a)))
 
 
 if __name__ == "__main__":

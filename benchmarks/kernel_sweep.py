@@ -9,25 +9,19 @@ and the XLA compilations of the sweep (`programs`: their names), apart from
 those made before it while building the poses and noise models eagerly
 (`setup_compilations`).
 
-    python benchmarks/kernel_sweep.py --json benchmarks/results/kernel_sweep.json
+    python -m benchmarks.kernel_sweep --json benchmarks/results/kernel_sweep.json
 """
 
-import argparse
 import json
-import subprocess
-import sys
 import time
-from pathlib import Path
 
-
-HERE = Path(__file__).resolve().parent
+from ._common import cli, compile_log, run_child, se2, write_json
 
 
 def child(mode: str) -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from jax import monitoring
 
     import eqsmooth as eqs
 
@@ -36,23 +30,13 @@ def child(mode: str) -> dict:
     KERNELS = (F.Huber, F.Cauchy, F.Tukey, F.GemanMcClure, F.Welsch, F.DCS, F.Fair)
     KERNELS += (F.L2WithDeadZone, F.TruncatedQuadratic)
     jax.config.update("jax_enable_x64", True)
-    compiles = []  # (program name, seconds)
+    compiles = compile_log()
 
-    def on_duration(event, secs, **kw):
-        if event.endswith("backend_compile_duration"):
-            compiles.append((kw.get("fun_name"), secs))
-
-    monitoring.register_event_duration_secs_listener(on_duration)
-
-    def poses(xyt):
-        xyt = np.asarray(xyt, np.float64)
-        return eqs.SE2.from_xy_theta(*(jnp.asarray(c) for c in xyt.T))
-
-    odo = poses([[2, 0, 0], [2, 0, np.pi / 2], [2, 0, np.pi / 2], [2, 0, np.pi / 2]])
-    init = poses([[0.4, 0.1, 0.15], [2.3, 0.1, -0.2], [4.1, 0.2, 1.6], [4.0, 2.1, 3.1]])
+    odo = se2([[2, 0, 0], [2, 0, np.pi / 2], [2, 0, np.pi / 2], [2, 0, np.pi / 2]])
+    init = se2([[0.4, 0.1, 0.15], [2.3, 0.1, -0.2], [4.1, 0.2, 1.6], [4.0, 2.1, 3.1]])
     base = eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1]))
     prior_noise = eqs.DiagonalNoise.from_sigmas(jnp.array([0.3, 0.3, 0.1]))
-    prior = eqs.PriorFactor(eqs.Var("x", [0]), poses([[0, 0, 0]]), prior_noise)
+    prior = eqs.PriorFactor(eqs.Var("x", [0]), se2([[0, 0, 0]]), prior_noise)
     scale = jnp.asarray(1.345)
     ids = eqs.Var("x", [1, 2, 3, 0])
     setup = len(compiles)  # building the poses and noise models, eagerly
@@ -67,24 +51,17 @@ def child(mode: str) -> dict:
     sweep_s = time.perf_counter() - t0
     swept = compiles[setup:]
     solves = [c for c in swept if "least_squares" in str(c[0])]
-    return {
-        "mode": mode,
-        "kernels": len(KERNELS),
-        "sweep_s": sweep_s,
-        "compilations": len(swept),
-        "solve_compilations": len(solves),
-        "compile_s": sum(c[1] for c in swept),
-        "programs": [c[0] for c in swept],
-        "setup_compilations": setup,
-    }
+    rec = {"mode": mode, "kernels": len(KERNELS), "sweep_s": sweep_s}
+    rec |= {"compilations": len(swept), "solve_compilations": len(solves)}
+    rec |= {"compile_s": sum(c[1] for c in swept), "programs": [c[0] for c in swept]}
+    return rec | {"setup_compilations": setup}
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = cli(__doc__)
     p.add_argument("--child", choices=["named", "choice"])
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--quick", action="store_true", help="one repeat")
-    p.add_argument("--json", type=Path)
     a = p.parse_args()
     if a.child:
         print(json.dumps(child(a.child)))
@@ -92,9 +69,7 @@ def main():
     rows = []
     for _ in range(1 if a.quick else a.repeats):
         for mode in ("named", "choice"):
-            cmd = [sys.executable, __file__, "--child", mode]
-            out = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            rows.append(run_child("kernel_sweep", ["--child", mode]))
             r = rows[-1]
             print(
                 f"{r['mode']:6s} {r['kernels']} kernels: sweep {r['sweep_s']:.2f} s, "
@@ -104,8 +79,7 @@ def main():
                 "before it, building the graph's pieces)"
             )
     if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(rows, indent=1))
+        write_json(a.json, rows)
 
 
 if __name__ == "__main__":

@@ -17,12 +17,11 @@ Data: `../shared/data/g2o/` (SE-Sync collection; cubicle's 5021 indefinite
 information matrices repaired with `invalid_information="block_diagonal"`);
 without it the script times a synthetic 2-D graph.
 
-    python benchmarks/pgo.py --quick                # intel + smallGrid3D
-    python benchmarks/pgo.py --json benchmarks/results/pgo.json \\
+    python -m benchmarks.pgo --quick                # intel + smallGrid3D
+    python -m benchmarks.pgo --json benchmarks/results/pgo.json \\
         --md benchmarks/results/pgo.md
 """
 
-import argparse
 import statistics
 import warnings
 from importlib.metadata import version
@@ -30,7 +29,9 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from _common import (
+
+from ._common import (
+    cli,
     dirty,
     loaded_blas,
     machine,
@@ -103,30 +104,16 @@ def bench_one(name, pg, args, solver, solver_name, gtsam):
         return jax.block_until_ready(sol)
 
     first, median, n, sol = timed(run, args.repeats, args.budget_s)
-    rec = {
-        "benchmark": "pgo",
-        "config": {
-            "file": name,
-            "kind": pg.kind,
-            "num_poses": pg.num_poses,
-            "num_edges": pg.num_edges,
-            "solver": solver_name,
-            "initial_damping": solver.initial_damping,
-            "max_steps": args.max_steps,
-            "dtype": "float64",
-            "se3_information": pg.se3_information,
-            "anchor_sqrt_information": 1e6,
-        },
-        "file": name,
-        "median_s": median,
-        "compile_s": max(first - median, 0.0),
-        "repeats": n,
-        "num_steps": int(sol.stats["num_steps"]),
-        "num_accepted": int(sol.stats["num_accepted"]),
-        "initial_cost": float(sol.stats["initial_cost"]),
-        "final_cost": float(sol.stats["final_cost"]),
-        "result": str(sol.result).split("<", 1)[-1].rstrip(">") or "successful",
-    }
+    config = dict(file=name, kind=pg.kind, num_poses=pg.num_poses)
+    config |= dict(num_edges=pg.num_edges, solver=solver_name)
+    config |= dict(initial_damping=solver.initial_damping, max_steps=args.max_steps)
+    config |= dict(dtype="float64", se3_information=pg.se3_information)
+    config["anchor_sqrt_information"] = 1e6
+    rec = {"benchmark": "pgo", "config": config, "file": name, "median_s": median}
+    rec |= {"compile_s": max(first - median, 0.0), "repeats": n}
+    rec |= {k: int(sol.stats[k]) for k in ("num_steps", "num_accepted")}
+    rec |= {k: float(sol.stats[k]) for k in ("initial_cost", "final_cost")}
+    rec["result"] = str(sol.result).split("<", 1)[-1].rstrip(">") or "successful"
     if gtsam:
         rec.update(gtsam_record(gtsam, name, pg, args, rec))
     return rec
@@ -135,37 +122,32 @@ def bench_one(name, pg, args, solver, solver_name, gtsam):
 def table_of(records: list[dict]) -> str:
     rows = []
     for r in records:
-        c = r["config"]
-        rows.append(
-            {
-                "file": r["file"],
-                "kind": c["kind"],
-                "poses": c["num_poses"],
-                "edges": c["num_edges"],
-                "steps (acc.)": f"{r['num_steps']} ({r['num_accepted']})",
-                "initial cost": f"{r['initial_cost']:.4g}",
-                "final cost": f"{r['final_cost']:.8g}",
-                "GTSAM cost": f"{r['reference']:.8g}" if "reference" in r else "",
-                "cost ratio": r.get("cost_ratio", ""),
-                "median s": r["median_s"],
-                "compile s": r["compile_s"],
-                "GTSAM s": r.get("reference_median_s", ""),
-                "GTSAM it.": r.get("reference_iterations", ""),
-                "time ratio": r.get("ratio", ""),
-            }
-        )
+        c, get = r["config"], r.get
+        row = {"file": r["file"], "kind": c["kind"], "poses": c["num_poses"]}
+        row |= {"edges": c["num_edges"]}
+        row["steps (acc.)"] = f"{r['num_steps']} ({r['num_accepted']})"
+        row["initial cost"] = f"{r['initial_cost']:.4g}"
+        row["final cost"] = f"{r['final_cost']:.8g}"
+        row["GTSAM cost"] = f"{r['reference']:.8g}" if "reference" in r else ""
+        row |= {"cost ratio": get("cost_ratio", ""), "median s": r["median_s"]}
+        row |= {"compile s": r["compile_s"], "GTSAM s": get("reference_median_s", "")}
+        row["GTSAM it."] = get("reference_iterations", "")
+        row["time ratio"] = get("ratio", "")
+        rows.append(row)
     return markdown_table(rows, list(rows[0]) if rows else ["file"])
 
 
 def write_markdown(path, records, m: dict, solver_name: str, max_steps: int):
     """The report: how it was made, the table, and which rows reached GTSAM."""
-    reached = [r["file"] for r in records if r.get("cost_ratio", 2.0) <= 1 + 1e-6]
-    missed = [r["file"] for r in records if r.get("cost_ratio", 0.0) > 1 + 1e-6]
+    reached = ", ".join(
+        r["file"] for r in records if r.get("cost_ratio", 2) <= 1 + 1e-6
+    )
+    missed = ", ".join(r["file"] for r in records if r.get("cost_ratio", 0) > 1 + 1e-6)
     git = m["git"] + (" (plus uncommitted changes)" if m.get("dirty") else "")
     lines = [
         "# Pose-graph optimisation: eqsmooth vs GTSAM",
         "",
-        f"- command: `{m['command']}` (in `benchmarks/`)",
+        f"- command: `{m['command']}`",
         f"- solver: `{solver_name}`, max_steps {max_steps}; GTSAM "
         "LevenbergMarquardtOptimizer with relativeErrorTol 1e-8, "
         "absoluteErrorTol 0, same factors and initial values",
@@ -180,12 +162,9 @@ def write_markdown(path, records, m: dict, solver_name: str, max_steps: int):
         "",
         table_of(records),
         "",
-        "Reached GTSAM's final cost (ratio ≤ 1 + 1e-6): "
-        + (", ".join(reached) or "none")
-        + ". Did not: "
-        + (", ".join(missed) or "none")
-        + ". The time ratio compares like with like only where both reached "
-        "the same cost.",
+        f"Reached GTSAM's final cost (ratio ≤ 1 + 1e-6): {reached or 'none'}. "
+        f"Did not: {missed or 'none'}. The time ratio compares like with like "
+        "only where both reached the same cost.",
     ]
     write_text(path, "\n".join(lines))
 
@@ -228,16 +207,13 @@ def load_problems(args) -> list:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = cli(__doc__)
     parser.add_argument("--quick", action="store_true", help="intel + smallGrid3D")
-    parser.add_argument("--json", default=None, help="write records here")
     parser.add_argument("--md", default=None, help="write the markdown report here")
     parser.add_argument("--files", nargs="*", default=None, help="subset of files")
     solvers = ["sparse", "cholmod", "sparsax", "pcg", "dense"]
     parser.add_argument("--solver", choices=solvers, default="sparse")
-    parser.add_argument(
-        "--preconditioner", choices=["jacobi", "chain"], default="jacobi"
-    )
+    parser.add_argument("--preconditioner", choices=["jacobi", "chain"])
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--budget-s", type=float, default=120.0, help="per file")

@@ -6,9 +6,10 @@ round float32 operands to TF32. XLA:CPU computes float32 products in
 float32 either way, but keeps a product that names a precision as a `dot`
 instead of rewriting a small one as fused arithmetic. This script measures
 what naming it would cost on this backend, alternating the two programs in
-one process (`highest`: traced as for a GPU, by patching the backend that
-`eqsmooth._precision` reads; `default`: as traced here), with fresh
-compilations for each, in float32 and float64:
+one process (`highest`: traced under `jax.default_matmul_precision("highest")`,
+which names it on every product as eqsmooth does off the CPU: the lowered
+programs of these solves are the same text; `default`: as traced here), with
+fresh compilations for each, in float32 and float64:
 
 - `se2vel` and `vehicle` chains of T states (benchmarks/chain.py's
   problems), a `FixedStepGaussNewton` solve of `--steps` steps with the
@@ -20,23 +21,29 @@ Records: `median_s` per configuration, and `ratio` (highest / default) per
 problem and dtype. On a GPU both rows are HIGHEST (the library's choice
 there): run it on a CPU.
 
-    python benchmarks/precision_ab.py --json benchmarks/results/precision_ab.json
-    python benchmarks/precision_ab.py --quick
+    python -m benchmarks.precision_ab --json benchmarks/results/precision_ab.json
+    python -m benchmarks.precision_ab --quick
 """
 
-import argparse
+import contextlib
 import statistics
 
 import jax
 import jax.numpy as jnp
-from _common import markdown_table, pose2_problem, time_fn, write_json
-from chain import se2vel_problem, vehicle_problem
 
 import eqsmooth as eqs
-import eqsmooth._precision as precision
+
+from ._common import cli, pose2_problem, print_and_save, record, time_fn
+from .chain import se2vel_problem, vehicle_problem
 
 
 jax.config.update("jax_enable_x64", True)
+
+
+SETTINGS = {
+    "highest": lambda: jax.default_matmul_precision("highest"),
+    "default": contextlib.nullcontext,
+}
 
 
 def _cast(tree, dtype):
@@ -69,13 +76,12 @@ def _timed(graph, values, solver, repeats: int) -> tuple[float, float]:
 
 
 def main(argv=None) -> list[dict]:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = cli(__doc__)
     p.add_argument("--size", type=int, default=2000, help="chain length T")
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--repeats", type=int, default=9)
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--json")
     a = p.parse_args(argv)
     if a.quick:
         a.size, a.rounds, a.repeats = 200, 1, 3
@@ -84,43 +90,22 @@ def main(argv=None) -> list[dict]:
         for dtype in (jnp.float32, jnp.float64):
             g, v = _cast(graph, dtype), _cast(values, dtype)
             times = {"highest": [], "default": []}
-            real = precision._backend
             for _ in range(a.rounds):
                 for setting in times:
-                    precision._backend = (
-                        (lambda: "gpu") if setting == "highest" else real
-                    )
                     jax.clear_caches()
-                    times[setting].append(_timed(g, v, solver, a.repeats))
-            precision._backend = real
+                    with SETTINGS[setting]():
+                        times[setting].append(_timed(g, v, solver, a.repeats))
             med = {s: statistics.median(m for _, m in t) for s, t in times.items()}
             for setting, t in times.items():
-                records.append(
-                    {
-                        "benchmark": "precision_ab",
-                        "config": {
-                            "problem": name,
-                            "T": a.size if name != "pose2" else 5,
-                            "dtype": jnp.dtype(dtype).name,
-                            "precision": setting,
-                            "backend": jax.default_backend(),
-                        },
-                        "median_s": med[setting],
-                        "compile_s": statistics.median(f - m for f, m in t),
-                        "ratio": med["highest"] / med["default"],
-                    }
-                )
-    rows = [
-        {**r["config"], "median_ms": 1e3 * r["median_s"], "ratio": r["ratio"]}
-        for r in records
-    ]
-    print(
-        markdown_table(
-            rows, ["problem", "T", "dtype", "precision", "median_ms", "ratio"]
-        )
-    )
-    if a.json:
-        write_json(a.json, records)
+                config = {"problem": name, "T": a.size if name != "pose2" else 5}
+                config |= {"dtype": jnp.dtype(dtype).name, "precision": setting}
+                config["backend"] = jax.default_backend()
+                rec = record("precision_ab", config, median_s=med[setting])
+                rec["compile_s"] = statistics.median(f - m for f, m in t)
+                rec["ratio"] = med["highest"] / med["default"]
+                records.append(rec | {"median_ms": 1e3 * med[setting]})
+    columns = ["problem", "T", "dtype", "precision", "median_ms", "ratio"]
+    print_and_save(records, columns, a.json)
     return records
 
 

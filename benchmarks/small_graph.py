@@ -26,12 +26,12 @@ events), and the largest pose difference between the two answers. Then the
 later-solve medians of the 5-pose loop: `static`, `padded` (padding, solve
 and unpad each time) and `padded_solve_only` (padded once), beside GTSAM's.
 
-    python benchmarks/small_graph.py --json benchmarks/results/small_graph.json
-    python benchmarks/small_graph.py --batch 1000 --repeats 5 \\
+    python -m benchmarks.small_graph --json benchmarks/results/small_graph.json
+    python -m benchmarks.small_graph --batch 1000 --repeats 5 \\
         --json benchmarks/results/small_graph_batch.json
-    python benchmarks/small_graph.py --batch 1000 --mixed --repeats 5 \\
+    python -m benchmarks.small_graph --batch 1000 --mixed --repeats 5 \\
         --json benchmarks/results/small_graph_batch_mixed.json
-    python benchmarks/small_graph.py --other-graphs 12 \\
+    python -m benchmarks.small_graph --other-graphs 12 \\
         --json benchmarks/results/small_graph_structure.json
 
 `--floor` adds a row `floor`: `_floor_lm`, a Levenberg-Marquardt loop
@@ -45,10 +45,10 @@ the runtime costs. `--sync-dispatch` sets JAX's
 `jax_cpu_enable_async_dispatch` to False before the first computation
 (JAX reads it once, so the comparison is two processes):
 
-    for d in "" --sync-dispatch; do python benchmarks/small_graph.py --floor \\
+    for d in "" --sync-dispatch; do python -m benchmarks.small_graph --floor \\
         --repeats 300 $d --json benchmarks/results/small_graph_floor${d:+_sync}.json
     done
-    python benchmarks/small_graph.py --floor --batch 1000 --repeats 5 \\
+    python -m benchmarks.small_graph --floor --batch 1000 --repeats 5 \\
         --json benchmarks/results/small_graph_batch_floor.json
 
 `--decompose` splits one solve's time into a fixed part and a part per
@@ -61,11 +61,10 @@ row that computes nothing (what passing the graph in and the values out
 costs), and `flatten`: `jax.tree_util.tree_flatten` of those arguments
 alone (JAX does it on every call):
 
-    python benchmarks/small_graph.py --decompose --repeats 1000 \\
+    python -m benchmarks.small_graph --decompose --repeats 1000 \\
         --json benchmarks/results/small_graph_decompose.json
 """
 
-import argparse
 import statistics
 import time
 
@@ -73,28 +72,39 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import machine, markdown_table, optional, pose2_problem, write_json
 
 import eqsmooth as eqs
 
+from ._common import (
+    cli,
+    compile_log,
+    machine,
+    markdown_table,
+    optional,
+    pose2_problem,
+    se2,
+    time_host,
+    write_json,
+)
+
 
 jax.config.update("jax_enable_x64", True)
+GRAPH = "pose2 (5 SE(2) poses)"
 
 
 def gtsam_case(gtsam, graph, values):
     """A GTSAM solve of the same factors: `(solve, cost_of_result)`."""
     g, init = gtsam_problem(gtsam, graph, values)
-    params = gtsam_params(gtsam)
+    return _gtsam_lm(gtsam, g, init, gtsam_params(gtsam)), g.error
 
-    def solve():
-        return gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
 
-    return solve, g.error
+def _gtsam_lm(gtsam, g, init, params):
+    return lambda: gtsam.LevenbergMarquardtOptimizer(g, init, params).optimize()
 
 
 def gtsam_problem(gtsam, graph, values):
     """The same factors and initial values in GTSAM: `(graph, values)`."""
-    g = gtsam.NonlinearFactorGraph()
+    g, init = gtsam.NonlinearFactorGraph(), gtsam.Values()
     prior, between = graph.factors
 
     def sigmas(f):
@@ -110,7 +120,6 @@ def gtsam_problem(gtsam, graph, values):
     for i, (ia, ib) in enumerate(zip(a, b)):
         m = pose(between.measurement, i)
         g.add(gtsam.BetweenFactorPose2(int(ia), int(ib), m, sigmas(between)))
-    init = gtsam.Values()
     for i in range(len(values["x"].x())):
         init.insert(i, pose(values["x"], i))
     return g, init
@@ -127,14 +136,9 @@ def gtsam_params(gtsam, max_iterations: int | None = None):
 
 
 def _times(fn, repeats: int, warm_up: bool = True) -> tuple[float, float]:
-    """(median_s, min_s) of `fn()` over `repeats` calls."""
-    if warm_up:
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
+    """(median_s, min_s) of `fn()` over `repeats` calls (after one more)."""
+    first, times, _ = time_host(fn, repeats if warm_up else repeats - 1)
+    times = times if warm_up else [first, *times]
     return statistics.median(times), min(times)
 
 
@@ -177,13 +181,19 @@ def _floor_lm(graph, values, max_steps: int = 100):
     return out[0], out[3], out[6]
 
 
+def _records(benchmark: str, key: str, rows: list[dict], seconds) -> list[dict]:
+    config = {"graph": GRAPH, "dispatch": _dispatch()}
+    print("load average", machine()["load_average"])
+    return [
+        {"benchmark": benchmark, "config": config | {key: r["method"]}}
+        | {"median_s": seconds(r), "compile_s": 0.0, **r}
+        for r in rows
+    ]
+
+
 def single(gtsam, repeats: int, floor: bool = False) -> list[dict]:
     graph, values = pose2_problem()
     solver = eqs.LevenbergMarquardt()
-
-    def api():
-        return jax.block_until_ready(eqs.least_squares(graph, values, solver).value)
-
     dynamic, static = eqx.partition((graph, values), eqx.is_array)
 
     @jax.jit
@@ -192,21 +202,20 @@ def single(gtsam, repeats: int, floor: bool = False) -> list[dict]:
         sol = eqs.least_squares(g, v, solver, throw=False)
         return eqx.filter(sol.value, eqx.is_array), sol.stats["final_cost"]
 
+    @jax.jit
+    def floor_compiled(dynamic):
+        return _floor_lm(*eqx.combine(dynamic, static))[:2]
+
+    def api():
+        return jax.block_until_ready(eqs.least_squares(graph, values, solver).value)
+
     def jitted():
         return jax.block_until_ready(compiled(dynamic))
 
     cost = float(jitted()[1])
     calls = {"api": (api, lambda: cost), "jit": (jitted, lambda: cost)}
     if floor:
-
-        @jax.jit
-        def floor_compiled(dynamic):
-            g, v = eqx.combine(dynamic, static)
-            return _floor_lm(g, v)[:2]
-
-        def floor_call():
-            return jax.block_until_ready(floor_compiled(dynamic))
-
+        floor_call = lambda: jax.block_until_ready(floor_compiled(dynamic))
         calls["floor"] = (floor_call, lambda: float(floor_call()[1]))
     if gtsam is not None:
         solve, error = gtsam_case(gtsam, graph, values)
@@ -217,19 +226,11 @@ def single(gtsam, repeats: int, floor: bool = False) -> list[dict]:
         row = {"method": name, "median_ms": med * 1e3, "min_ms": best * 1e3}
         rows.append(row | {"final_cost": final_cost()})
     ref = calls.get("gtsam") and rows[-1]["median_ms"]
-    records = []
     for r in rows:
         r["ratio_to_gtsam"] = r["median_ms"] / ref if ref else float("nan")
-        config = {"graph": "pose2 (5 SE(2) poses)", "method": r["method"]}
-        config["dispatch"] = _dispatch()
-        records.append(
-            {"benchmark": "small_graph", "config": config}
-            | {"median_s": r["median_ms"] / 1e3, "compile_s": 0.0, **r}
-        )
     columns = ["method", "median_ms", "min_ms", "ratio_to_gtsam", "final_cost"]
     print(markdown_table(rows, columns))
-    print("load average", machine()["load_average"])
-    return records
+    return _records("small_graph", "method", rows, lambda r: r["median_ms"] / 1e3)
 
 
 def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
@@ -245,6 +246,7 @@ def decompose(gtsam, repeats: int) -> list[dict]:
     solver = eqs.LevenbergMarquardt()
     dynamic, static = eqx.partition((graph, values), eqx.is_array)
 
+    # Per method and iteration cap k (100: uncapped): (call, its step count).
     def library(k):
         @jax.jit
         def run(dynamic):
@@ -253,85 +255,54 @@ def decompose(gtsam, repeats: int) -> list[dict]:
             value = eqx.filter(sol.value, eqx.is_array)
             return value, sol.stats["final_cost"], sol.stats["num_steps"]
 
-        return run
+        return lambda: jax.block_until_ready(run(dynamic)), lambda: int(run(dynamic)[2])
 
     def floor(k):
         @jax.jit
         def run(dynamic):
-            g, v = eqx.combine(dynamic, static)
-            out, cost, steps = _floor_lm(g, v, max_steps=k)
+            out, cost, steps = _floor_lm(*eqx.combine(dynamic, static), max_steps=k)
             return eqx.filter(out, eqx.is_array), cost, steps
 
-        return run
+        return lambda: jax.block_until_ready(run(dynamic)), lambda: int(run(dynamic)[2])
+
+    def gtsam_lm(k):
+        g, init = gtsam_problem(gtsam, graph, values)
+        params = gtsam_params(gtsam, k if k < 100 else None)
+
+        def steps():
+            opt = gtsam.LevenbergMarquardtOptimizer(g, init, params)
+            opt.optimize()
+            return opt.iterations()
+
+        return _gtsam_lm(gtsam, g, init, params), steps
 
     @jax.jit
     def round_trip(dynamic):
         g, v = eqx.combine(dynamic, static)
         return eqx.filter(v, eqx.is_array), jnp.zeros(()), jnp.zeros((), int)
 
-    caps = (1, 2, 3, 4)
-    cases = {"jit": library, "floor": floor}
+    makers = {"jit": library, "floor": floor} | ({"gtsam": gtsam_lm} if gtsam else {})
     rows = []
-    for name, make in cases.items():
+    for name, make in makers.items():
         points = []
-        for k in caps:
-            fn = make(k)
-            steps = int(fn(dynamic)[2])
-            med = _times(lambda: jax.block_until_ready(fn(dynamic)), repeats)[0]
-            points.append((steps, med))
-        full = make(100)
-        med_full = _times(lambda: jax.block_until_ready(full(dynamic)), repeats)[0]
+        for k in (1, 2, 3, 4):
+            call, steps = make(k)
+            points.append((steps(), _times(call, repeats)[0]))
+        call, steps = make(100)
         fixed, per_step = _line(points)
         rows.append(
-            {
-                "method": name,
-                "fixed_us": fixed * 1e6,
-                "per_step_us": per_step * 1e6,
-                "solve_us": med_full * 1e6,
-                "steps": int(full(dynamic)[2]),
-                "capped": [{"steps": s, "median_us": t * 1e6} for s, t in points],
-            }
-        )
-    if gtsam is not None:
-        solve, _ = gtsam_case(gtsam, graph, values)
-        g, init = gtsam_problem(gtsam, graph, values)
-        points = []
-        for k in caps:
-            capped = gtsam_params(gtsam, k)
-            opt = gtsam.LevenbergMarquardtOptimizer(g, init, capped)
-            opt.optimize()
-            med = _times(
-                lambda: gtsam.LevenbergMarquardtOptimizer(g, init, capped).optimize(),
-                repeats,
-            )[0]
-            points.append((opt.iterations(), med))
-        opt = gtsam.LevenbergMarquardtOptimizer(g, init, gtsam_params(gtsam))
-        opt.optimize()
-        fixed, per_step = _line(points)
-        rows.append(
-            {
-                "method": "gtsam",
-                "fixed_us": fixed * 1e6,
-                "per_step_us": per_step * 1e6,
-                "solve_us": _times(solve, repeats)[0] * 1e6,
-                "steps": opt.iterations(),
-                "capped": [{"steps": s, "median_us": t * 1e6} for s, t in points],
-            }
+            {"method": name, "fixed_us": fixed * 1e6, "per_step_us": per_step * 1e6}
+            | {"solve_us": _times(call, repeats)[0] * 1e6, "steps": steps()}
+            | {"capped": [{"steps": s, "median_us": t * 1e6} for s, t in points]}
         )
     trip = _times(lambda: jax.block_until_ready(round_trip(dynamic)), repeats)[0]
     flat = _times(lambda: jax.tree_util.tree_flatten(dynamic), repeats)[0]
     rows.append({"method": "round_trip", "solve_us": trip * 1e6})
     rows.append({"method": "flatten", "solve_us": flat * 1e6})
-    print(
-        markdown_table(rows, ["method", "fixed_us", "per_step_us", "solve_us", "steps"])
-    )
-    print("load average", machine()["load_average"])
-    config = {"graph": "pose2 (5 SE(2) poses)", "dispatch": _dispatch()}
-    return [
-        {"benchmark": "small_graph_decompose", "config": config | {"part": r["method"]}}
-        | {"median_s": r["solve_us"] / 1e6, "compile_s": 0.0, **r}
-        for r in rows
-    ]
+    columns = ["method", "fixed_us", "per_step_us", "solve_us", "steps"]
+    print(markdown_table(rows, columns))
+    seconds = lambda r: r["solve_us"] / 1e6
+    return _records("small_graph_decompose", "part", rows, seconds)
 
 
 def _perturbed(graph, values, rng):
@@ -361,6 +332,19 @@ def _dispatch() -> str:
     return "async" if jax.config.values["jax_cpu_enable_async_dispatch"] else "sync"
 
 
+def _row(method: str, num_graphs: int, median_s: float, **extra) -> dict:
+    per_graph_us = median_s / num_graphs * 1e6
+    row = {"method": method, "num_graphs": num_graphs, "median_s": median_s}
+    return row | {"per_graph_us": per_graph_us, **extra}
+
+
+def _first_and_median(run, repeats: int):
+    """(result, first call s, median s of `repeats` more calls) of `run()`."""
+    t0 = time.perf_counter()
+    out = run()
+    return out, time.perf_counter() - t0, _times(run, repeats, warm_up=False)[0]
+
+
 def batch(
     gtsam, num_graphs: int, repeats: int, mixed: bool = False, floor: bool = False
 ) -> list[dict]:
@@ -388,48 +372,26 @@ def batch(
         sol = eqs.least_squares_batch(graphs, inits, solver)
         return jax.block_until_ready(sol)
 
-    t0 = time.perf_counter()
-    sol = run()
-    first_s = time.perf_counter() - t0
-    ours = sol.value
+    sol, first_s, batch_s = _first_and_median(run, repeats)
+    ours = np.asarray(sol.value["x"].x())
     steps = np.bincount(np.asarray(sol.stats["num_steps"])).tolist()
-    batch_s = _times(run, repeats, warm_up=False)[0]
-    rows = [
-        {
-            "method": "eqsmooth least_squares_batch"
-            + (" (padded, mixed structures)" if mixed else ""),
-            "num_graphs": num_graphs,
-            "median_s": batch_s,
-            "per_graph_us": batch_s / num_graphs * 1e6,
-            "first_call_s": first_s,
-            "graphs_by_num_steps": steps,
-            "dispatch": _dispatch(),
-        }
-    ]
+    method = "eqsmooth least_squares_batch"
+    method += " (padded, mixed structures)" if mixed else ""
+    rows = [_row(method, num_graphs, batch_s, first_call_s=first_s)]
+    rows[0] |= {"graphs_by_num_steps": steps, "dispatch": _dispatch()}
     if floor:
         floor_batch = jax.jit(jax.vmap(_floor_lm))
-
-        def floor_run():
-            return jax.block_until_ready(floor_batch(graphs, inits))
-
-        t0 = time.perf_counter()
-        floor_values, _, floor_steps = floor_run()
-        floor_first = time.perf_counter() - t0
-        floor_s = _times(floor_run, repeats, warm_up=False)[0]
-        floor_x = np.asarray(floor_values["x"].x())
+        run = lambda: jax.block_until_ready(floor_batch(graphs, inits))
+        (floor_values, _, floor_steps), first_s, floor_s = _first_and_median(
+            run, repeats
+        )
+        diff = np.abs(np.asarray(floor_values["x"].x()) - ours).max()
         rows.append(
-            {
-                "method": "floor (fewest-operations LM, vmapped)",
-                "num_graphs": num_graphs,
-                "median_s": floor_s,
-                "per_graph_us": floor_s / num_graphs * 1e6,
-                "first_call_s": floor_first,
-                "graphs_by_num_steps": np.bincount(np.asarray(floor_steps)).tolist(),
-                "max_abs_x_difference_to_eqsmooth": float(
-                    np.max(np.abs(floor_x - np.asarray(ours["x"].x())))
-                ),
-                "dispatch": _dispatch(),
-            }
+            _row("floor (fewest-operations LM, vmapped)", num_graphs, floor_s)
+            | {"first_call_s": first_s}
+            | {"graphs_by_num_steps": np.bincount(np.asarray(floor_steps)).tolist()}
+            | {"max_abs_x_difference_to_eqsmooth": float(diff)}
+            | {"dispatch": _dispatch()}
         )
     if gtsam is not None:
         solves = [gtsam_case(gtsam, g, v)[0] for g, v in cases]
@@ -439,27 +401,17 @@ def batch(
             results[:] = [s() for s in solves]
 
         gtsam_s = _times(loop, repeats, warm_up=False)[0]
-        xs = np.asarray(ours["x"].x())
         diff = max(
-            abs(float(r.atPose2(i).x()) - float(xs[k, i]))
+            abs(float(r.atPose2(i).x()) - float(ours[k, i]))
             for k, (r, (_, v)) in enumerate(zip(results, cases))
             for i in range(len(v["x"].x()))
         )
-        rows.append(
-            {
-                "method": "gtsam loop",
-                "num_graphs": num_graphs,
-                "median_s": gtsam_s,
-                "per_graph_us": gtsam_s / num_graphs * 1e6,
-                "max_abs_x_difference": diff,
-            }
-        )
+        rows.append(_row("gtsam loop", num_graphs, gtsam_s, max_abs_x_difference=diff))
         for row in rows[:-1]:
             row["speedup_over_gtsam"] = gtsam_s / row["median_s"]
     columns = ["method", "num_graphs", "median_s", "per_graph_us", "first_call_s"]
-    print(
-        markdown_table(rows, columns + ["speedup_over_gtsam", "max_abs_x_difference"])
-    )
+    columns += ["speedup_over_gtsam", "max_abs_x_difference"]
+    print(markdown_table(rows, columns))
     return rows
 
 
@@ -472,45 +424,18 @@ def random_loop(rng, n: int, closures: int):
     pairs += [(n - 1 - k, int(rng.integers(0, n - 2 - k))) for k in range(closures)]
     a, b = (np.array(c) for c in zip(*pairs))
 
-    def poses(xyt):
-        return eqs.SE2.from_xy_theta(*(jnp.asarray(c) for c in np.asarray(xyt).T))
-
-    true = poses(truth)
-    meas = (
-        true[a].inverse()
-        @ true[b]
-        @ eqs.SE2.exp(jnp.asarray(rng.normal(0, 0.02, (len(a), 3))))
-    )
-    sigmas = jnp.array([0.2, 0.2, 0.1])
-    graph = eqs.FactorGraph(
-        [
-            eqs.PriorFactor(
-                eqs.Var("x", [0]),
-                true[np.array([0])],
-                eqs.DiagonalNoise.from_sigmas(sigmas),
-            ),
-            eqs.BetweenFactor(
-                eqs.Var("x", a),
-                eqs.Var("x", b),
-                meas,
-                eqs.DiagonalNoise.from_sigmas(sigmas),
-            ),
-        ]
-    )
-    return graph, {"x": poses(truth + rng.normal(0, 0.1, truth.shape))}
+    true = se2(truth)
+    noise = eqs.SE2.exp(jnp.asarray(rng.normal(0, 0.02, (len(a), 3))))
+    meas = true[a].inverse() @ true[b] @ noise
+    diag = eqs.DiagonalNoise.from_sigmas(jnp.array([0.2, 0.2, 0.1]))
+    prior = eqs.PriorFactor(eqs.Var("x", [0]), true[np.array([0])], diag)
+    loop = eqs.BetweenFactor(eqs.Var("x", a), eqs.Var("x", b), meas, diag)
+    init = se2(truth + rng.normal(0, 0.1, truth.shape))
+    return eqs.FactorGraph([prior, loop]), {"x": init}
 
 
 def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
-    from jax import monitoring
-
-    compiled = []
-    monitoring.register_event_duration_secs_listener(
-        lambda event, secs, **kw: (
-            compiled.append(kw.get("fun_name"))
-            if event.endswith("backend_compile_duration")
-            else None
-        )
-    )
+    compiled = compile_log()
     solver = eqs.LevenbergMarquardt()
 
     def static(graph, values):
@@ -529,11 +454,8 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
     ]
     rows = []
     for k, (graph, values) in enumerate(problems):
-        row = {
-            "graph": k,
-            "poses": len(values["x"].x()),
-            "factors": sum(f.num_rows for f in graph.factors),
-        }
+        row = {"graph": k, "poses": len(values["x"].x())}
+        row["factors"] = sum(f.num_rows for f in graph.factors)
         answers = {}
         for name, fn in (("static", static), ("padded", padded)):
             start = len(compiled)
@@ -544,8 +466,7 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
         diff = (answers["static"].inverse() @ answers["padded"]).log()
         row["max_difference"] = float(jnp.max(jnp.abs(diff)))
         rows.append(row)
-    columns = list(rows[0])
-    print(markdown_table(rows, columns))
+    print(markdown_table(rows, list(rows[0])))
     later = rows[1:]
     summary = {
         name: {
@@ -557,13 +478,12 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
     }
     graph, values = problems[0]
     once = eqs.solve.pad_graph(graph, values)
-    steady = {
-        "static": _times(lambda: static(graph, values), repeats)[0],
-        "padded": _times(lambda: padded(graph, values), repeats)[0],
-        "padded_solve_only": _times(lambda: static(once.graph, once.values), repeats)[
-            0
-        ],
+    calls = {
+        "static": lambda: static(graph, values),
+        "padded": lambda: padded(graph, values),
+        "padded_solve_only": lambda: static(once.graph, once.values),
     }
+    steady = {name: _times(call, repeats)[0] for name, call in calls.items()}
     if gtsam is not None:
         steady["gtsam"] = _times(gtsam_case(gtsam, graph, values)[0], repeats)[0]
     print("after the first graph:", summary)
@@ -583,28 +503,15 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = cli(__doc__)
     parser.add_argument("--repeats", type=int, default=None, help="200; 5 batches")
     parser.add_argument("--batch", type=int, default=0, metavar="N", help="N graphs")
-    parser.add_argument(
-        "--mixed", action="store_true", help="--batch: graphs of other structures"
-    )
-    parser.add_argument(
-        "--other-graphs", type=int, default=0, metavar="K", help="K more graphs"
-    )
-    parser.add_argument(
-        "--floor", action="store_true", help="add the fewest-operations LM row"
-    )
-    parser.add_argument(
-        "--decompose", action="store_true", help="fixed and per-step time"
-    )
-    parser.add_argument(
-        "--sync-dispatch",
-        action="store_true",
-        help="jax_cpu_enable_async_dispatch=False (set before any computation)",
-    )
+    parser.add_argument("--mixed", action="store_true", help="other structures")
+    parser.add_argument("--other-graphs", type=int, default=0, metavar="K")
+    parser.add_argument("--floor", action="store_true", help="the fewest-op. LM")
+    parser.add_argument("--decompose", action="store_true", help="fixed, per step")
+    parser.add_argument("--sync-dispatch", action="store_true", help="before any run")
     parser.add_argument("--quick", action="store_true", help="20 repeats; N <= 20")
-    parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
     if args.sync_dispatch:
         jax.config.update("jax_cpu_enable_async_dispatch", False)
@@ -613,9 +520,8 @@ def main(argv=None):
     if args.quick:
         repeats, args.batch = min(repeats, 20), min(args.batch, 20)
     if args.other_graphs:
-        records = other_graphs(
-            gtsam, min(args.other_graphs, 3 if args.quick else 10**6), repeats
-        )
+        count = min(args.other_graphs, 3 if args.quick else 10**6)
+        records = other_graphs(gtsam, count, repeats)
     elif args.decompose:
         records = decompose(gtsam, repeats)
     elif args.batch:

@@ -35,49 +35,48 @@ median; `ratio`: median_s / the reference's median_s of the same (K, T) in
 the same run. On a shared machine set `OPENBLAS_NUM_THREADS=1` (an
 oversubscribed OpenBLAS made the dense reference 10-100x slower).
 
-    python benchmarks/train_step.py             # all configurations
-    python benchmarks/train_step.py --quick     # T = 20, K = 3 (< 1 min)
-    python benchmarks/train_step.py --json benchmarks/results/train_step.json \\
+    python -m benchmarks.train_step             # all configurations
+    python -m benchmarks.train_step --quick     # T = 20, K = 3 (< 1 min)
+    python -m benchmarks.train_step --json benchmarks/results/train_step.json \\
         --markdown benchmarks/results/train_step.md
 """
-
-import argparse
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import (
+
+import eqsmooth as eqs
+
+from ._common import (
+    cli,
+    disk_dynamics,
+    disk_position,
+    disk_step,
     machine,
     markdown_table,
     optional,
+    record,
     time_fn,
     time_host,
     write_json,
     write_text,
 )
 
-import eqsmooth as eqs
-
 
 BATCH = 32
 DYN_SIGMAS = (0.1, 0.1, 0.5, 0.5)
 MEAS_SIGMA = 5.0
-
-
-def _step(x):
-    p, v = x[..., :2], x[..., 2:]
-    return jnp.concatenate(
-        [p + v, v - 0.05 * p - 0.0075 * jnp.sign(v) * v * v], axis=-1
-    )
-
-
-def _disk_dyn(a, b, data, params):
-    return b - _step(a)
-
-
-def _disk_meas(x, data, params):
-    return x[:2] - data
+SOLVERS = {
+    "BlockTridiagonal": eqs.BlockTridiagonal(),
+    "DenseCholesky": eqs.DenseCholesky(),
+    "PCG": eqs.PCG(),
+}
+ADJOINTS = {
+    "unrolled": eqs.UnrolledAdjoint(),
+    "truncated(k=1)": eqs.TruncatedAdjoint(1),
+    "implicit": eqs.ImplicitAdjoint(),
+}
 
 
 def simulate(T: int, batch: int, dtype, seed: int = 0):
@@ -87,7 +86,7 @@ def simulate(T: int, batch: int, dtype, seed: int = 0):
     x[:, 0, :2] = rng.normal(scale=30.0, size=(batch, 2))
     x[:, 0, 2:] = rng.normal(scale=3.0, size=(batch, 2))
     for t in range(1, T):
-        x[:, t] = np.asarray(_step(jnp.asarray(x[:, t - 1]))) + rng.normal(
+        x[:, t] = np.asarray(disk_step(jnp.asarray(x[:, t - 1]))) + rng.normal(
             size=(batch, 4)
         ) * np.asarray(DYN_SIGMAS)
     meas = x[:, :, :2] + rng.normal(scale=MEAS_SIGMA, size=(batch, T, 2))
@@ -101,12 +100,12 @@ def build_graph(meas, dtype):
     return eqs.FactorGraph(
         [
             eqs.FunctionFactor(
-                _disk_dyn,
+                disk_dynamics,
                 (eqs.Var("x", t[:-1]), eqs.Var("x", t[1:])),
                 eqs.DiagonalNoise(sqrt_precision=1.0 / jnp.asarray(DYN_SIGMAS, dtype)),
             ),
             eqs.FunctionFactor(
-                _disk_meas,
+                disk_position,
                 (eqs.Var("x", t),),
                 eqs.DiagonalNoise(
                     sqrt_precision=jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)
@@ -147,7 +146,7 @@ def dense_reference_step(K: int):
         T = meas.shape[0]
         x = x_flat.reshape(T, 4)
         w = (1.0 / jnp.asarray(DYN_SIGMAS)).astype(x.dtype)
-        dyn = (x[1:] - _step(x[:-1])) * w[None, :]
+        dyn = (x[1:] - disk_step(x[:-1])) * w[None, :]
         obs = (x[:, :2] - meas) * theta[None, :]
         return jnp.concatenate([dyn.reshape(-1), obs.reshape(-1)])
 
@@ -234,9 +233,8 @@ def _rel_err(g, ref):
 
 
 def parse(argv):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = cli(__doc__)
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
     parser.add_argument("--sizes", type=int, nargs="*", default=None)
     parser.add_argument("--steps", type=int, nargs="*", default=None)
@@ -244,12 +242,8 @@ def parse(argv):
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-reference", action="store_true", help="skip dense JAX")
     parser.add_argument("--theseus-max-T", type=int, default=2000)
-    parser.add_argument(
-        "--solvers", nargs="*", default=["BlockTridiagonal", "DenseCholesky", "PCG"]
-    )
-    parser.add_argument(
-        "--adjoints", nargs="*", default=["unrolled", "truncated(k=1)", "implicit"]
-    )
+    parser.add_argument("--solvers", nargs="*", default=list(SOLVERS))
+    parser.add_argument("--adjoints", nargs="*", default=list(ADJOINTS))
     parser.add_argument(
         "--theseus-backward",
         nargs="*",
@@ -260,38 +254,20 @@ def parse(argv):
     return parser.parse_args(argv)
 
 
-def reference_record(args, T, K, theta, meas, truths, dtype):
-    """The dense JAX reference of (T, K), or a record saying why it is missing."""
-    config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
-    rec = {
-        "benchmark": "train_step",
-        "config": config | {"method": "dense JAX reference"},
-    }
-    rec |= {"T": T, "K": K, "method": "dense JAX reference"}
-    if T > 200 or args.no_reference:
-        gib = BATCH * 6 * T * 4 * T * dtype.itemsize / 2**30
-        note = (
-            "not measured (--no-reference)"
-            if args.no_reference
-            else (
-                f"not measured: dense J is (6T x 4T) per graph, {gib:.0f} GiB "
-                "for the batch"
-            )
-        )
-        return rec | {"median_s": None, "note": note}, None
-    fn = dense_reference_step(K)
-    first, median, _ = time_fn(fn, theta, meas, truths, repeats=args.repeats)
-    val, grad = fn(theta, meas, truths)
-    print(
-        f"T={T:<5d} K={K} {'dense JAX reference':34s} {median * 1e3:10.2f} ms  "
-        f"compile {first - median:6.2f} s",
-        flush=True,
-    )
-    rec |= {"median_s": median, "compile_s": first - median, "loss": float(val)}
-    return rec | {"reference_median_s": median, "ratio": 1.0}, {
-        "median_s": median,
-        "grad": grad,
-    }
+def missing_reference(args, T: int, K: int, dtype) -> dict:
+    """The record of a dense JAX reference not measured, saying why."""
+    rec = _record(args, T, K, "dense JAX reference") | {"median_s": None}
+    if args.no_reference:
+        return rec | {"note": "not measured (--no-reference)"}
+    gib = BATCH * 6 * T * 4 * T * dtype.itemsize / 2**30
+    note = f"not measured: dense J is (6T x 4T) per graph, {gib:.0f} GiB "
+    return rec | {"note": note + "for the batch"}
+
+
+def _record(args, T: int, K: int, method: str, **extra) -> dict:
+    """A record of T, K, the batch, dtype, `extra` and the method."""
+    config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype} | extra
+    return record("train_step", config | {"method": method})
 
 
 def write_markdown(path, m, table):
@@ -314,44 +290,42 @@ def methods(args):
         theseus += [("dense Cholesky", "unroll")]
         theseus = theseus[:1] if args.quick else theseus
         theseus = [c for c in theseus if c[1] in args.theseus_backward]
-    names = ("unrolled", "truncated(k=1)", "implicit")
-    kinds = (eqs.UnrolledAdjoint(), eqs.TruncatedAdjoint(1), eqs.ImplicitAdjoint())
-    adjoints = dict(zip(names, kinds))
-    names = ("BlockTridiagonal", "DenseCholesky", "PCG")
-    solvers = dict(zip(names, (eqs.BlockTridiagonal(), eqs.DenseCholesky(), eqs.PCG())))
+    adjoints = [a for a in ADJOINTS if a in args.adjoints]
+    solvers = [s for s in SOLVERS if s in args.solvers]
     if args.quick:
-        adjoints = {k: adjoints[k] for k in ("unrolled", "implicit")}
-        solvers = {"BlockTridiagonal": solvers["BlockTridiagonal"]}
-    solvers = {k: v for k, v in solvers.items() if k in args.solvers}
-    return theseus, solvers, {k: v for k, v in adjoints.items() if k in args.adjoints}
+        adjoints = [a for a in adjoints if a in ("unrolled", "implicit")]
+        solvers = [s for s in solvers if s == "BlockTridiagonal"]
+    return theseus, {s: SOLVERS[s] for s in solvers}, {a: ADJOINTS[a] for a in adjoints}
 
 
 def main(argv=None):
     args = parse(argv)
     m = machine()  # git hash, load and thread settings when the run started
     theseus_configs, solvers, adjoints = methods(args)
-    theseus_times = {}
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     dtype = jnp.dtype(args.dtype)
     sizes = args.sizes or ([20] if args.quick else [20, 200, 2000])
     steps = args.steps or ([3] if args.quick else [3, 5])
-    records = []
+    records, theseus_times = [], {}
 
-    def measured(T, K, ref, method, extra, first, median, val, grad, host=False):
-        """Record, save and print one measured configuration."""
-        config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
-        rec = {"benchmark": "train_step", "config": config | extra | {"method": method}}
-        rec |= {"T": T, "K": K, "method": method, "median_s": median}
+    def measured(T, K, ref, method, fn, host=False, **extra):
+        """Time `fn()` (a Theseus layer's on the host), record, save, print."""
+        if host:
+            first, times, _ = time_host(fn, args.repeats)
+            median = float(np.median(times))
+        else:
+            first, median, _ = time_fn(fn, repeats=args.repeats)
+        val, grad = fn()
+        rec = _record(args, T, K, method, **extra) | {"median_s": median}
         rec |= {"compile_s": first - median, "loss": float(val)}
         text = ""
         if ref is not None:
             rec["reference_median_s"] = ref["median_s"]
             rec["ratio"] = median / ref["median_s"]
             rec["grad_rel_err"] = _rel_err(grad, ref["grad"])
-            text = (
-                f"  ratio {rec['ratio']:6.3f}  grad rel err {rec['grad_rel_err']:.1e}"
-            )
+            err = rec["grad_rel_err"]
+            text = f"  ratio {rec['ratio']:6.3f}  grad rel err {err:.1e}"
         if host:  # a Theseus row: the reference for the speed-up column
             theseus_times[(T, K, method)] = median
         th_key = (T, K, "Theseus CHOLMOD unroll")
@@ -362,52 +336,42 @@ def main(argv=None):
         # Written after every record: a run stopped part-way keeps its rows.
         if args.json:
             write_json(args.json, records, {"machine_at_start": m})
-        first_text = (
-            f"first call {first:6.2f}" if host else f"compile {first - median:6.2f}"
-        )
-        print(
-            f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  "
-            f"{first_text} s{text}",
-            flush=True,
-        )
+        what, secs = ("first call", first) if host else ("compile", first - median)
+        line = f"T={T:<5d} K={K} {method:34s} {median * 1e3:10.2f} ms  {what}"
+        print(f"{line} {secs:6.2f} s{text}", flush=True)
+        return rec, grad
 
     for T in sizes:
         truths, meas = simulate(T, BATCH, dtype)
         graphs = eqx.filter_vmap(lambda m: build_graph(m, dtype))(meas)
         theta = jnp.full((2,), 1.0 / MEAS_SIGMA, dtype)
         for K in steps:
-            rec, ref = reference_record(args, T, K, theta, meas, truths, dtype)
-            records.append(rec)
+            ref = None
+            if args.no_reference or T > 200:
+                records.append(missing_reference(args, T, K, dtype))
+            else:
+                dense = dense_reference_step(K)
+                call = lambda: dense(theta, meas, truths)
+                rec, grad = measured(T, K, None, "dense JAX reference", call)
+                rec |= {"reference_median_s": rec["median_s"], "ratio": 1.0}
+                ref = {"median_s": rec["median_s"], "grad": grad}
             if not theseus_configs:
-                config = {"T": T, "K": K, "batch": BATCH, "dtype": args.dtype}
-                records.append(
-                    {
-                        "benchmark": "train_step",
-                        "config": config | {"method": "Theseus"},
-                    }
-                    | {"T": T, "K": K, "method": "Theseus", "median_s": None}
-                    | {"note": "not measured: Theseus is not installed"}
-                )
+                note = "not measured: Theseus is not installed"
+                rec = _record(args, T, K, "Theseus")
+                records.append(rec | {"median_s": None, "note": note})
             for tsolver, tback in theseus_configs:
                 if (tsolver == "dense Cholesky" and T > 20) or T > args.theseus_max_T:
                     continue
                 fn = theseus_step(meas, truths, K, tsolver, tback)
-                first, times, _ = time_host(fn, args.repeats)
-                val, grad = fn()
-                method = f"Theseus {tsolver} {tback}"
-                median = float(np.median(times))
-                measured(T, K, ref, method, {}, first, median, val, grad, host=True)
+                measured(T, K, ref, f"Theseus {tsolver} {tback}", fn, host=True)
             for sname, ls in solvers.items():
                 if sname == "DenseCholesky" and T > 200:
                     continue
                 for aname, adjoint in adjoints.items():
-                    fn = eqsmooth_step(ls, K, adjoint)
-                    args_ = (theta, graphs, truths)
-                    first, median, _ = time_fn(fn, *args_, repeats=args.repeats)
-                    val, grad = fn(*args_)
-                    extra = {"solver": sname, "adjoint": aname}
+                    step = eqsmooth_step(ls, K, adjoint)
+                    call = lambda: step(theta, graphs, truths)
                     method = f"eqsmooth {sname} {aname}"
-                    measured(T, K, ref, method, extra, first, median, val, grad)
+                    measured(T, K, ref, method, call, solver=sname, adjoint=aname)
     table = markdown_table(records, COLUMNS)
     print()
     print(table)

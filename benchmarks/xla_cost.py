@@ -2,45 +2,48 @@
 velocity, T = 1e4, 10 fixed steps, BlockTridiagonal) and of the T = 200
 training step (K = 3, batch 32; unrolled and truncated k = 1), for the
 eqsmooth that is imported: a noise-free comparison of the work two source
-trees compile, beside the timings (these machines are shared).
+trees compile, beside the timings (these machines are shared). Another
+checkout's eqsmooth comes first with `-P` (the working directory not
+searched for modules) and `PYTHONPATH`:
 
-    PYTHONPATH=TREE python benchmarks/xla_cost.py TREE [--json PATH]
+    python -m benchmarks.xla_cost [--json PATH]
+    PYTHONPATH=TREE:. python -P -m benchmarks.xla_cost [--json PATH]
 """
 
+import argparse
 import json
-import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+import eqsmooth as eqs
+
+from . import chain, train_step as ts
+from ._common import xla_cost
 
 
-sys.path.insert(0, sys.argv[1] + "/benchmarks")
-import chain  # noqa: E402
-import equinox as eqx  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import train_step as ts  # noqa: E402
-
-import eqsmooth as eqs  # noqa: E402
-
-
-jax.config.update("jax_enable_x64", True)
-
-out = {}
-graph, values = chain.se2vel_problem(10_000)[:2]
-solve = chain.make_solve(eqs.BlockTridiagonal(), 10)
-c = solve.lower(graph, values).compile().cost_analysis()
-c = c[0] if isinstance(c, list) else c
-out["chain_solve"] = {k: c.get(k) for k in ("flops", "bytes accessed")}
-T, K = 200, 3
-truths, meas = ts.simulate(T, ts.BATCH, jnp.float64)[:2]
-graphs = eqx.filter_vmap(lambda m: ts.build_graph(m, jnp.float64))(jnp.asarray(meas))
-adjoints = (("unrolled", eqs.UnrolledAdjoint()), ("truncated", eqs.TruncatedAdjoint(1)))
-for name, adj in adjoints:
-    step = ts.eqsmooth_step(eqs.BlockTridiagonal(), K, adj)
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--json", default=None)
+    path = parser.parse_args(argv).json
+    jax.config.update("jax_enable_x64", True)
+    graph, values = chain.se2vel_problem(10_000)
+    solve = chain.make_solve(eqs.BlockTridiagonal(), 10)
+    out = {"chain_solve": xla_cost(solve.lower(graph, values).compile())}
+    truths, meas = ts.simulate(200, ts.BATCH, jnp.float64)
+    graphs = eqx.filter_vmap(lambda m: ts.build_graph(m, jnp.float64))(meas)
     theta = jnp.full((2,), 1.0 / ts.MEAS_SIGMA, jnp.float64)
-    jitted = jax.jit(lambda a, b, d: step(a, b, d))
-    c = jitted.lower(theta, graphs, jnp.asarray(truths)).compile().cost_analysis()
-    c = c[0] if isinstance(c, list) else c
-    out["train_" + name] = {k: c.get(k) for k in ("flops", "bytes accessed")}
-print(json.dumps(out))
-if "--json" in sys.argv:
-    with open(sys.argv[sys.argv.index("--json") + 1], "w") as fh:
-        json.dump(out, fh, indent=1)
+    adjoints = {"unrolled": eqs.UnrolledAdjoint(), "truncated": eqs.TruncatedAdjoint(1)}
+    for name, adjoint in adjoints.items():  # K = 3 steps
+        step = ts.eqsmooth_step(eqs.BlockTridiagonal(), 3, adjoint)
+        jitted = jax.jit(lambda a, b, c: step(a, b, c))
+        out["train_" + name] = xla_cost(jitted.lower(theta, graphs, truths).compile())
+    print(json.dumps(out))
+    if path:
+        Path(path).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -13,6 +13,9 @@ run from the repository's root:
   variant.
 - `python -m experiments.pendulum_friction`: the discrepancy workflow on a
   real pendulum recording.
+- `python -m experiments.discovery_validation.<study>`: Monte Carlo
+  studies of the discrepancy workflow's tests (size, power, naming,
+  localisation) on simulated systems.
 
 Real data is read from the path a script is given, else from
 `$EQSMOOTH_DATA`, else from `../shared/data` beside the checkout

@@ -9,7 +9,7 @@ isotropic quadratic drag, and a constant force on the y axis only (which the
 springs make equivalent to a bias of the y sensor: that set counts as
 correct, a name on the x axis as wrong).
 
-`--system driven`: the oscillator of `discover.py` driven by a known input
+`--system driven`: the oscillator of `oscillator.py` driven by a known input
 force u (a sinusoid of amplitude 0.6, period 6-20 steps, plus a ±0.4 random
 telegraph switching with probability 0.15 per step); the one-axis library
 with one input (an actuator-gain candidate added). Hidden effects: an
@@ -17,23 +17,23 @@ actuator gain error, quadratic drag, Coulomb friction, a constant force.
 
 Both: B = 24 sequences × T = 40 steps per data set, each effect at the
 per-step signal-to-noise ratio `--level`; null data: no effect. Outcomes and
-rates as in `discover.py`.
+rates as in `oscillator.py`.
 
-    python benchmarks/discover_systems.py --system two_axis --seeds 10 --null 40 \\
-        --json benchmarks/results/discover_two_axis.json \\
-        --markdown benchmarks/results/discover_two_axis.md
-    python benchmarks/discover_systems.py --system driven --seeds 10 --null 200 \\
-        --json benchmarks/results/discover_driven.json \\
-        --markdown benchmarks/results/discover_driven.md
+    python -m experiments.discovery_validation.systems --system two_axis \\
+        --seeds 10 --null 40 \\
+        --json results/discovery_validation/systems_two_axis.json \\
+        --markdown results/discovery_validation/systems_two_axis.md
+    python -m experiments.discovery_validation.systems --system driven \\
+        --seeds 10 --null 200 \\
+        --json results/discovery_validation/systems_driven.json \\
+        --markdown results/discovery_validation/systems_driven.md
 """
 
 import argparse
 import dataclasses
-import sys
 import time
 from collections import Counter
 from collections.abc import Callable
-from pathlib import Path
 
 import jax
 
@@ -42,8 +42,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine, write_json, write_text  # noqa: E402
-from discover import (  # noqa: E402
+
+import eqsmooth.discover as dc  # noqa: E402
+from benchmarks._common import cli_command, machine, write_json, write_text  # noqa: E402
+
+from .oscillator import (  # noqa: E402
     _effect_term,
     _git,
     classify,
@@ -53,8 +56,6 @@ from discover import (  # noqa: E402
     rate,
     run_workflow,
 )
-
-import eqsmooth.discover as dc  # noqa: E402
 
 
 B, T = 24, 40
@@ -138,7 +139,7 @@ def two_axis() -> System:
 Q1 = np.array([0.05, 0.5])
 R1 = 1.0
 PRIOR1 = np.array([20.0, 4.0])
-COULOMB_EPS = 1.0  # as in benchmarks/discover.py, whose effect terms are used
+COULOMB_EPS = 1.0  # as in oscillator.py, whose effect terms are used
 
 
 def _dyn1(x, u, spring):
@@ -162,7 +163,7 @@ def _inputs(rng, num: int) -> np.ndarray:
 
 
 def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Velocity increment of a unit coefficient (others as in `discover.py`)."""
+    """Velocity increment of a unit coefficient (others as in `oscillator.py`)."""
     if effect in ("gain", "none"):
         return u if effect == "gain" else np.zeros_like(v)
     return _effect_term(effect, v)
@@ -339,7 +340,7 @@ def main(argv=None):
     warm = system.simulate(np.random.default_rng(99), "drag", coefs["drag"])
     run_workflow(warm, system.model)
     first_s = time.perf_counter() - t0
-    command = " ".join([Path(sys.executable).name] + sys.argv)
+    command = cli_command()
     records = []
 
     def save():

@@ -2,7 +2,7 @@
 missing effect acts, against where it does.
 
 Effects that act only in a region of one state or input, on the three
-systems of `discover_nonsmooth.py` (B = 24 sequences × T = 40 steps):
+systems of `nonsmooth.py` (B = 24 sequences × T = 40 steps):
 
 - `oscillator`, `contact`: a contact spring beyond p = 10,
   `v' += −k (p − 10)₊` (region: x0 ≥ 10, on the velocity equation x1').
@@ -19,14 +19,13 @@ F1 of the flagged region against the true one (0 when the variable is
 wrong). Null data (no effect): how often a region is reported at all (only
 after a detection, so at most the decision test's level, α/2).
 
-    python benchmarks/discover_localise.py --seeds 20 --null 100 \\
-        --json benchmarks/results/discover_localise.json \\
-        --markdown benchmarks/results/discover_localise.md
+    python -m experiments.discovery_validation.localise --seeds 20 --null 100 \\
+        --json results/discovery_validation/localise.json \\
+        --markdown results/discovery_validation/localise.md
 """
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -35,13 +34,13 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import discover as d1  # noqa: E402
-import discover_nonsmooth as dn  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine  # noqa: E402
-from discover import fmt_rate, rate  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
+from benchmarks._common import cli_command, machine  # noqa: E402
+
+from . import nonsmooth as dn, oscillator as d1  # noqa: E402
+from .oscillator import fmt_rate, rate  # noqa: E402
 
 
 # system -> (effect, coefficient, true variable, true equation, region start)
@@ -193,7 +192,7 @@ def main(argv=None):
         records = json.loads(Path(args.json).read_text())["records"]
     done = {(r["system"], r["effect"]) for r in records}
     info = {
-        "command": "python " + " ".join(["discover_localise.py", *sys.argv[1:]]),
+        "command": cli_command(),
         "git": "{} (uncommitted: {})".format(*d1._git()),
         "machine": machine(),
     }

@@ -26,10 +26,10 @@ over the velocity noise std): viscous damping, Coulomb friction
 of the true continuous-time coefficient). Null data: no effect, measurement
 noise of the assumed std and of twice it.
 
-    python benchmarks/discover_continuous.py --quick
-    python benchmarks/discover_continuous.py --seeds 20 --kick-seeds 10 \\
-        --null 60 --json benchmarks/results/discover_continuous.json \\
-        --markdown benchmarks/results/discover_continuous.md
+    python -m experiments.discovery_validation.continuous --quick
+    python -m experiments.discovery_validation.continuous --seeds 20 --kick-seeds 10 \\
+        --null 60 --json results/discovery_validation/continuous.json \\
+        --markdown results/discovery_validation/continuous.md
 
 The run saves after every cell and, given the same `--json`, skips the cells
 already there (it can be stopped and resumed).
@@ -38,7 +38,6 @@ already there (it can be stopped and resumed).
 import argparse
 import functools
 import json
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -48,14 +47,15 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import discover as d1  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine  # noqa: E402
-from discover import fmt_rate, guarded_run, rate  # noqa: E402
-from discover_nonsmooth import null_table, outcome_rates, saver, tally  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
+from benchmarks._common import cli_command, machine  # noqa: E402
+
+from . import oscillator as d1  # noqa: E402
+from .nonsmooth import null_table, outcome_rates, saver, tally  # noqa: E402
+from .oscillator import fmt_rate, guarded_run, rate  # noqa: E402
 
 
 B, T = 24, 40
@@ -303,7 +303,7 @@ def main(argv=None):
         )
         for r in records
     }
-    command = "python " + " ".join(["discover_continuous.py", *sys.argv[1:]])
+    command = cli_command()
     info = {
         "command": command,
         "commands": [*commands, command],

@@ -2,11 +2,11 @@
 get a confident name, effects inside it must keep theirs.
 
 Three systems (B = 24 sequences × T = 40 steps per data set, the nominal
-models and libraries of `discover.py` and `discover_systems.py`):
+models and libraries of `oscillator.py` and `systems.py`):
 
 - `driven`: the oscillator driven by a known input force u (sinusoid plus
   random telegraph, |u| ≤ 1); 11 candidates.
-- `oscillator`: the undriven oscillator of `discover.py`; 10 candidates.
+- `oscillator`: the undriven oscillator of `oscillator.py`; 10 candidates.
 - `two_axis`: two coupled axes with two sensors; 14 candidates.
 
 Hidden effects outside every library (nonsmooth): on the driven system's
@@ -30,10 +30,10 @@ model fails its innovation diagnostics) nor partial (it fails the adequacy
 test of `eqsmooth.discover.name`). For an out-of-library effect every
 confident name is wrong. Rates with Wilson 95% intervals.
 
-    python benchmarks/discover_nonsmooth.py --quick
-    python benchmarks/discover_nonsmooth.py --seeds 20 --null 200 \\
-        --json benchmarks/results/discover_nonsmooth.json \\
-        --markdown benchmarks/results/discover_nonsmooth.md
+    python -m experiments.discovery_validation.nonsmooth --quick
+    python -m experiments.discovery_validation.nonsmooth --seeds 20 --null 200 \\
+        --json results/discovery_validation/nonsmooth.json \\
+        --markdown results/discovery_validation/nonsmooth.md
 
 The run saves after every cell and, given the same `--json`, skips the cells
 already there (it can be stopped and resumed).
@@ -42,7 +42,6 @@ already there (it can be stopped and resumed).
 import argparse
 import json
 import math
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -52,13 +51,13 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import discover as d1  # noqa: E402
-import discover_systems as d2  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import machine, write_json, write_text  # noqa: E402
-from discover import classify, fmt_rate, guarded_run, rate  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
+from benchmarks._common import cli_command, machine, write_json, write_text  # noqa: E402
+
+from . import oscillator as d1, systems as d2  # noqa: E402
+from .oscillator import classify, fmt_rate, guarded_run, rate  # noqa: E402
 
 
 B, T = 24, 40
@@ -81,11 +80,11 @@ _INPUT = {
     "dead zone": lambda u, w: np.sign(u) * np.maximum(np.abs(u) - w, 0.0) - u,
     "backlash": lambda u, w: _backlash(u, w) - u,
     "actuator gain": lambda u, c: c * u,
-    # Regional (benchmarks/discover_localise.py): the actuator loses force
+    # Regional (`localise.py`): the actuator loses force
     # above u = 0.3.
     "weak above 0.3": lambda u, c: -c * np.maximum(u - 0.3, 0.0),
 }
-# Position effects on the first axis only (benchmarks/discover_localise.py):
+# Position effects on the first axis only (`localise.py`):
 # a contact spring beyond p = 10.
 CONTACT_AT = 10.0
 _POSITION = {"contact": lambda p, c: -c * np.maximum(p - CONTACT_AT, 0.0)}
@@ -518,7 +517,7 @@ def main(argv=None):
     def log(msg):
         print(msg, flush=True)
 
-    command = "python " + " ".join(["discover_nonsmooth.py", *sys.argv[1:]])
+    command = cli_command()
     info = {
         "command": command,
         "commands": [*commands, command],

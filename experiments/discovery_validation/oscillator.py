@@ -21,23 +21,23 @@ or Student-t(3) (`--noises`); every alarm gets its own false-alarm rate.
 Outcomes per data set: the truth named alone, inside a reported set, with
 an extra term, a wrong name only, or nothing named (Wilson 95% intervals).
 
-    python benchmarks/discover.py --quick
-    python benchmarks/discover.py --seeds 50 --null 200 \\
-        --json benchmarks/results/discover.json \\
-        --markdown benchmarks/results/discover.md
-    python benchmarks/discover.py --seeds 10 --levels 0.4 --null 60 \\
-        --noises gauss student3 --measurement-dof 4 \\
-        --json benchmarks/results/discover_robust.json \\
-        --markdown benchmarks/results/discover_robust.md
-    python benchmarks/discover.py --render benchmarks/results/discover.json \\
-        --markdown benchmarks/results/discover.md  # report text only
+    python -m experiments.discovery_validation.oscillator --quick
+    python -m experiments.discovery_validation.oscillator --seeds 50 --null 200 \\
+        --json results/discovery_validation/oscillator.json \\
+        --markdown results/discovery_validation/oscillator.md
+    python -m experiments.discovery_validation.oscillator --seeds 10 --levels 0.4 \\
+        --null 60 --noises gauss student3 --measurement-dof 4 \\
+        --json results/discovery_validation/oscillator_robust.json \\
+        --markdown results/discovery_validation/oscillator_robust.md
+    python -m experiments.discovery_validation.oscillator \\
+        --render results/discovery_validation/oscillator.json \\
+        --markdown results/discovery_validation/oscillator.md  # report text only
 """
 
 import argparse
 import json
 import math
 import statistics
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -49,9 +49,9 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import dirty, git, machine, write_json, write_text  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
+from benchmarks._common import cli_command, dirty, git, machine, write_json, write_text  # noqa: E402
 from eqsmooth.discover import score_test  # noqa: E402
 
 
@@ -601,7 +601,7 @@ def report(records, nulls, info, quick) -> str:
     lines = ["# discover benchmark: Monte Carlo of find / name / add", ""]
     if quick:
         lines += ["**QUICK RUN (a small subset; not the committed figures).**", ""]
-    changed = ", ".join(info["dirty"]) or "none under eqsmooth/ or in this script"
+    changed = ", ".join(info["dirty"]) or "none under eqsmooth/ or in these studies"
     lines += [
         f"- command: `{info['command']}`",
         f"- machine: {m['cores']} cores, {m['memory']}, {m['cpu']}; "
@@ -641,9 +641,9 @@ def report(records, nulls, info, quick) -> str:
 
 
 def _git():
-    """HEAD, and the paths under eqsmooth/ or this script with changes."""
+    """HEAD, and the paths under eqsmooth/ or in these studies with changes."""
     head = git("rev-parse", "--short", "HEAD") or "unknown"
-    return head, dirty("../eqsmooth", Path(__file__).name)
+    return head, dirty("eqsmooth", "experiments/discovery_validation")
 
 
 def render(path, markdown=None) -> None:
@@ -689,7 +689,7 @@ def main(argv=None):
     head, changed = _git()  # captured at start
     m = machine()
     m["git"] = head
-    command = " ".join([Path(sys.executable).name] + sys.argv)
+    command = cli_command()
     seeds = args.seeds if args.seeds is not None else (2 if args.quick else 50)
     num_null = args.null if args.null is not None else (10 if args.quick else 200)
     effects = args.effects or (["drag", "force"] if args.quick else list(EFFECTS))

@@ -1,0 +1,15 @@
+"""The discovery workflow's validation studies and how to run them (results in
+`results/discovery_validation/`)."""
+
+STUDIES = {
+    "oscillator": "1-D oscillator: hidden effects, null data, data size",
+    "systems": "two coupled axes; a driven oscillator",
+    "nonsmooth": "effects outside every library must not get a confident name",
+    "localise": "where find(..., localise=True) says an effect acts",
+    "continuous": "effects inside a continuous-time model",
+}
+
+if __name__ == "__main__":
+    print(__doc__.replace("\n", " ").replace("`", ""), "\n")
+    for name, what in STUDIES.items():
+        print(f"{name}: {what}\n    python -m experiments.discovery_validation.{name}")
