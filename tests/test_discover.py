@@ -544,7 +544,8 @@ def test_alarm_calibration_on_a_small_null_batch():
     # Every alarm the workflow can raise, on null data sets (no missing
     # effect, fixed seeds). At alpha = 5% any alarm (their union) fires on a
     # data set with probability <= 0.05, so 3 or more of 8 happen with
-    # probability < 0.6%. The benchmarks measure the rates on 200 data sets.
+    # probability < 0.6%. experiments/discovery_validation measures the rates
+    # on 200 data sets.
     import eqsmooth.discover as dc
 
     model = _model()
