@@ -17,9 +17,10 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int, PyTree
+from jaxtyping import Array, Bool, Float, Int
 
 from ...factors import FactorGraph
+from ...factors._graph import Values
 from ...lie import AbstractLieGroup
 from .._derivatives import stop_arrays
 from .._linearization import (
@@ -30,9 +31,6 @@ from .._linearization import (
 )
 from .._solution import RESULTS
 from ._stopping import AbstractStopping
-
-
-Values = dict[str, PyTree]
 
 
 def _residuals(values: Values, graph: FactorGraph) -> tuple[Array, ...]:
