@@ -13,9 +13,15 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 from .._precision import matmul as mm
 from ..factors import AbstractFactor
 from ..manifold import is_group, local, retract, tangent_dim
+from ._chain import (
+    chain_order,
+    checked_covariance,
+    checked_measurements,
+    residual_dim,
+    time_layers,
+    value_and_jacobian,
+)
 from ._rows import (
-    check_gaussian,
-    check_rows,
     gather_rows,
     per_row_fields,
     row_whitening,
@@ -62,106 +68,8 @@ class EKFSolution(eqx.Module):
     log_likelihood: Float[Array, ""]
 
 
-def _value_and_jac(fn, dim: int, dtype):
-    # One primal evaluation, then the identity pushed through the JVP
-    # (forward mode, as the smoother's linearisation does).
-    zero = jnp.zeros((dim,), dtype=dtype)
-    r, jvp = jax.linearize(fn, zero)
-    J = jax.vmap(jvp, in_axes=1, out_axes=1)(jnp.eye(dim, dtype=dtype))
-    return r, J
-
-
 def _sym(P):
     return 0.5 * (P + P.T)
-
-
-def _chain_order(transition: AbstractFactor) -> tuple[str, np.ndarray]:
-    name = type(transition).__name__
-    if len(transition.variables) != 2:
-        raise ValueError(
-            f"ekf: the transition factor {name} must touch two variables "
-            f"(x_t, x_t+1); it touches {len(transition.variables)}"
-        )
-    va, vb = transition.variables
-    if va.group != vb.group:
-        raise ValueError(
-            f"ekf: the transition factor {name} links groups {va.group!r} and "
-            f"{vb.group!r}; both variables must be in one group"
-        )
-    ia, ib = va.ids, vb.ids
-    n = ia.shape[0]
-    if n == 0:
-        raise ValueError(f"ekf: the transition factor {name} has no rows")
-    perm = np.argsort(ia, kind="stable")
-    if not (np.array_equal(ia[perm], np.arange(n)) and np.array_equal(ib, ia + 1)):
-        raise ValueError(
-            f"ekf: the transition factor {name} must form a chain: each row touches "
-            f"({va.group}[t], {va.group}[t+1]) and every t = 0..{n - 1} appears "
-            f"exactly once; got rows {ia[:4].tolist()} -> {ib[:4].tolist()}"
-            + (" ..." if n > 4 else "")
-        )
-    return va.group, perm
-
-
-def _layers(ids: np.ndarray, T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-row layer (occurrence number of its time step), table and mask.
-
-    `table[t, k]` is the row holding the k-th measurement of time `t` (0 where
-    there is none) and `mask[t, k]` whether it exists.
-    """
-    n = ids.shape[0]
-    order = np.argsort(ids, kind="stable")
-    sorted_ids = ids[order]
-    first = np.searchsorted(sorted_ids, sorted_ids, side="left")
-    layer = np.empty(n, dtype=np.int64)
-    layer[order] = np.arange(n) - first
-    L = int(layer.max()) + 1
-    table = np.zeros((T, L), dtype=np.int64)
-    mask = np.zeros((T, L), dtype=bool)
-    table[ids, layer] = np.arange(n)
-    mask[ids, layer] = True
-    return layer, table, mask
-
-
-def _row_dim(factor: AbstractFactor, rows, *states) -> int:
-    row0 = jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a, rows)
-
-    def fn(rows0, *xs):
-        return with_rows(factor, rows0).residual(*xs)
-
-    name = type(factor).__name__
-    try:
-        out = eqx.filter_eval_shape(fn, row0, *states)
-    except (TypeError, ValueError, IndexError) as e:
-        # A mean of the wrong size or type fails deep inside the user's
-        # residual; say that the initial mean is the likely cause.
-        raise ValueError(
-            f"ekf: factor {name} cannot be evaluated at initial_mean "
-            f"({_describe(states[0])}); initial_mean must be one state of the "
-            f"chain's group, of the type and size the factor's residual expects. "
-            f"The residual raised {type(e).__name__}: {e}"
-        ) from e
-    if not isinstance(out, jax.ShapeDtypeStruct) or len(out.shape) != 1:
-        shape = getattr(out, "shape", type(out).__name__)
-        raise ValueError(
-            f"ekf: {name}.residual must return a 1-D array, got {shape} at "
-            f"initial_mean ({_describe(states[0])}); initial_mean is one state, "
-            "without a time axis"
-        )
-    return out.shape[0]
-
-
-def _describe(state: PyTree) -> str:
-    leaves = jax.tree_util.tree_leaves(state, is_leaf=is_group)
-    parts = [
-        f"{type(x).__name__} of shape {tuple(x.parameters().shape)}"
-        if is_group(x)
-        else f"array of shape {tuple(jnp.shape(x))}"
-        for x in leaves
-    ]
-    if len(leaves) == 1 and (is_group(state) or eqx.is_array(state)):
-        return parts[0]
-    return f"{type(state).__name__} of " + ", ".join(parts) if parts else "empty"
 
 
 def ekf(
@@ -236,7 +144,7 @@ def ekf(
             f"ekf: transition must be an AbstractFactor, got "
             f"{type(transition).__name__}"
         )
-    measurements = _checked_measurements(transition, measurements)
+    measurements = checked_measurements(transition, measurements)
     if not isinstance(prediction_steps, int) or prediction_steps < 1:
         raise ValueError(
             f"ekf: prediction_steps must be an int >= 1, got {prediction_steps!r}"
@@ -255,57 +163,6 @@ def ekf(
         reset_covariance,
         throw,
     )
-
-
-def checked_covariance(who: str, cov: ArrayLike, d: int) -> Array:
-    """`cov` as an array of shape `(d, d)`, else a `ValueError` naming `who`."""
-    cov = jnp.asarray(cov)
-    if cov.shape != (d, d):
-        raise ValueError(
-            f"{who}: initial_covariance has shape {cov.shape}; the state has "
-            f"tangent dimension {d}, so it must be ({d}, {d})"
-        )
-    return cov
-
-
-def _checked_measurements(transition, measurements) -> tuple[AbstractFactor, ...]:
-    """The measurement stacks as a tuple, each checked against the chain."""
-    if isinstance(measurements, AbstractFactor):
-        measurements = (measurements,)
-    measurements = tuple(measurements)
-    for f in measurements:
-        if not isinstance(f, AbstractFactor):
-            raise TypeError(
-                f"ekf: measurements must be AbstractFactor stacks, got "
-                f"{type(f).__name__}"
-            )
-    group, _ = _chain_order(transition)
-    T = transition.num_rows + 1
-    for f in measurements:
-        name = type(f).__name__
-        if len(f.variables) != 1:
-            raise ValueError(
-                f"ekf: measurement factor {name} must touch one variable (x_t); it "
-                f"touches {len(f.variables)}"
-            )
-        var = f.variables[0]
-        if len(var) == 0:
-            raise ValueError(f"ekf: measurement factor {name} has no rows")
-        if var.group != group:
-            raise ValueError(
-                f"ekf: measurement factor {name} touches group {var.group!r} but the "
-                f"transition factor {type(transition).__name__} is on group "
-                f"{group!r}"
-            )
-        if len(var) and var.ids.max() >= T:
-            raise ValueError(
-                f"ekf: measurement factor {name} has time indices up to "
-                f"{int(var.ids.max())}, but the transition defines only {T} states"
-            )
-    for f in (transition,) + measurements:
-        check_rows(f)
-        check_gaussian(f.noise, f"ekf: factor {type(f).__name__}")
-    return measurements
 
 
 def _check_initial_belief(mean: PyTree, cov: Array) -> tuple[PyTree, Array]:
@@ -367,7 +224,7 @@ def _update(mean, cov, factor, R, logdet_R, present, reset_covariance: bool):
     def r_w(delta):
         return mm(R, factor.residual(retract(mean, delta)))
 
-    r, H = _value_and_jac(r_w, d, dtype)
+    r, H = value_and_jacobian(r_w, d, dtype)
     m = r.shape[0]
     y = -r
     PHt = mm(cov, H.T)
@@ -383,7 +240,7 @@ def _update(mean, cov, factor, R, logdet_R, present, reset_covariance: bool):
         def moved(delta):
             return local(new_mean, retract(mean, v + delta))
 
-        _, J = _value_and_jac(moved, d, dtype)
+        _, J = value_and_jacobian(moved, d, dtype)
         new_cov = mm(mm(J, new_cov), J.T)
     new_cov = _sym(new_cov)
     alpha = jax.scipy.linalg.solve_triangular(L, y, lower=True)
@@ -410,13 +267,13 @@ def _predict(mean, cov, factor, W, prediction_steps: int):
 
     b = mean
     for _ in range(prediction_steps):
-        r, B = _value_and_jac(lambda db: r_w(mean, retract(b, db)), d, dtype)
+        r, B = value_and_jacobian(lambda db: r_w(mean, retract(b, db)), d, dtype)
         b = retract(b, -jnp.linalg.solve(B, r))
 
     def joint(delta):
         return r_w(retract(mean, delta[:d]), retract(b, delta[d:]))
 
-    _, J = _value_and_jac(joint, 2 * d, dtype)
+    _, J = value_and_jacobian(joint, 2 * d, dtype)
     A, B = J[:, :d], J[:, d:]
     Binv = jnp.linalg.solve(B, jnp.eye(d, dtype=dtype))
     F = -mm(Binv, A)
@@ -428,9 +285,9 @@ def _transition_rows(transition, mean0, d: int, dtype):
     """The transition's rows in time order, padded with one dummy row so that
     every scan step is "update at t, then predict t+1" (the last prediction
     is discarded): (scanned arrays, static part)."""
-    _, perm = _chain_order(transition)
+    _, perm = chain_order(transition)
     trans_rows = per_row_fields(transition)
-    m_trans = _row_dim(transition, trans_rows, mean0, mean0)
+    m_trans = residual_dim(transition, trans_rows, mean0, mean0)
     if m_trans != d:
         raise ValueError(
             f"ekf: the transition factor {type(transition).__name__} has residual "
@@ -449,10 +306,10 @@ def _measurement_layers(measurements, mean0, T: int, dtype):
     meas_static, meas_xs, meas_layout = [], [], []
     for f in measurements:
         rows = per_row_fields(f)
-        m = _row_dim(f, rows, mean0)
+        m = residual_dim(f, rows, mean0)
         R_all, logdet_all = row_whitening(f, m, dtype)
         ids = f.variables[0].ids
-        layer, table, mask = _layers(ids, T)
+        layer, table, mask = time_layers(ids, T)
         dyn, static = eqx.partition(gather_rows(rows, table), eqx.is_array)
         meas_static.append(static)
         meas_xs.append((dyn, R_all[table], logdet_all[table], jnp.asarray(mask)))

@@ -23,9 +23,9 @@ from ..solve import (
     ImplicitAdjoint,
     LevenbergMarquardt,
 )
-from ._ekf import _row_dim, checked_covariance
-from ._fixed_lag import _initial_prior, _Model, _step
+from ._chain import checked_covariance, residual_dim
 from ._rows import check_gaussian, check_rows, row_whitening
+from ._window import ChainRows, initial_prior, window_step
 
 
 class FixedLagState(eqx.Module):
@@ -56,7 +56,7 @@ def _step_rows(transition, measurements, mean0, dtype):
     trans_R, _ = row_whitening(transition, d, dtype)
     out = [(per_row_fields(transition), trans_R)]
     for f in measurements:
-        R, _ = row_whitening(f, _row_dim(f, per_row_fields(f), mean0), dtype)
+        R, _ = row_whitening(f, residual_dim(f, per_row_fields(f), mean0), dtype)
         out.append((per_row_fields(f), R))
     return tuple(out)
 
@@ -213,7 +213,7 @@ class FixedLagSmoother(eqx.Module):
             jnp.array(-1),
             window,
             jnp.array(0),
-            _initial_prior(1, initial_mean, cov0),
+            initial_prior(1, initial_mean, cov0),
             rows,
         )
         return self._advance(state, transition, measurements, step, who)
@@ -271,7 +271,7 @@ class FixedLagSmoother(eqx.Module):
         k = [R.shape[0] // (lag + 1) for _, R in meas]
         # Kept step v holds the transition into v; the model's row v is the
         # transition v -> v + 1.
-        model = _Model(
+        model = ChainRows(
             transition=transition,
             trans_rows=jax.tree_util.tree_map(lambda a: a[1:], trans_rows),
             trans_R=trans_R[1:],
@@ -287,7 +287,7 @@ class FixedLagSmoother(eqx.Module):
             T=lag + 1,
             S=1,
         )
-        carry, (window, start, prior) = _step(
+        carry, (window, start, prior) = window_step(
             model,
             lag,
             self.solver,
