@@ -514,7 +514,7 @@ def mechanical_library(
     model) and `dt` is the integrator's. An effect that acts inside the
     ODE then gets one name: as kicks at a coarse sample time it also picks
     up stiffness-like terms and the sensor scale
-    (`benchmarks/results/discover_continuous.md`).
+    (`results/discovery_validation/continuous.md`).
     Dissipative and stiffness terms share one coefficient over all axes
     (isotropic); constant force, actuator gain and the sensor effects get one
     candidate per axis or channel.

@@ -197,8 +197,8 @@ def run_workflow(data: dc.Sequences, model: dc.ChainModel = MODEL) -> dict:
     # The same score test with the outer-product covariance (what "auto"
     # picks with >= 10 sequences per parameter): reported, not used.
     if found["status"] == "ok":
-        ident = np.flatnonzero(st["identifiable"])
-        opg = score_test(st["evaluation"], ident, st["nuisance"], "opg")
+        ident = np.flatnonzero(st.identifiable)
+        opg = score_test(st.evaluation, ident, st.nuisance, "opg")
     else:
         opg = {"p_value": float("nan")}
     check = found.get("noise_check") or {}

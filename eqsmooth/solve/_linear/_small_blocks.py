@@ -47,8 +47,8 @@ def block_gram(
     products of row `k` of `a` and row `k` of `b`: element-wise operations
     that XLA fuses into one loop over the batch, where its batched `dot`
     took 3.1 ms for 10⁴ products of `5 × 5` blocks against 0.31 ms (one
-    core of the project machine; `benchmarks/gram_blocks.py` measures the
-    effect on a chain's factorisation). Larger `M` uses a batched `einsum`.
+    core of the project machine; `git show c64c9b5:benchmarks/gram_blocks.py`
+    measured the effect on a chain's factorisation). Larger `M` uses a batched `einsum`.
     """
     M = a.shape[-2]
     # Equal ranks, so the batch axes broadcast without rank promotion.

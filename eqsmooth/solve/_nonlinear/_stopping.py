@@ -46,13 +46,13 @@ class AbstractStopping(eqx.Module):
     def reaches_minimum(self) -> bool:
         """Whether the solve runs to a stationary point of the cost."""
 
+    @abc.abstractmethod
     def relative_tolerance(self) -> float:
         """optimistix's `rtol` of the solver (0 where none applies)."""
-        return 0.0
 
+    @abc.abstractmethod
     def absolute_tolerance(self) -> float:
         """optimistix's `atol` of the solver (0 where none applies)."""
-        return 0.0
 
     @abc.abstractmethod
     def out_of_steps(self, step: Int[Array, ""]) -> Bool[Array, ""]:
@@ -145,6 +145,12 @@ class FixedSteps(AbstractStopping):
 
     def __check_init__(self):
         check_num_steps("FixedSteps", self.num_steps)
+
+    def relative_tolerance(self) -> float:
+        return 0.0
+
+    def absolute_tolerance(self) -> float:
+        return 0.0
 
     def iteration_limit(self, max_steps: int) -> int:
         del max_steps
