@@ -5,6 +5,15 @@ from ._builtin import (
     FunctionFactor as FunctionFactor,
     PriorFactor as PriorFactor,
 )
+from ._camera import (
+    AbstractCalibration as AbstractCalibration,
+    Cal3_S2 as Cal3_S2,
+    Cal3_S2Stereo as Cal3_S2Stereo,
+    Cal3DS2 as Cal3DS2,
+    project as project,
+    ProjectionFactor as ProjectionFactor,
+    StereoProjectionFactor as StereoProjectionFactor,
+)
 from ._factor import (
     AbstractAnalyticFactor as AbstractAnalyticFactor,
     AbstractFactor as AbstractFactor,
