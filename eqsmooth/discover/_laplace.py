@@ -6,10 +6,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import Array, Float
 
-from ..factors import FactorGraph, StudentTNoise
-from ..factors._graph import graph_cost, graph_negative_log_likelihood
+from ..factors import FactorGraph
+from ..factors._graph import graph_cost, graph_negative_log_likelihood, Values
+from ..factors._padding import padding_size
 from ..solve import (
     AbstractGraphSolver,
     BlockTridiagonal,
@@ -20,10 +21,6 @@ from ..solve import (
 )
 from ..solve._linear._default_solver import linear_solver_for
 from ..solve._linearization import gradient, linearize_graph, retract_values
-from ..solve._padding import padding_size
-
-
-Values = dict[str, PyTree]
 
 
 def laplace_log_marginal(
@@ -213,12 +210,12 @@ def _pcg(matvec, precondition, b):
 
 
 def _fisher_curvature(graph: FactorGraph) -> FactorGraph:
-    """`graph` with every Student-t noise model replaced by its Fisher
-    information (a Gaussian), for the log-determinant."""
-    factors = [
-        eqx.tree_at(lambda f: f.noise, f, f.noise.fisher_model())
-        if isinstance(f.noise, StudentTNoise)
-        else f
-        for f in graph.factors
-    ]
+    """`graph` with every noise model replaced by its curvature model (a
+    Student-t's Fisher information, a Gaussian), for the log-determinant."""
+    factors = []
+    for f in graph.factors:
+        curvature = f.noise.curvature_model()
+        if curvature is not f.noise:
+            f = eqx.tree_at(lambda f: f.noise, f, curvature)
+        factors.append(f)
     return FactorGraph(factors)

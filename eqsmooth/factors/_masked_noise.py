@@ -3,11 +3,18 @@
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._noise import _is_concrete, AbstractNoiseModel
+from ._noise import (
+    _is_concrete,
+    AbstractNoiseModel,
+    RowIndex,
+    RowMask,
+    take_leading,
+)
 
 
 class MaskedNoise(AbstractNoiseModel):
@@ -117,3 +124,21 @@ class MaskedNoise(AbstractNoiseModel):
                 f"{factor_name}: MaskedNoise.active has shape {self.active.shape}; "
                 f"expected ({n},), one entry per row"
             )
+
+    @property
+    def name(self) -> str:
+        return "MaskedNoise"
+
+    def curvature_model(self) -> "MaskedNoise":
+        return self
+
+    def take_rows(self, index: RowIndex) -> "MaskedNoise":
+        return MaskedNoise(self.base.take_rows(index), take_leading(self.active, index))
+
+    def mask_rows(self, active: RowMask) -> "MaskedNoise":
+        # Masks combine rather than nest (a MaskedNoise refuses a masked base).
+        if _is_concrete(self.active) and _is_concrete(active):
+            both = jax.device_put(np.asarray(self.active) & np.asarray(active))
+        else:
+            both = self.active & jnp.asarray(active)
+        return MaskedNoise(self.base, both)

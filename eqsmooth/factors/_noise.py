@@ -17,15 +17,19 @@ cost is `½ ρ(‖R r‖²)` where `ρ` is the identity for Gaussian models.
 
 import abc
 import math
-from typing import ClassVar
+from typing import ClassVar, TYPE_CHECKING
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._precision import einsum
+
+
+if TYPE_CHECKING:
+    from ._masked_noise import MaskedNoise
 
 
 def _is_concrete(x) -> bool:
@@ -122,6 +126,45 @@ def _expand(x: Array, ndim: int) -> Array:
     return x.reshape(x.shape + (1,) * (ndim - x.ndim))
 
 
+RowIndex = Int[np.ndarray, " k"] | Int[Array, " k"]
+RowMask = Bool[np.ndarray, " n"] | Bool[Array, " n"]
+
+
+def take_leading(a: ArrayLike, index: RowIndex) -> Array:
+    """`a[index]` along the leading (row) axis, on the host for concrete
+    arrays: eager JAX indexing would compile a small program for every new
+    shape, which is what padding a graph is there to avoid."""
+    if isinstance(a, jax.core.Tracer) or isinstance(index, jax.core.Tracer):
+        return jnp.asarray(a)[index]
+    return jax.device_put(np.asarray(a)[np.asarray(index)])
+
+
+def device_mask(active: RowMask) -> Bool[Array, " n"]:
+    """A row mask as a JAX array, transferred (not computed) when concrete."""
+    if isinstance(active, np.ndarray):
+        return jax.device_put(active)
+    return jnp.asarray(active)
+
+
+def mask_gaussian(noise: "AbstractNoiseModel", active: RowMask) -> "MaskedNoise":
+    """`MaskedNoise(noise, active)`: how a Gaussian model masks its rows."""
+    # Imported here: MaskedNoise wraps the models defined in this module.
+    from ._masked_noise import MaskedNoise
+
+    return MaskedNoise(noise, device_mask(active))
+
+
+def take_per_row(
+    noise: "AbstractNoiseModel", field: str, per_row_ndim: int, index: RowIndex
+) -> "AbstractNoiseModel":
+    """`noise` with its parameter `field` indexed by row when it is per row
+    (it then has `per_row_ndim` axes), unchanged when it is shared."""
+    value = getattr(noise, field)
+    if value.ndim != per_row_ndim:
+        return noise
+    return eqx.tree_at(lambda m: getattr(m, field), noise, take_leading(value, index))
+
+
 def gaussian_log_normalizer(noise: "AbstractNoiseModel", n: int, m: int) -> Array:
     """`Σ log det R_i − ½ n m log 2π`: the Gaussian density's log constant."""
     # A Python float stays weakly typed: float32 models stay float32.
@@ -131,12 +174,32 @@ def gaussian_log_normalizer(noise: "AbstractNoiseModel", n: int, m: int) -> Arra
 class AbstractNoiseModel(eqx.Module):
     """Base class of noise models (see the module docs for shapes).
 
-    `is_gaussian` (a class attribute) says whether the model is a Gaussian
-    density (whitening only): robust kernels and Student-t wrap one, and
-    only one.
+    A noise model answers for itself whatever the rest of the library needs
+    to know about it, so that no code elsewhere tests its class:
+
+    - `is_gaussian` (a class attribute): whether the model is a Gaussian
+        density (whitening only). Robust kernels and Student-t wrap one, and
+        only one; Kalman filters accept only Gaussian models.
+    - `name`: the name messages give it.
+    - [`active_rows`][eqsmooth.factors.AbstractNoiseModel.active_rows]: its
+        rows' mask.
+    - [`curvature_model`][eqsmooth.factors.AbstractNoiseModel.curvature_model]:
+        the Gaussian model of its curvature (the Laplace evidence's
+        log-determinant).
+    - [`take_rows`][eqsmooth.factors.AbstractNoiseModel.take_rows] and
+        [`mask_rows`][eqsmooth.factors.AbstractNoiseModel.mask_rows]: its
+        per-row parts, as [`eqsmooth.solve.pad_graph`][] needs them.
+    - `sqrt_information_rows`: each row's square-root information matrix
+        (filters, exporters).
     """
 
     is_gaussian: ClassVar[bool] = True
+
+    @property
+    @abc.abstractmethod
+    def name(self) -> str:
+        """The name messages give this model: its type (`"DiagonalNoise"`),
+        or for a robust model its constructor (`"HuberNoise"`)."""
 
     @abc.abstractmethod
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -184,6 +247,66 @@ class AbstractNoiseModel(eqx.Module):
     @abc.abstractmethod
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         """Raise a `ValueError` naming `factor_name` if shapes do not fit `(n, m)`."""
+
+    @abc.abstractmethod
+    def curvature_model(self) -> "AbstractNoiseModel":
+        """The noise model whose whitening gives this model's curvature in the
+        Laplace evidence's log-determinant.
+
+        Gaussian models, masked models and the robust kernels return
+        themselves (the solvers' IRLS weights); a density whose curvature
+        depends on the residual returns a Gaussian with its Fisher
+        information ([`eqsmooth.factors.StudentTNoise.fisher_model`][]).
+        """
+
+    @abc.abstractmethod
+    def take_rows(self, index: RowIndex) -> "AbstractNoiseModel":
+        """The model of the rows `index` of the stack (a row may repeat).
+
+        Per-row parameters (and a row mask) are indexed along their row
+        axis; shared parameters are kept.
+
+        **Arguments:**
+
+        - `index`: `(k,)` integer row indices into the stack's `n` rows.
+
+        **Returns:** a noise model of `k` rows, of the same kind.
+        """
+
+    @abc.abstractmethod
+    def mask_rows(self, active: RowMask) -> "AbstractNoiseModel":
+        """This model with the rows where `active` is false switched off.
+
+        Gaussian models are wrapped in a [`eqsmooth.factors.MaskedNoise`][],
+        a masked model combines the masks, a robust model masks its Gaussian
+        base; a model that cannot mask rows raises `TypeError`.
+
+        **Arguments:**
+
+        - `active`: `(n,)` booleans, one per row.
+
+        **Returns:** a noise model of the same `n` rows.
+        """
+
+    def sqrt_information_rows(
+        self, n: int, m: int, dtype=None
+    ) -> Float[Array, "n m m"]:
+        """Each row's square-root information matrix `R_i`, `(n, m, m)`.
+
+        Whitening is linear, so this is the model applied to identity
+        matrices, whether its parameters are shared or per row. A robust or
+        Student-t model gives its Gaussian base's `R_i` (the kernel is not a
+        matrix); a masked row gives zeros.
+
+        **Arguments:**
+
+        - `n`, `m`: the stack's rows and residual dimension.
+        - `dtype`: of the result; by default JAX's default float.
+
+        **Returns:** the `(n, m, m)` matrices `R_i`.
+        """
+        eye = jnp.broadcast_to(jnp.eye(m, dtype=dtype), (n, m, m))
+        return self.whiten(eye)
 
 
 def _sqrt_precision(name: str, positional: tuple, sqrt_precision) -> Array:
@@ -269,6 +392,19 @@ class IsotropicNoise(AbstractNoiseModel):
                 f"{factor_name}: IsotropicNoise.sqrt_precision has shape "
                 f"{self.sqrt_precision.shape}; expected () or ({n},)"
             )
+
+    @property
+    def name(self) -> str:
+        return "IsotropicNoise"
+
+    def curvature_model(self) -> "IsotropicNoise":
+        return self
+
+    def take_rows(self, index: RowIndex) -> "IsotropicNoise":
+        return take_per_row(self, "sqrt_precision", 1, index)
+
+    def mask_rows(self, active: RowMask) -> "MaskedNoise":
+        return mask_gaussian(self, active)
 
 
 class DiagonalNoise(AbstractNoiseModel):
@@ -378,6 +514,19 @@ class DiagonalNoise(AbstractNoiseModel):
                 f"{factor_name}: DiagonalNoise.sqrt_precision has shape "
                 f"{self.sqrt_precision.shape}; expected ({m},) or ({n}, {m})"
             )
+
+    @property
+    def name(self) -> str:
+        return "DiagonalNoise"
+
+    def curvature_model(self) -> "DiagonalNoise":
+        return self
+
+    def take_rows(self, index: RowIndex) -> "DiagonalNoise":
+        return take_per_row(self, "sqrt_precision", 2, index)
+
+    def mask_rows(self, active: RowMask) -> "MaskedNoise":
+        return mask_gaussian(self, active)
 
 
 class SqrtInformationNoise(AbstractNoiseModel):
@@ -495,6 +644,19 @@ class SqrtInformationNoise(AbstractNoiseModel):
                 f"{self.sqrt_information.shape}; expected ({m}, {m}) or ({n}, {m}, {m})"
             )
 
+    @property
+    def name(self) -> str:
+        return "SqrtInformationNoise"
+
+    def curvature_model(self) -> "SqrtInformationNoise":
+        return self
+
+    def take_rows(self, index: RowIndex) -> "SqrtInformationNoise":
+        return take_per_row(self, "sqrt_information", 3, index)
+
+    def mask_rows(self, active: RowMask) -> "MaskedNoise":
+        return mask_gaussian(self, active)
+
 
 def _check_scale(name: str, scale) -> None:
     _check_positive(name, "scale", scale)
@@ -512,11 +674,10 @@ class AbstractRobustNoise(AbstractNoiseModel):
     subclasses give `ρ(s)` and `ρ'(s)` of the whitened squared norm
     `s = ‖R r‖²` through `rho` ([`eqsmooth.factors.RobustNoise`][] with an
     [`eqsmooth.factors.AbstractKernel`][], built by `HuberNoise`,
-    `TukeyNoise`, ...), and the name messages use (`label`). Solvers use
-    IRLS weights `√ρ'(s)` on
-    residuals and Jacobians, whose Gauss-Newton gradient equals the gradient
-    of the true cost `½ρ(s)`; the reported cost is `½ρ(s)`. Filters (which
-    are Gaussian) reject robust models.
+    `TukeyNoise`, ...), and the name messages use (`name`). Solvers use
+    IRLS weights `√ρ'(s)` on residuals and Jacobians, whose Gauss-Newton
+    gradient equals the gradient of the true cost `½ρ(s)`; the reported cost
+    is `½ρ(s)`. Filters (which are Gaussian) reject robust models.
 
     **Fields:**
 
@@ -529,27 +690,22 @@ class AbstractRobustNoise(AbstractNoiseModel):
     scale: eqx.AbstractVar[Float[Array, "*rows"]]
     is_gaussian: ClassVar[bool] = False
 
-    @property
-    @abc.abstractmethod
-    def label(self) -> str:
-        """The name messages give this model (e.g. `"HuberNoise"`)."""
-
     def __check_init__(self):
         if not isinstance(self.base, AbstractNoiseModel):
             raise TypeError(
-                f"{self.label}.base must be a Gaussian noise model such as "
+                f"{self.name}.base must be a Gaussian noise model such as "
                 f"IsotropicNoise or DiagonalNoise, got {type(self.base).__name__}"
             )
         if not self.base.is_gaussian:
             # The kernel acts on the base's whitened residual only: an inner
             # kernel's ρ would be silently dropped.
             raise TypeError(
-                f"{self.label}.base must be a Gaussian noise model such as "
-                f"IsotropicNoise or DiagonalNoise, got {noise_name(self.base)}, "
+                f"{self.name}.base must be a Gaussian noise model such as "
+                f"IsotropicNoise or DiagonalNoise, got {self.base.name}, "
                 "which is not Gaussian: kernels do not nest (the inner one would "
                 "be ignored); wrap the Gaussian model in one kernel"
             )
-        _check_scale(self.label, self.scale)
+        _check_scale(self.name, self.scale)
 
     def whiten(self, r):
         return self.base.whiten(r)
@@ -570,14 +726,20 @@ class AbstractRobustNoise(AbstractNoiseModel):
         self.base.check_shapes(factor_name, n, m)
         if self.scale.shape not in ((), (n,)):
             raise ValueError(
-                f"{factor_name}: {self.label}.scale has shape "
+                f"{factor_name}: {self.name}.scale has shape "
                 f"{self.scale.shape}; expected () or ({n},)"
             )
 
+    def curvature_model(self) -> AbstractNoiseModel:
+        # The IRLS weights are the curvature the solvers use; a robust loss
+        # is not a density, so its evidence is only indicative anyway.
+        return self
 
-def noise_name(noise: AbstractNoiseModel) -> str:
-    """A noise model's name in messages: a robust model's label (`HuberNoise`),
-    otherwise its type."""
-    if isinstance(noise, AbstractRobustNoise):
-        return noise.label
-    return type(noise).__name__
+    def take_rows(self, index: RowIndex) -> AbstractNoiseModel:
+        out = eqx.tree_at(lambda m: m.base, self, self.base.take_rows(index))
+        return take_per_row(out, "scale", 1, index)
+
+    def mask_rows(self, active: RowMask) -> AbstractNoiseModel:
+        # The kernel acts on the base's whitened residual, which a masked
+        # base zeroes: masking the base masks the rows.
+        return eqx.tree_at(lambda m: m.base, self, self.base.mask_rows(active))

@@ -94,7 +94,7 @@ class RobustNoise(AbstractRobustNoise):
         self.scale = robust_scale(kernel.name, scale)
 
     @property
-    def label(self) -> str:
+    def name(self) -> str:
         return self.kernel.name
 
     def rho(self, s):

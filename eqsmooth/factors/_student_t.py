@@ -8,14 +8,16 @@ import jax.numpy as jnp
 from jax.scipy.special import gammaln
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._masked_noise import MaskedNoise
 from ._noise import (
     _as_float,
     _check_positive,
     _positive_under_jit,
     AbstractNoiseModel,
     gaussian_log_normalizer,
-    noise_name,
+    mask_gaussian,
+    RowIndex,
+    RowMask,
+    take_per_row,
 )
 
 
@@ -70,9 +72,9 @@ class StudentTNoise(AbstractNoiseModel):
         if not isinstance(self.base, AbstractNoiseModel) or not self.base.is_gaussian:
             raise TypeError(
                 "StudentTNoise.base must be a Gaussian noise model such as "
-                f"IsotropicNoise or DiagonalNoise, got {noise_name(self.base)}"
+                f"IsotropicNoise or DiagonalNoise, got {self.base.name}"
             )
-        if isinstance(self.base, MaskedNoise):
+        if self.base.active_rows() is not None:
             raise TypeError(
                 "StudentTNoise.base cannot be a MaskedNoise: the Student-t "
                 "density's constant would count the masked rows; mask rows of a "
@@ -137,6 +139,27 @@ class StudentTNoise(AbstractNoiseModel):
                 f"expected () or ({n},)"
             )
 
+    @property
+    def name(self) -> str:
+        return "StudentTNoise"
+
+    def curvature_model(self) -> AbstractNoiseModel:
+        # The curvature at one residual changes with the residual, which
+        # makes the Laplace evidence rough in the parameters; the Fisher
+        # information does not.
+        return self.fisher_model()
+
+    def take_rows(self, index: RowIndex) -> "StudentTNoise":
+        out = eqx.tree_at(lambda m: m.base, self, self.base.take_rows(index))
+        return take_per_row(out, "dof", 1, index)
+
+    def mask_rows(self, active: RowMask) -> AbstractNoiseModel:
+        raise TypeError(
+            "StudentTNoise rows cannot be masked: the Student-t density's "
+            "constant would count the masked rows; mask rows of a Gaussian or "
+            "robust model, or split the factor stack instead"
+        )
+
 
 class _ScaledGaussian(AbstractNoiseModel):
     """`base` with its square-root information multiplied by `weight`
@@ -167,6 +190,20 @@ class _ScaledGaussian(AbstractNoiseModel):
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)
+
+    @property
+    def name(self) -> str:
+        return "ScaledGaussian"
+
+    def curvature_model(self) -> "_ScaledGaussian":
+        return self
+
+    def take_rows(self, index: RowIndex) -> "_ScaledGaussian":
+        out = eqx.tree_at(lambda m: m.base, self, self.base.take_rows(index))
+        return take_per_row(out, "weight", 1, index)
+
+    def mask_rows(self, active: RowMask) -> AbstractNoiseModel:
+        return mask_gaussian(self, active)
 
 
 def _log_t_constant(nu, m: int):

@@ -16,10 +16,7 @@ from jaxtyping import Array, Float, PyTree
 from ..factors import (
     AbstractFactor,
     AbstractNoiseModel,
-    AbstractRobustNoise,
-    MaskedNoise,
     per_row_fields as per_row_fields,
-    StudentTNoise,
     with_rows as with_rows,
 )
 from ..factors._factor import check_row_leaves
@@ -33,29 +30,21 @@ def gather_rows(rows: dict[str, PyTree], index: np.ndarray) -> dict[str, PyTree]
 
 
 def check_gaussian(noise: AbstractNoiseModel, where: str) -> None:
-    """Raise a `TypeError` if `noise` is a robust (non-Gaussian) model or masks rows."""
-    if isinstance(noise, MaskedNoise):
+    """Raise a `TypeError` if `noise` is not Gaussian (robust, Student-t) or
+    masks rows: the noise model says which (`is_gaussian`, `active_rows`)."""
+    if not noise.is_gaussian:
         raise TypeError(
-            f"{where}: MaskedNoise rows cannot be masked in a Kalman filter (a "
+            f"{where}: noise model {type(noise).__name__} is robust (non-Gaussian, "
+            f"{noise.name}); a Kalman filter needs Gaussian noise such as "
+            "IsotropicNoise, DiagonalNoise or SqrtInformationNoise. Use the "
+            "factor-graph smoother for robust losses."
+        )
+    if noise.active_rows() is not None:
+        raise TypeError(
+            f"{where}: {noise.name} rows cannot be masked in a Kalman filter (a "
             "masked row has zero information, which the filter's update cannot "
             "invert); leave the masked measurements out of the filter's factors, "
             "or use the factor-graph smoother"
-        )
-    robust = isinstance(noise, (AbstractRobustNoise, StudentTNoise))
-    if not robust:
-        # Probe user-defined models: a Gaussian model has rho(s) = s. Skipped
-        # when the noise parameters are traced (the value is then unknown).
-        leaves = [x for x in jax.tree_util.tree_leaves(noise) if eqx.is_array(x)]
-        dtype = jnp.result_type(*leaves) if leaves else None
-        s = jnp.asarray([0.25, 4.0, 100.0], dtype=dtype)
-        value, _ = noise.rho(s)
-        if not isinstance(value, jax.core.Tracer):
-            robust = not np.allclose(np.asarray(value), np.asarray(s))
-    if robust:
-        raise TypeError(
-            f"{where}: noise model {type(noise).__name__} is robust (non-Gaussian); "
-            "a Kalman filter needs Gaussian noise (IsotropicNoise, DiagonalNoise or "
-            "SqrtInformationNoise). Use the factor-graph smoother for robust losses."
         )
 
 
@@ -64,14 +53,13 @@ def row_whitening(
 ) -> tuple[Float[Array, "n m m"], Float[Array, " n"]]:
     """Square-root information `R_i` of every row and `log|det R_i|`.
 
-    Whitening is linear, so applying the stack's noise model to identity
-    matrices gives each row's `R_i` whether the noise is shared or per row.
+    The noise model gives them (`sqrt_information_rows`), whether its
+    parameters are shared or per row.
     """
     n = factor.num_rows
     name = type(factor).__name__
     factor.noise.check_shapes(name, n, m)
-    eye = jnp.broadcast_to(jnp.eye(m, dtype=dtype), (n, m, m))
-    R = factor.noise.whiten(eye)
+    R = factor.noise.sqrt_information_rows(n, m, dtype)
     _, logdet = jnp.linalg.slogdet(R)
     return R, logdet
 

@@ -10,7 +10,7 @@ from typing import Literal
 import numpy as np
 from jaxtyping import Int, PyTree
 
-from ..factors import BetweenFactor, SqrtInformationNoise
+from ..factors import BetweenFactor
 from ..lie import AbstractLieGroup, SE2, SE3
 from ._pose_graph import make_pose_graph, POSE, PoseGraph
 
@@ -590,13 +590,14 @@ def save_g2o(
 def _edge_lines(graph: PoseGraph, kind: str, vertex_ids: np.ndarray) -> list[str]:
     factor: BetweenFactor = graph.between
     noise = factor.noise
-    if not isinstance(noise, SqrtInformationNoise):
+    if not noise.is_gaussian or noise.active_rows() is not None:
         raise TypeError(
-            f"save_g2o: edges need a SqrtInformationNoise, got {type(noise).__name__}"
+            "save_g2o: edges need a Gaussian noise model without masked rows (a "
+            f"g2o edge holds one information matrix), got {noise.name}"
         )
     _, meas = _group_of(factor.measurement)
     E, d = factor.num_rows, _DIM[kind]
-    R = np.broadcast_to(np.asarray(noise.sqrt_information, np.float64), (E, d, d))
+    R = np.asarray(noise.sqrt_information_rows(E, d), np.float64)
     info = np.swapaxes(R, 1, 2) @ R
     if kind == "se3" and graph.se3_information == "g2o":
         info = info / (_HALF_ANGLE[:, None] * _HALF_ANGLE[None, :])

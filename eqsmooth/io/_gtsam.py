@@ -1,6 +1,6 @@
 import numpy as np
 
-from ..factors import IsotropicNoise, PriorFactor, SqrtInformationNoise
+from ..factors import AbstractFactor, PriorFactor
 from ..lie import SE2, SE3
 from ._pose_graph import POSE, PoseGraph
 
@@ -42,14 +42,33 @@ def _params(values) -> np.ndarray:
     raise TypeError(f"expected SE2/SE3 poses, got {type(values).__name__}")
 
 
+def _information(factor: AbstractFactor, kind: str, what: str) -> np.ndarray:
+    """Each row's information matrix `RᵀR`, `(n, d, d)`, in GTSAM's tangent
+    order, from the factor's noise model (Gaussian and unmasked)."""
+    noise = factor.noise
+    if not noise.is_gaussian or noise.active_rows() is not None:
+        raise TypeError(
+            f"to_gtsam: {what} need a Gaussian noise model without masked rows, "
+            f"got {noise.name}"
+        )
+    d = 3 if kind == "se2" else 6
+    R = np.asarray(noise.sqrt_information_rows(factor.num_rows, d), np.float64)
+    info = np.swapaxes(R, 1, 2) @ R
+    if kind == "se3":
+        info = info[:, _SE3_TO_GTSAM][:, :, _SE3_TO_GTSAM]
+    return info
+
+
 def to_gtsam(pose_graph: PoseGraph, values=None):
     """Build the same problem in GTSAM (for comparisons; needs `gtsam`).
 
     Every edge becomes a `BetweenFactorPose2`/`BetweenFactorPose3` with the
     same information matrix (reordered to GTSAM's `(ω, v)` tangent for
     SE(3)), and the gauge prior a `PriorFactorPose2`/`PriorFactorPose3` with
-    the same isotropic strength, so that GTSAM's `graph.error(values)` equals
-    `pose_graph.graph.cost(values)`. Keys are pose indices `0..N-1`.
+    its information matrix likewise (any Gaussian noise model without masked
+    rows gives its rows' square-root information), so that GTSAM's
+    `graph.error(values)` equals `pose_graph.graph.cost(values)`. Keys are
+    pose indices `0..N-1`.
 
     **Arguments:**
 
@@ -62,34 +81,23 @@ def to_gtsam(pose_graph: PoseGraph, values=None):
     kind = pose_graph.kind
     params = _params(pose_graph.values if values is None else values)
     factor = pose_graph.between
-    if not isinstance(factor.noise, SqrtInformationNoise):
-        raise TypeError("to_gtsam: edges need a SqrtInformationNoise")
-    d = 3 if kind == "se2" else 6
-    E = factor.num_rows
-    R = np.broadcast_to(
-        np.asarray(factor.noise.sqrt_information, np.float64), (E, d, d)
-    )
-    info = np.swapaxes(R, 1, 2) @ R
-    if kind == "se3":
-        info = info[:, _SE3_TO_GTSAM][:, :, _SE3_TO_GTSAM]
+    info = _information(factor, kind, "edges")
     meas = _gtsam_poses(gtsam, kind, _params(factor.measurement))
     a, b = factor.variables
     between = gtsam.BetweenFactorPose2 if kind == "se2" else gtsam.BetweenFactorPose3
     prior = gtsam.PriorFactorPose2 if kind == "se2" else gtsam.PriorFactorPose3
+    Gaussian = gtsam.noiseModel.Gaussian
     graph = gtsam.NonlinearFactorGraph()
     for i, j, z, m in zip(a.ids.tolist(), b.ids.tolist(), meas, info):
-        graph.add(between(i, j, z, gtsam.noiseModel.Gaussian.Information(m)))
+        graph.add(between(i, j, z, Gaussian.Information(m)))
     for f in pose_graph.graph.factors:
         if not isinstance(f, PriorFactor):
             continue
-        if not isinstance(f.noise, IsotropicNoise) or f.noise.sqrt_precision.ndim:
-            raise TypeError("to_gtsam: priors need a shared IsotropicNoise")
-        sigma = 1.0 / float(f.noise.sqrt_precision)
-        noise = gtsam.noiseModel.Isotropic.Sigma(d, sigma)
-        for k, p in zip(
-            f.variables[0].ids.tolist(), _gtsam_poses(gtsam, kind, _params(f.value))
+        poses = _gtsam_poses(gtsam, kind, _params(f.value))
+        for k, p, m in zip(
+            f.variables[0].ids.tolist(), poses, _information(f, kind, "priors")
         ):
-            graph.add(prior(k, p, noise))
+            graph.add(prior(k, p, Gaussian.Information(m)))
     initial = gtsam.Values()
     for k, p in enumerate(_gtsam_poses(gtsam, kind, params)):
         initial.insert(k, p)
