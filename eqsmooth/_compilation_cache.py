@@ -6,7 +6,7 @@ from pathlib import Path
 
 import jax
 
-from ._xla_flags import _FAST_COMPILE_FLAG, _SCHEDULER_FLAG, add_xla_flags
+from ._xla_flags import add_xla_flags, FAST_COMPILE_FLAG, SCHEDULER_FLAG
 
 
 def default_cache_dir() -> Path:
@@ -47,7 +47,7 @@ def enable_compilation_cache(
     if fast_compile:
         # As set_xla_cpu_flags(fast_compile=True), without its warning for a
         # flag this jaxlib lacks: the cache works the same without it.
-        add_xla_flags([_SCHEDULER_FLAG, _FAST_COMPILE_FLAG], warn=False)
+        add_xla_flags([SCHEDULER_FLAG, FAST_COMPILE_FLAG], warn=False)
     jax.config.update("jax_compilation_cache_dir", str(path))
     # Cache every program: eqsmooth's small solves compile in well under the
     # default one-second threshold, and are exactly the ones worth keeping.

@@ -41,8 +41,8 @@ import sys
 import warnings
 
 
-_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
 def _known_to_xla(flags: str) -> str | None:
@@ -123,7 +123,7 @@ def set_xla_cpu_flags(
 
     **Returns:** the new value of `XLA_FLAGS`.
     """
-    wanted = [_SCHEDULER_FLAG] if serial_scheduler else []
+    wanted = [SCHEDULER_FLAG] if serial_scheduler else []
     if fast_compile:
-        wanted.append(_FAST_COMPILE_FLAG)
+        wanted.append(FAST_COMPILE_FLAG)
     return add_xla_flags(wanted, warn=True)

@@ -72,7 +72,7 @@ def test_fast_compile_flag_added_when_xla_knows_it(monkeypatch):
 def test_flag_unknown_to_xla_is_not_added(monkeypatch):
     # XLA aborts a process whose XLA_FLAGS names a flag it does not know: the
     # probe subprocess fails and the flag is left out.
-    monkeypatch.setattr(xla_flags, "_FAST_COMPILE_FLAG", "--xla_cpu_no_such_flag=1")
+    monkeypatch.setattr(xla_flags, "FAST_COMPILE_FLAG", "--xla_cpu_no_such_flag=1")
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
     with pytest.warns(UserWarning, match="xla_cpu_no_such_flag"):
         flags = set_xla_cpu_flags(serial_scheduler=False, fast_compile=True)
@@ -85,7 +85,7 @@ def test_every_flag_is_probed(monkeypatch):
     # XLA renames and retires flags between jaxlib releases; a flag the
     # running jaxlib lacks would abort the process at JAX's first
     # computation, so the scheduler flag is probed like the other.
-    monkeypatch.setattr(xla_flags, "_SCHEDULER_FLAG", "--xla_cpu_no_such_flag=1")
+    monkeypatch.setattr(xla_flags, "SCHEDULER_FLAG", "--xla_cpu_no_such_flag=1")
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     with pytest.warns(UserWarning, match="xla_cpu_no_such_flag"):
         flags = set_xla_cpu_flags(fast_compile=True)

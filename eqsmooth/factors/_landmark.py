@@ -29,7 +29,7 @@ from .._precision import matmul as mm
 from ..lie import SE2, SE3
 from ..lie._base import AbstractLieGroup
 from ._factor import AbstractFactor
-from ._noise import _is_concrete, AbstractNoiseModel
+from ._noise import AbstractNoiseModel, is_concrete
 from ._variables import Var
 
 
@@ -174,7 +174,7 @@ def _checked_rows(x: Array, ok, concrete_message, traced_message: str) -> Array:
     """`x`, where every row must be `ok`: concretely, a `ValueError` from
     `concrete_message(bad_rows)`; traced, an `eqx.error_if` with
     `traced_message` (the landmark factors' one validation rule)."""
-    if _is_concrete(ok):
+    if is_concrete(ok):
         bad = np.flatnonzero(~np.asarray(ok))
         if bad.size:
             raise ValueError(concrete_message(bad[:8]))
@@ -208,7 +208,7 @@ def _ranges(name: str, range) -> Array:
 def _finite_rows(name: str, x: Array) -> Array:
     """`x`, with a `ValueError` naming its non-finite rows when it is concrete
     (traced measurements reach the solve, which reports a non-finite problem)."""
-    if not _is_concrete(x):
+    if not is_concrete(x):
         return x
     ok = np.isfinite(np.asarray(x)).reshape(x.shape[0], -1).all(axis=1)
     return _checked_rows(

@@ -9,8 +9,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._noise import (
-    _is_concrete,
     AbstractNoiseModel,
+    is_concrete,
     RowIndex,
     RowMask,
     take_leading,
@@ -68,7 +68,7 @@ class MaskedNoise(AbstractNoiseModel):
             )
         if self.active.dtype != jnp.bool_:
             if (
-                _is_concrete(self.active)
+                is_concrete(self.active)
                 and np.isin(np.asarray(self.active), (0, 1)).all()
             ):
                 hint = " (cast with .astype(bool))"
@@ -137,7 +137,7 @@ class MaskedNoise(AbstractNoiseModel):
 
     def mask_rows(self, active: RowMask) -> "MaskedNoise":
         # Masks combine rather than nest (a MaskedNoise refuses a masked base).
-        if _is_concrete(self.active) and _is_concrete(active):
+        if is_concrete(self.active) and is_concrete(active):
             both = jax.device_put(np.asarray(self.active) & np.asarray(active))
         else:
             both = self.active & jnp.asarray(active)

@@ -32,12 +32,12 @@ if TYPE_CHECKING:
     from ._masked_noise import MaskedNoise
 
 
-def _is_concrete(x) -> bool:
+def is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def _check_positive(name: str, field: str, value) -> None:
-    if _is_concrete(value):
+def check_positive(name: str, field: str, value) -> None:
+    if is_concrete(value):
         arr = np.asarray(value)
         if arr.size and not np.all(np.isfinite(arr)):
             bad = np.argwhere(~np.isfinite(arr))[0].tolist()
@@ -52,14 +52,14 @@ def _check_positive(name: str, field: str, value) -> None:
             )
 
 
-def _positive_under_jit(name: str, field: str, value: Array) -> Array:
+def positive_under_jit(name: str, field: str, value: Array) -> Array:
     """`value`, with a run-time check (`eqx.error_if`) when it is traced.
 
-    Concrete values are checked eagerly by `_check_positive`; a traced value
+    Concrete values are checked eagerly by `check_positive`; a traced value
     (noise built inside `jit`, e.g. from learned parameters) would otherwise
     turn σ ≤ 0 into a silent inf/NaN cost.
     """
-    if _is_concrete(value) or not jnp.issubdtype(value.dtype, jnp.inexact):
+    if is_concrete(value) or not jnp.issubdtype(value.dtype, jnp.inexact):
         return value
     return eqx.error_if(
         value,
@@ -77,7 +77,7 @@ def _check_square(name: str, field: str, value: Array) -> None:
 
 def _check_symmetric(name: str, field: str, value: Array) -> None:
     """Raise if a concrete matrix is not symmetric (no silent symmetrisation)."""
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     arr = np.asarray(value, dtype=np.float64)
     if not np.all(np.isfinite(arr)):
@@ -96,7 +96,7 @@ def _cholesky_checked(name: str, field: str, value: Array) -> Array:
     is not positive definite."""
     L = jnp.linalg.cholesky(value)
     ok = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L, axis1=-2, axis2=-1) > 0)
-    if _is_concrete(L):
+    if is_concrete(L):
         if not bool(ok):
             eig = np.linalg.eigvalsh(np.asarray(value, dtype=np.float64))
             raise ValueError(
@@ -110,7 +110,7 @@ def _cholesky_checked(name: str, field: str, value: Array) -> Array:
     )
 
 
-def _as_float(x) -> Array:
+def as_float(x) -> Array:
     # A value that is not a tracer (a number, a NumPy or concrete JAX array)
     # stays concrete even inside `jit`: it is then checked when the noise
     # model is built, instead of by an `eqx.error_if` in the program (a host
@@ -313,7 +313,7 @@ def _sqrt_precision(name: str, positional: tuple, sqrt_precision) -> Array:
     """The keyword-only `sqrt_precision` of `name`, as a float array (checked
     positive, with `eqx.error_if` when traced)."""
     sqrt_precision = _keyword_only(name, positional, sqrt_precision)
-    return _positive_under_jit(name, "sqrt_precision", _as_float(sqrt_precision))
+    return positive_under_jit(name, "sqrt_precision", as_float(sqrt_precision))
 
 
 def _keyword_only(name: str, positional: tuple, sqrt_precision):
@@ -351,20 +351,20 @@ class IsotropicNoise(AbstractNoiseModel):
         )
 
     def __check_init__(self):
-        _check_positive("IsotropicNoise", "sqrt_precision", self.sqrt_precision)
+        check_positive("IsotropicNoise", "sqrt_precision", self.sqrt_precision)
 
     @classmethod
     def from_sigma(cls, sigma: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
         """Build from standard deviation(s) σ (`sqrt_precision = 1/σ`)."""
-        sigma = _positive_under_jit("IsotropicNoise", "sigma", _as_float(sigma))
-        _check_positive("IsotropicNoise", "sigma", sigma)
+        sigma = positive_under_jit("IsotropicNoise", "sigma", as_float(sigma))
+        check_positive("IsotropicNoise", "sigma", sigma)
         return cls(sqrt_precision=1.0 / sigma)
 
     @classmethod
     def from_precision(cls, precision: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
         """Build from precision(s) `1/σ²` (`sqrt_precision = √precision`)."""
-        p = _positive_under_jit("IsotropicNoise", "precision", _as_float(precision))
-        _check_positive("IsotropicNoise", "precision", p)
+        p = positive_under_jit("IsotropicNoise", "precision", as_float(precision))
+        check_positive("IsotropicNoise", "precision", p)
         return cls(sqrt_precision=jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -432,13 +432,13 @@ class DiagonalNoise(AbstractNoiseModel):
                 "DiagonalNoise.sqrt_precision must have shape (m,) or (n, m), got "
                 f"{self.sqrt_precision.shape}"
             )
-        _check_positive("DiagonalNoise", "sqrt_precision", self.sqrt_precision)
+        check_positive("DiagonalNoise", "sqrt_precision", self.sqrt_precision)
 
     @classmethod
     def from_sigmas(cls, sigmas: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate standard deviations σ_j (`1/σ_j`)."""
-        sigmas = _positive_under_jit("DiagonalNoise", "sigmas", _as_float(sigmas))
-        _check_positive("DiagonalNoise", "sigmas", sigmas)
+        sigmas = positive_under_jit("DiagonalNoise", "sigmas", as_float(sigmas))
+        check_positive("DiagonalNoise", "sigmas", sigmas)
         return cls(sqrt_precision=1.0 / sigmas)
 
     @classmethod
@@ -457,8 +457,8 @@ class DiagonalNoise(AbstractNoiseModel):
         `SE3`; `translation=[σx, σy], rotation=[σθ]` (or a scalar) for `SE2`.
         Per-row σ carry a leading row axis on both.
         """
-        t = _as_float(translation)
-        r = _as_float(rotation)
+        t = as_float(translation)
+        r = as_float(rotation)
         if r.ndim == 0 or (t.ndim == 2 and r.ndim == 1 and r.shape[0] == t.shape[0]):
             r = r[..., None]
         if (
@@ -477,15 +477,15 @@ class DiagonalNoise(AbstractNoiseModel):
     @classmethod
     def from_variances(cls, variances: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate variances σ_j² (`1/σ_j`)."""
-        v = _positive_under_jit("DiagonalNoise", "variances", _as_float(variances))
-        _check_positive("DiagonalNoise", "variances", v)
+        v = positive_under_jit("DiagonalNoise", "variances", as_float(variances))
+        check_positive("DiagonalNoise", "variances", v)
         return cls(sqrt_precision=1.0 / jnp.sqrt(v))
 
     @classmethod
     def from_precision(cls, precision: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate precisions `1/σ_j²` (`√precision`)."""
-        p = _positive_under_jit("DiagonalNoise", "precision", _as_float(precision))
-        _check_positive("DiagonalNoise", "precision", p)
+        p = positive_under_jit("DiagonalNoise", "precision", as_float(precision))
+        check_positive("DiagonalNoise", "precision", p)
         return cls(sqrt_precision=jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -547,9 +547,9 @@ class SqrtInformationNoise(AbstractNoiseModel):
     sqrt_information: Float[Array, "*rows m m"]
 
     def __init__(self, sqrt_information: Float[ArrayLike, "*rows m m"]):
-        R = _as_float(sqrt_information)
+        R = as_float(sqrt_information)
         _check_square("SqrtInformationNoise", "sqrt_information", R)
-        if _is_concrete(R):
+        if is_concrete(R):
             upper = np.abs(np.triu(np.asarray(R, dtype=np.float64), 1))
             if upper.size and np.max(upper) > 0:
                 raise ValueError(
@@ -575,7 +575,7 @@ class SqrtInformationNoise(AbstractNoiseModel):
                 "SqrtInformationNoise.sqrt_information must have shape (m, m) or "
                 f"(n, m, m), got {R.shape}"
             )
-        _check_positive(
+        check_positive(
             "SqrtInformationNoise",
             "sqrt_information diagonal",
             jnp.diagonal(R, axis1=-2, axis2=-1),
@@ -591,7 +591,7 @@ class SqrtInformationNoise(AbstractNoiseModel):
         positive definite; otherwise `ValueError` (concrete input) or an
         `eqx.error_if` run-time error (under `jit`) names the fault.
         """
-        cov = _as_float(covariance)
+        cov = as_float(covariance)
         _check_square("SqrtInformationNoise.from_covariance", "covariance", cov)
         _check_symmetric("SqrtInformationNoise.from_covariance", "covariance", cov)
         L = _cholesky_checked("SqrtInformationNoise.from_covariance", "covariance", cov)
@@ -605,7 +605,7 @@ class SqrtInformationNoise(AbstractNoiseModel):
     ) -> "SqrtInformationNoise":
         """Build from information (precision) matrices Λ (a lower-triangular `R`
         with `RᵀR = Λ`); Λ is checked like `from_covariance` checks Σ."""
-        info = _as_float(information)
+        info = as_float(information)
         who = "SqrtInformationNoise.from_information"
         _check_square(who, "information", info)
         _check_symmetric(who, "information", info)
@@ -659,12 +659,12 @@ class SqrtInformationNoise(AbstractNoiseModel):
 
 
 def _check_scale(name: str, scale) -> None:
-    _check_positive(name, "scale", scale)
+    check_positive(name, "scale", scale)
 
 
 def robust_scale(name: str, scale: ArrayLike) -> Array:
     """A robust kernel's scale, with an `eqx.error_if` when it is traced."""
-    return _positive_under_jit(name, "scale", jnp.asarray(scale))
+    return positive_under_jit(name, "scale", jnp.asarray(scale))
 
 
 class AbstractRobustNoise(AbstractNoiseModel):

@@ -30,9 +30,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._noise import (
-    _is_concrete,
     AbstractNoiseModel,
     AbstractRobustNoise,
+    is_concrete,
     robust_scale,
 )
 
@@ -508,7 +508,7 @@ class KernelChoice(AbstractKernel):
         self.index = jax.device_put(np.int32(names.index(key)))
 
     def __check_init__(self):
-        if _is_concrete(self.index) and not 0 <= int(self.index) < len(KERNELS):
+        if is_concrete(self.index) and not 0 <= int(self.index) < len(KERNELS):
             raise ValueError(_index_message(int(self.index)))
 
     def rho(self, s, scale):

@@ -9,12 +9,12 @@ from jax.scipy.special import gammaln
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._noise import (
-    _as_float,
-    _check_positive,
-    _positive_under_jit,
     AbstractNoiseModel,
+    as_float,
+    check_positive,
     gaussian_log_normalizer,
     mask_gaussian,
+    positive_under_jit,
     RowIndex,
     RowMask,
     take_per_row,
@@ -65,7 +65,7 @@ class StudentTNoise(AbstractNoiseModel):
         self, base: AbstractNoiseModel, dof: Float[ArrayLike, "*rows"], dim: int = 1
     ):
         self.base = base
-        self.dof = _positive_under_jit("StudentTNoise", "dof", _as_float(dof))
+        self.dof = positive_under_jit("StudentTNoise", "dof", as_float(dof))
         self.dim = dim
 
     def __check_init__(self):
@@ -85,7 +85,7 @@ class StudentTNoise(AbstractNoiseModel):
                 f"StudentTNoise.dim must be a positive int (the residual dimension), "
                 f"got {self.dim!r}"
             )
-        _check_positive("StudentTNoise", "dof", self.dof)
+        check_positive("StudentTNoise", "dof", self.dof)
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
         return self.base.whiten(r)

@@ -100,7 +100,7 @@ def _sqrt_information_np(information: np.ndarray) -> np.ndarray:
     return np.swapaxes(L, -1, -2)[..., ::-1, ::-1]
 
 
-def _default_dtype():
+def default_dtype():
     return jax.dtypes.canonicalize_dtype(jnp.float64)
 
 
@@ -138,7 +138,7 @@ def make_pose_graph(
     - `dtype`: float dtype of the arrays (default: JAX's default float).
     """
     group = _GROUPS[kind]
-    dtype = _default_dtype() if dtype is None else dtype
+    dtype = default_dtype() if dtype is None else dtype
     n = poses.shape[0]
     if vertex_ids is None:
         vertex_ids = np.arange(n, dtype=np.int64)

@@ -1,7 +1,7 @@
 import numpy as np
 
 from ..lie import SE2
-from ._pose_graph import _default_dtype, make_pose_graph, PoseGraph
+from ._pose_graph import default_dtype, make_pose_graph, PoseGraph
 
 
 def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -112,5 +112,5 @@ def synthetic_pose_graph_2d(
     pg = make_pose_graph(
         "se2", params(init), edges, params(meas), info, anchor=anchor, dtype=dtype
     )
-    dtype = _default_dtype() if dtype is None else dtype
+    dtype = default_dtype() if dtype is None else dtype
     return pg, SE2(params(truth).astype(dtype))

@@ -23,7 +23,7 @@ from ._linear_solver import (
     AbstractNormalSolver,
     normal_operator_of,
 )
-from ._sparse import _Pattern, assemble_sparse
+from ._sparse import assemble_sparse, SparsityPattern
 
 
 def sparsax_available() -> bool:
@@ -109,7 +109,7 @@ def sparsax_blas() -> Literal["mkl", "bundled"]:
     return _Blas.name
 
 
-def _upper_coo(pattern: _Pattern) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _upper_coo(pattern: SparsityPattern) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows, columns and stored-entry positions of the upper triangle, once per
     pattern (sparsax reads a symmetric matrix from its upper triangle)."""
     cached = pattern.cache.get("sparsax_upper")
@@ -132,7 +132,7 @@ class SparsaxFactorization(AbstractFactorization):
 
     data: Float[Array, " nnz"]
     ok: Bool[Array, ""]
-    pattern: _Pattern = eqx.field(static=True)
+    pattern: SparsityPattern = eqx.field(static=True)
     layout: tuple[GroupLayout, ...] = eqx.field(static=True)
 
     def _upper(self):
@@ -251,7 +251,7 @@ class SparsaxCholesky(AbstractNormalSolver):
         return unflatten_layout(state.layout, x), result, {}
 
 
-def _identity_data(pattern: _Pattern, dtype) -> Array:
+def _identity_data(pattern: SparsityPattern, dtype) -> Array:
     return jnp.zeros((pattern.nnz,), dtype).at[pattern.diagonal].set(1)
 
 

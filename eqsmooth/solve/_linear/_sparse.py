@@ -84,7 +84,7 @@ def _block_products(layout, variables, offsets, dims) -> list:
     return raw
 
 
-class _Pattern:
+class SparsityPattern:
     """The static sparsity pattern of `JᵀJ + diag(damping)` in CSC form, and
     how its values are assembled.
 
@@ -159,11 +159,11 @@ class _Pattern:
 
 
 @ft.lru_cache(maxsize=16)
-def _pattern(layout, variables) -> _Pattern:
-    return _Pattern(layout, variables)
+def _pattern(layout, variables) -> SparsityPattern:
+    return SparsityPattern(layout, variables)
 
 
-def _host_csc(pattern: _Pattern, data):
+def _host_csc(pattern: SparsityPattern, data):
     import scipy.sparse as sp
 
     n = pattern.size
@@ -180,7 +180,7 @@ def _pivots_ok(pivots, reference, dtype) -> bool:
     return bool(np.all(np.isfinite(pivots)) and np.all(pivots > tol * reference))
 
 
-def _superlu_solve(pattern: _Pattern, data, b):
+def _superlu_solve(pattern: SparsityPattern, data, b):
     """Factorise and solve on the host; NaNs and `ok = False` if singular."""
     import scipy.sparse.linalg as spla
 
@@ -206,7 +206,7 @@ def _superlu_solve(pattern: _Pattern, data, b):
     return x.astype(b.dtype), np.asarray(ok)
 
 
-def _cholmod_solve(pattern: _Pattern, data, b):
+def _cholmod_solve(pattern: SparsityPattern, data, b):
     """Supernodal Cholesky (CHOLMOD), the symbolic analysis done once per pattern."""
     from sksparse.cholmod import analyze, CholmodError
 
@@ -230,7 +230,7 @@ class SparseNormalState(eqx.Module):
     """The assembled normal matrix (CSC values) and its static pattern."""
 
     data: Float[Array, " nnz"]
-    pattern: _Pattern = eqx.field(static=True)
+    pattern: SparsityPattern = eqx.field(static=True)
     layout: tuple[GroupLayout, ...] = eqx.field(static=True)
 
 
