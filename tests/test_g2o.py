@@ -111,6 +111,22 @@ def test_load_se2_values_ids_and_information(tmp_path):
     )
 
 
+def test_older_se2_tags_read_as_the_current_ones(tmp_path):
+    # VERTEX2 / EDGE2 (GTSAM's w10000.graph) have the fields of VERTEX_SE2 /
+    # EDGE_SE2.
+    from eqsmooth.io import load_g2o
+
+    old = SE2_TEXT.replace("VERTEX_SE2", "VERTEX2").replace("EDGE_SE2", "EDGE2")
+    a = load_g2o(_write(tmp_path, SE2_TEXT, "new.g2o"))
+    b = load_g2o(_write(tmp_path, old, "old.graph"))
+    np.testing.assert_array_equal(_params(a.values), _params(b.values))
+    np.testing.assert_array_equal(a.edges, b.edges)
+    np.testing.assert_array_equal(
+        np.asarray(a.between.noise.sqrt_information),
+        np.asarray(b.between.noise.sqrt_information),
+    )
+
+
 def test_se2_cost_matches_g2o_by_hand(tmp_path):
     from eqsmooth.io import load_g2o
     from eqsmooth.lie import SE2

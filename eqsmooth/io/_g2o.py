@@ -29,6 +29,9 @@ _FIELDS = {
     "VERTEX_SE3:QUAT": "id x y z qx qy qz qw",
     "EDGE_SE3:QUAT": "id1 id2 x y z qx qy qz qw and 21 information entries",
 }
+# Older names of the same lines (TORO-era files, e.g. GTSAM's w10000.graph):
+# same fields, information upper-triangular row by row, as GTSAM reads them.
+_ALIASES = {"VERTEX2": "VERTEX_SE2", "EDGE2": "EDGE_SE2"}
 _VERTEX = {"se2": "VERTEX_SE2", "se3": "VERTEX_SE3:QUAT"}
 _EDGE = {"se2": "EDGE_SE2", "se3": "EDGE_SE3:QUAT"}
 _DIM = {"se2": 3, "se3": 6}
@@ -69,7 +72,7 @@ def _tokenize(path: Path, skip_unsupported: bool) -> dict[str, _Lines]:
             tokens = line.split()
             if not tokens or tokens[0].startswith("#"):
                 continue
-            tag = tokens[0]
+            tag = _ALIASES.get(tokens[0], tokens[0])
             if tag not in _TAGS:
                 if skip_unsupported:
                     continue
@@ -77,7 +80,8 @@ def _tokenize(path: Path, skip_unsupported: bool) -> dict[str, _Lines]:
                     path,
                     lineno,
                     f"unsupported tag {tag!r}; eqsmooth reads "
-                    f"{', '.join(_TAGS)} (pass skip_unsupported=True to ignore "
+                    f"{', '.join([*_TAGS, *_ALIASES])} (pass skip_unsupported=True "
+                    "to ignore "
                     "other lines)",
                 )
             lines = found[tag]
@@ -394,6 +398,8 @@ def load_g2o(
     `EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw` followed by the 21 upper-triangular
     information entries (row by row), `FIX id ...`, blank lines and `#`
     comments. Quaternions are scalar-last in the file and are normalised.
+    The older tags `VERTEX2` and `EDGE2` (e.g. GTSAM's `w10000.graph`) are
+    read as `VERTEX_SE2` and `EDGE_SE2`, which have the same fields.
 
     Every edge becomes one row of a [`eqsmooth.factors.BetweenFactor`][] with
     residual `log(z⁻¹ xᵢ⁻¹ xⱼ)` in eqsmooth's tangent coordinates
