@@ -11,6 +11,7 @@ for parity).
 """
 
 import functools
+import importlib.util
 
 import equinox as eqx
 import jax
@@ -188,6 +189,10 @@ def test_cheirality_project_flags_and_nan():
     np.testing.assert_array_equal(front, [True, False, False])
     assert np.all(np.isfinite(uv[0])) and np.all(np.isnan(uv[1:]))
     np.testing.assert_allclose(uv[0], [320 + 25 + 0.01, 240 + 51], atol=1e-12)
+    uvv, front = eqs.factors.project_stereo(pose, pts, eqs.Cal3_S2Stereo(*STEREO))
+    np.testing.assert_array_equal(front, [True, False, False])
+    assert np.all(np.isfinite(uvv[0])) and np.all(np.isnan(uvv[1:]))
+    np.testing.assert_allclose(uvv[0, 0] - uvv[0, 1], 500.0 * 0.3 / 2.0, atol=1e-12)
 
 
 @functools.cache
@@ -224,6 +229,35 @@ def test_cheirality_rows_are_inert_and_flagged(kind):
     flags = np.asarray(f.in_front({"x": poses, "l": points}))
     np.testing.assert_array_equal(flags, (np.arange(24) > 2) | (np.arange(24) == 0))
     np.testing.assert_allclose(r[1:3], 1000.0)
+    # GTSAM's constant too, behind the camera (row 1; GTSAM projects the
+    # point of row 2, at depth 1e-9 > 0, to ~1e11 pixels: its threshold is 0)
+    if importlib.util.find_spec("gtsam") is not None:
+        import gtsam
+
+        gcal = (
+            gtsam.Cal3_S2(*S2)
+            if kind == "s2"
+            else gtsam.Cal3_S2Stereo(*STEREO[:2], 0.0, *STEREO[2:])
+        )
+        unit = gtsam.noiseModel.Unit.Create(2 if kind == "s2" else 3)
+        for i in (1,):
+            v = gtsam.Values()
+            v.insert(1, _gtsam_pose(poses[i]))
+            v.insert(2, np.asarray(points[i]))
+            if kind == "s2":
+                gf = gtsam.GenericProjectionFactorCal3_S2(
+                    np.zeros(2), unit, 1, 2, gcal, _gtsam_pose(_body())
+                )
+            else:
+                gf = gtsam.GenericStereoFactor3D(
+                    gtsam.StereoPoint2(0.0, 0.0, 0.0),
+                    unit,
+                    1,
+                    2,
+                    gcal,
+                    _gtsam_pose(_body()),
+                )
+            np.testing.assert_allclose(r[i], gf.unwhitenedError(v))
     assert np.all(np.abs(np.asarray(r[~flags])) == 1000.0)
     for j in (jp, jl, auto):
         assert np.all(np.isfinite(np.asarray(j)))
@@ -301,7 +335,10 @@ def _noisy_start():
     rng = np.random.default_rng(1)
     dx, dl = rng.normal(size=(5, 6)), rng.normal(size=pts.shape)
     move = eqx.filter_jit(lambda p, d: eqs.retract(p, d))
-    return {"x": move(poses, jnp.asarray(0.05 * dx)), "l": pts + 0.1 * dl}
+    return {
+        "x": move(poses, jnp.asarray(0.05 * dx)),
+        "l": jnp.asarray(np.asarray(pts) + 0.1 * dl),
+    }
 
 
 # One solver configuration (one compiled solve) for every solve below.
@@ -472,6 +509,7 @@ def test_gradients_through_solve_match_differences():
     measured pixels): reverse mode through the solve (the implicit adjoint)
     against float64 fourth-order central differences of re-solves."""
     _, _, cal, body, _, _, uv = _ba_problem()
+    _noisy_start()  # cached: made here, not under the trace below
     rng = np.random.default_rng(7)
     theta = {
         "body": body,
@@ -574,6 +612,7 @@ def test_stereo_matches_gtsam():
     """`StereoCamera::project2` with its H matrices and
     `GenericStereoFactor3D`'s residual and blocks (with a mount), to 1e-9."""
     gtsam = pytest.importorskip("gtsam", reason=GTSAM_REASON)
+    import eqsmooth as eqs
 
     poses, points = _scene()
     rng = np.random.default_rng(4)
@@ -581,6 +620,9 @@ def test_stereo_matches_gtsam():
     fx, fy, u0, v0, b = STEREO
     gcal = gtsam.Cal3_S2Stereo(fx, fy, 0.0, u0, v0, b)
     body = _body()
+    project = eqx.filter_jit(eqs.factors.project_stereo)
+    uvv, front = project(poses, points, eqs.Cal3_S2Stereo(*STEREO))
+    assert bool(np.all(front))
     for mounted in (False, True):
         f = _factor("stereo", 24, measured=measured, body=body if mounted else None)
         r, jp, jl = _linearized(f, poses, points)
@@ -606,24 +648,28 @@ def test_stereo_matches_gtsam():
                 sp = cam.project2(np.asarray(points[i]), h1, h2)
                 their = np.array([sp.uL(), sp.uR(), sp.v()])
                 np.testing.assert_allclose(r[i] + measured[i], their, atol=1e-9)
+                np.testing.assert_allclose(uvv[i], their, rtol=1e-12, atol=1e-9)
                 np.testing.assert_allclose(jp[i], _swap(h1), rtol=1e-11, atol=1e-9)
                 np.testing.assert_allclose(jl[i], h2, rtol=1e-11, atol=1e-9)
 
 
-def test_cheirality_penalty_matches_gtsam():
-    gtsam = pytest.importorskip("gtsam", reason=GTSAM_REASON)
-    import eqsmooth as eqs
+@pytest.mark.slow  # about two minutes: three solves and a gradient, compiled
+def test_docs_cameras_page_runs(capsys):
+    """The Python blocks of docs/tutorial/cameras.md run in order and do what
+    their comments say."""
+    import re
+    from pathlib import Path
 
-    pose, point = eqs.SE3.identity((1,)), jnp.array([[0.1, 0.2, -2.0]])
-    v = gtsam.Values()
-    v.insert(1, gtsam.Pose3())
-    v.insert(2, np.asarray(point[0]))
-    unit2 = gtsam.noiseModel.Unit.Create(2)
-    mono = gtsam.GenericProjectionFactorCal3_S2(
-        np.array([300.0, 200.0]), unit2, 1, 2, gtsam.Cal3_S2(*S2)
-    )
-    ours = _factor("s2", 1, measured=jnp.array([[300.0, 200.0]]))
-    graph = eqs.FactorGraph([ours])
-    np.testing.assert_allclose(
-        graph.residuals({"x": pose, "l": point})[0][0], mono.unwhitenedError(v)
-    )
+    page = Path(__file__).resolve().parents[1] / "docs" / "tutorial" / "cameras.md"
+    blocks = re.findall(r"```python\n(.*?)```", page.read_text(), re.S)
+    assert len(blocks) == 3
+    scope = {}
+    with jax.numpy_dtype_promotion("standard"):  # a user's session
+        for k, block in enumerate(blocks):
+            exec(compile(block, f"docs/tutorial/cameras.md:{k}", "exec"), scope)
+    capsys.readouterr()
+    err = np.abs(np.asarray(scope["sol"].value["l"] - scope["points"])).max()
+    assert err < 0.05
+    err = np.abs(np.asarray(scope["stereo_sol"].value["l"] - scope["points"])).max()
+    assert err < 0.05
+    assert float(scope["grads"].fx) != 0.0 and float(scope["grads"].k1) != 0.0

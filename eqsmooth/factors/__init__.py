@@ -11,6 +11,7 @@ from ._camera import (
     Cal3_S2Stereo as Cal3_S2Stereo,
     Cal3DS2 as Cal3DS2,
     project as project,
+    project_stereo as project_stereo,
     ProjectionFactor as ProjectionFactor,
     StereoProjectionFactor as StereoProjectionFactor,
 )

@@ -17,7 +17,9 @@ Conventions (GTSAM's, so that a port keeps its numbers):
     with the two column blocks swapped.
 
 **Cheirality.** A point at depth `p_z ≤ min_depth` (behind the camera or on
-its plane) has no projection. [`eqsmooth.factors.project`][] returns NaN
+its plane) has no projection. The default `min_depth` is `1e-6` (GTSAM's
+threshold is 0, which lets a point at depth 1e-9 project to ~1e11 pixels;
+pass `min_depth=0.0` for GTSAM's rule). [`eqsmooth.factors.project`][] returns NaN
 pixels there with an `in_front` flag. A factor row whose point is not in
 front is *inert*: its Jacobians are zero, so it takes no part in the step,
 and its residual is GTSAM's constant `2 fx` per coordinate (without a
@@ -44,7 +46,7 @@ from ..lie._so3 import skew as _skew
 from ..lie._utils import as_float_array
 from ._factor import AbstractAnalyticFactor, shared_field
 from ._graph import gather
-from ._noise import _is_concrete, AbstractNoiseModel
+from ._noise import AbstractNoiseModel, is_concrete
 from ._variables import Var
 
 
@@ -65,7 +67,7 @@ def _check_focal(name: str, **fields: Array) -> None:
     """Focal lengths (and a baseline) must be positive and finite; checked when
     concrete (a traced calibration is the user's learnable parameter)."""
     for field, value in fields.items():
-        if _is_concrete(value):
+        if is_concrete(value):
             v = float(np.asarray(value))
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name}.{field} must be positive and finite, got {v}")
@@ -73,7 +75,7 @@ def _check_focal(name: str, **fields: Array) -> None:
 
 def _check_finite(name: str, **fields: Array) -> None:
     for field, value in fields.items():
-        if _is_concrete(value) and not np.isfinite(np.asarray(value)):
+        if is_concrete(value) and not np.isfinite(np.asarray(value)):
             raise ValueError(f"{name}.{field} must be finite, got {value}")
 
 
@@ -405,6 +407,48 @@ def project(
     return jnp.where(front[..., None], uv, jnp.nan), front
 
 
+def project_stereo(
+    pose: SE3,
+    point: Float[ArrayLike, "*batch 3"],
+    calibration: Cal3_S2Stereo,
+    *,
+    min_depth: float = _DEFAULT_MIN_DEPTH,
+) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+    """Project world points into a rectified stereo camera (GTSAM's
+    `StereoCamera.project`).
+
+    **Arguments:**
+
+    - `pose`: the left camera's pose, camera-to-world, an
+        [`eqsmooth.lie.SE3`][].
+    - `point`: world points, `(*batch, 3)`.
+    - `calibration`: an [`eqsmooth.factors.Cal3_S2Stereo`][].
+    - `min_depth`: as for [`eqsmooth.factors.project`][].
+
+    **Returns:** `(uvv, in_front)`: `(uL, uR, v)` of shape `(*batch, 3)`, NaN
+    where the point is not in front of the camera, and the flags.
+    """
+    if not isinstance(pose, SE3):
+        raise TypeError(
+            f"project_stereo: pose must be an SE3, got {type(pose).__name__}"
+        )
+    if not isinstance(calibration, Cal3_S2Stereo):
+        raise TypeError(
+            "project_stereo: calibration must be a Cal3_S2Stereo, got "
+            f"{type(calibration).__name__}"
+        )
+    p = pose.inverse().apply(jnp.asarray(point))
+    front, z = _safe_depth(p, min_depth)
+    uvv = _stereo_pixels(calibration, p, z)
+    return jnp.where(front[..., None], uvv, jnp.nan), front
+
+
+def _stereo_pixels(k: Cal3_S2Stereo, p: Array, z: Array) -> Array:
+    x, y = p[..., 0] / z, p[..., 1] / z
+    xr = (p[..., 0] - k.baseline) / z
+    return jnp.stack([k.u0 + k.fx * x, k.u0 + k.fx * xr, k.v0 + k.fy * y], axis=-1)
+
+
 def _point_jacobians(pose: SE3, p: Array) -> tuple[Array, Array]:
     """`∂p/∂δ_pose` (3×6, tangent `(v, ω)`) and `∂p/∂P` (3×3) of the camera-frame
     point `p = pose⁻¹ · P`: with `pose ⊕ δ = pose · exp(δ)`,
@@ -454,7 +498,7 @@ def _pixels(name: str, measured, k: int) -> Array:
             f"{name}.measured must have shape (n, {k}) (one row per factor), got "
             f"{measured.shape}"
         )
-    if _is_concrete(measured):
+    if is_concrete(measured):
         ok = np.isfinite(np.asarray(measured)).all(axis=1)
         if not ok.all():
             bad = np.flatnonzero(~ok)[:8].tolist()
@@ -508,7 +552,8 @@ class ProjectionFactor(AbstractAnalyticFactor):
     - `body_P_sensor`: the camera's pose in the body frame, one
         [`eqsmooth.lie.SE3`][] shared by every row (`None`: the pose is the
         camera's).
-    - `min_depth`: the depth at or below which a point is not in front.
+    - `min_depth`: the depth at or below which a point is not in front
+        (GTSAM's is 0).
     - `throw_cheirality`: raise (`eqx.error_if`) when a point is not in
         front, at any evaluation (trial steps of a solve included), instead
         of making the row inert.
@@ -665,7 +710,7 @@ class StereoProjectionFactor(AbstractAnalyticFactor):
         k = self.calibration
         x, y = p[0] / z, p[1] / z
         xr = (p[0] - k.baseline) / z
-        uvv = jnp.stack([k.u0 + k.fx * x, k.u0 + k.fx * xr, k.v0 + k.fy * y])
+        uvv = _stereo_pixels(k, p, z)
         penalty = jax.lax.stop_gradient(jnp.broadcast_to(2.0 * k.fx, (3,)))
         r = jnp.where(front, uvv - self.measured, penalty)
         r = _cheirality(name, r, front, self.throw_cheirality)
