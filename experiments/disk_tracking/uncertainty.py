@@ -253,8 +253,8 @@ def summarise(out: Path, folds: list[dict]) -> dict:
         calibration_figure(
             _rows(test, "test"),
             out / "fig_calibration.png",
-            f"disk tracking: calibration on the committed test folds "
-            f"{[f['heads_fold'] for f in test]} (mean over folds)",
+            f"disk: calibration on the test folds "
+            f"{','.join(str(f['heads_fold']) for f in test)} (mean over folds)",
         )
     text = json.dumps(record, indent=1)
     eqs.learn.atomic_write(out / "uncertainty.json", lambda f: f.write(text.encode()))
