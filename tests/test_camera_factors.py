@@ -263,6 +263,10 @@ def test_cheirality_rows_are_inert_and_flagged(kind):
         assert np.all(np.isfinite(np.asarray(j)))
         assert np.all(np.asarray(j)[1:3] == 0.0)
         assert np.all(np.any(np.asarray(j)[flags] != 0.0, axis=(1, 2)))
+    graph = eqs.FactorGraph([f])
+    with pytest.raises(ValueError, match=r"factor stack 0\): rows \[1, 2\] see"):
+        eqs.factors.check_cheirality(graph, {"x": poses, "l": points})
+    eqs.factors.check_cheirality(graph, {"x": poses, "l": _scene()[1]})
     if kind == "s2":  # the same helper raises for both kinds
         graph = eqs.FactorGraph(
             [_factor(kind, 24, body=_body(), throw_cheirality=True)]

@@ -10,6 +10,7 @@ from ._camera import (
     Cal3_S2 as Cal3_S2,
     Cal3_S2Stereo as Cal3_S2Stereo,
     Cal3DS2 as Cal3DS2,
+    check_cheirality as check_cheirality,
     project as project,
     project_stereo as project_stereo,
     ProjectionFactor as ProjectionFactor,

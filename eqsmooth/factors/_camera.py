@@ -28,7 +28,9 @@ camera lower the cost, and Levenberg-Marquardt would accept that step and
 then report success with the point stuck there. The constant makes such a
 step raise the cost instead, so it is rejected. Which rows are inert is
 read with the factors' `in_front(values)` (one flag per row, e.g. at a
-solution); `throw_cheirality=True` raises instead (`eqx.error_if`, at any
+solution) or named by [`eqsmooth.factors.check_cheirality`][] (a solve does
+not fail on them: a point behind every camera that sees it is left where it
+started); `throw_cheirality=True` raises instead (`eqx.error_if`, at any
 evaluation, trial steps included: GTSAM's `throwCheirality`).
 """
 
@@ -45,7 +47,7 @@ from ..lie import SE3
 from ..lie._so3 import skew as _skew
 from ..lie._utils import as_float_array
 from ._factor import AbstractAnalyticFactor, shared_field
-from ._graph import gather
+from ._graph import FactorGraph, gather
 from ._noise import AbstractNoiseModel, is_concrete
 from ._variables import Var
 
@@ -751,3 +753,47 @@ class StereoProjectionFactor(AbstractAnalyticFactor):
         `values`; `False` marks the inert rows (see
         [`eqsmooth.factors.ProjectionFactor.in_front`][])."""
         return _in_front(self, values)
+
+
+def check_cheirality(graph: FactorGraph, values: dict[str, PyTree]) -> None:
+    """Raise if a camera factor of `graph` sees a point that is not in front
+    of its camera at `values` (an inert row; see the module's note on
+    cheirality).
+
+    A solve does not fail on inert rows: a point behind every camera that
+    sees it is left unconstrained (Levenberg-Marquardt's damping keeps it
+    where it was) and the solve can report success. Call this on the
+    initial values, or on `sol.value`, to have such rows named.
+
+    **Arguments:**
+
+    - `graph`: a [`eqsmooth.factors.FactorGraph`][].
+    - `values`: concrete values `{group: stacked states}`.
+
+    **Raises:** `ValueError` naming each camera factor stack, its rows that
+    are not in front, and the variables of the first.
+    """
+    parts = []
+    for k, f in enumerate(graph.factors):
+        if not isinstance(f, (ProjectionFactor, StereoProjectionFactor)):
+            continue
+        front = np.asarray(f.in_front(values))
+        bad = np.flatnonzero(~front)
+        if bad.size:
+            first = ", ".join(
+                f"{v.group}[{int(np.asarray(v.index)[bad[0]])}]" for v in f.variables
+            )
+            more = f" and {bad.size - 8} more" if bad.size > 8 else ""
+            parts.append(
+                f"{type(f).__name__} (factor stack {k}): rows {bad[:8].tolist()}"
+                f"{more} see their point at depth <= min_depth={f.min_depth} "
+                f"(first row: {first})"
+            )
+    if parts:
+        raise ValueError(
+            "points not in front of their cameras (these rows are inert: zero "
+            "Jacobians, a constant residual): "
+            + "; ".join(parts)
+            + ". Initialise such points in front of the cameras that see them, "
+            "e.g. along the measured pixel's ray (calibration.calibrate)."
+        )
