@@ -41,7 +41,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import eqsmooth as eqs
-from eqsmooth.solve._posterior._marginals import _marginal_covariances
 from experiments._provenance import git_hash
 
 from . import (
@@ -53,6 +52,12 @@ from . import (
     train as T,
     uncertainty as U,
 )
+
+
+try:  # the blocks and a flag, instead of an error on a singular system
+    from eqsmooth.solve._posterior._marginals import _marginal_covariances
+except ImportError:  # pragma: no cover - private helper moved
+    _marginal_covariances = None
 
 
 FIRST_FRESH_MORE = fresh.FRESH_FOLD + 1  # 11: fold 10 is fresh.py's
@@ -118,8 +123,11 @@ def _smooth_with_covariance(model, meas, counts, x0, max_steps: int):
     def one(m, c, x):
         xs, outcome = T.smooth_one(model, m, c, x, max_steps)
         lin = eqs.solve.linearize(model.graph(m, c, x), {"x": xs})
-        cov, ok = _marginal_covariances(lin, None, ("x",))
-        cov = jnp.where(ok, cov["x"][:, :2, :2], jnp.nan)
+        if _marginal_covariances is None:  # raises on a singular system
+            cov = eqs.marginal_covariances(lin, groups=["x"])["x"][:, :2, :2]
+        else:
+            blocks, ok = _marginal_covariances(lin, None, ("x",))
+            cov = jnp.where(ok, blocks["x"][:, :2, :2], jnp.nan)
         return xs[:, :2], cov, outcome
 
     return jax.vmap(one)(meas, counts, x0)
