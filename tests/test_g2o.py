@@ -112,11 +112,18 @@ def test_load_se2_values_ids_and_information(tmp_path):
 
 
 def test_older_se2_tags_read_as_the_current_ones(tmp_path):
-    # VERTEX2 / EDGE2 (GTSAM's w10000.graph) have the fields of VERTEX_SE2 /
-    # EDGE_SE2.
+    # TORO's VERTEX2 / EDGE2 (GTSAM's w10000.graph) have the fields of
+    # VERTEX_SE2 / EDGE_SE2, EDGE2's information listed as xx xy yy tt xt yt.
     from eqsmooth.io import load_g2o
 
-    old = SE2_TEXT.replace("VERTEX_SE2", "VERTEX2").replace("EDGE_SE2", "EDGE2")
+    def toro(line):
+        t = line.split()
+        if t and t[0] == "EDGE_SE2":
+            xx, xy, xt, yy, yt, tt = t[6:]
+            t = ["EDGE2", *t[1:6], xx, xy, yy, tt, xt, yt]
+        return " ".join(t).replace("VERTEX_SE2", "VERTEX2")
+
+    old = "\n".join(toro(line) for line in SE2_TEXT.splitlines())
     a = load_g2o(_write(tmp_path, SE2_TEXT, "new.g2o"))
     b = load_g2o(_write(tmp_path, old, "old.graph"))
     np.testing.assert_array_equal(_params(a.values), _params(b.values))

@@ -29,9 +29,11 @@ _FIELDS = {
     "VERTEX_SE3:QUAT": "id x y z qx qy qz qw",
     "EDGE_SE3:QUAT": "id1 id2 x y z qx qy qz qw and 21 information entries",
 }
-# Older names of the same lines (TORO-era files, e.g. GTSAM's w10000.graph):
-# same fields, information upper-triangular row by row, as GTSAM reads them.
+# TORO's names of the SE(2) lines (e.g. GTSAM's w10000.graph): the same
+# fields, except that EDGE2 lists its information as xx xy yy tt xt yt (as
+# GTSAM reads it); `_TORO_INFO` reorders that to g2o's xx xy xt yy yt tt.
 _ALIASES = {"VERTEX2": "VERTEX_SE2", "EDGE2": "EDGE_SE2"}
+_TORO_INFO = (0, 1, 4, 2, 5, 3)
 _VERTEX = {"se2": "VERTEX_SE2", "se3": "VERTEX_SE3:QUAT"}
 _EDGE = {"se2": "EDGE_SE2", "se3": "EDGE_SE3:QUAT"}
 _DIM = {"se2": 3, "se3": 6}
@@ -84,6 +86,8 @@ def _tokenize(path: Path, skip_unsupported: bool) -> dict[str, _Lines]:
                     "to ignore "
                     "other lines)",
                 )
+            if tokens[0] == "EDGE2" and len(tokens) == 12:
+                tokens = tokens[:6] + [tokens[6 + k] for k in _TORO_INFO]
             lines = found[tag]
             lines.linenos.append(lineno)
             lines.tokens.append(tokens)
@@ -398,8 +402,10 @@ def load_g2o(
     `EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw` followed by the 21 upper-triangular
     information entries (row by row), `FIX id ...`, blank lines and `#`
     comments. Quaternions are scalar-last in the file and are normalised.
-    The older tags `VERTEX2` and `EDGE2` (e.g. GTSAM's `w10000.graph`) are
-    read as `VERTEX_SE2` and `EDGE_SE2`, which have the same fields.
+    TORO's tags `VERTEX2` and `EDGE2` (e.g. GTSAM's `w10000.graph`) are read
+    as `VERTEX_SE2` and `EDGE_SE2`; `EDGE2` lists its information entries
+    as `I11 I12 I22 I33 I13 I23`, as GTSAM reads them. (TORO's `EQUIV` lines
+    are not read: pass `skip_unsupported=True`.)
 
     Every edge becomes one row of a [`eqsmooth.factors.BetweenFactor`][] with
     residual `log(z⁻¹ xᵢ⁻¹ xⱼ)` in eqsmooth's tangent coordinates
