@@ -531,6 +531,62 @@ def _in_front(factor, values: dict[str, PyTree]) -> Bool[Array, " n"]:
     return cam.inverse().apply(jnp.asarray(point))[..., 2] > factor.min_depth
 
 
+def _camera_row(factor, pose, point, jacobians: bool, pixels, pixels_d):
+    """One row of a camera factor: its residual and, with `jacobians`, its
+    pose and point blocks (zero where the row is inert). `pixels(cal, p, z)`
+    are the predicted pixels of the camera-frame point `p` at safe depth `z`,
+    `pixels_d(cal, p, z)` their derivative w.r.t. `p`."""
+    name = type(factor).__name__
+    _check_row(name, pose, point)
+    cam = _camera_pose(pose, factor.body_P_sensor)
+    p = cam.inverse().apply(point)
+    front, z = _safe_depth(p, factor.min_depth)
+    cal = factor.calibration
+    predicted = pixels(cal, p, z)
+    penalty = jax.lax.stop_gradient(jnp.broadcast_to(2.0 * cal.fx, predicted.shape))
+    r = jnp.where(front, predicted - factor.measured, penalty)
+    r = _cheirality(name, r, front, factor.throw_cheirality)
+    if not jacobians:
+        return r, ()
+    d = pixels_d(cal, p, z)
+    dp_pose, dp_point = _point_jacobians(cam, p)
+    h_pose = mm(d, dp_pose)
+    if factor.body_P_sensor is not None:
+        h_pose = mm(h_pose, factor.body_P_sensor.inverse().adjoint())
+    h_point = mm(d, dp_point)
+    return r, (
+        jnp.where(front, h_pose, jnp.zeros_like(h_pose)),
+        jnp.where(front, h_point, jnp.zeros_like(h_point)),
+    )
+
+
+def _mono_pixels(cal: AbstractCalibration, p: Array, z: Array) -> Array:
+    return cal.uncalibrate(p[:2] / z)
+
+
+def _mono_d(cal: AbstractCalibration, p: Array, z: Array) -> Array:
+    xy = p[:2] / z
+    # ∂(x, y)/∂p = [[1, 0, −x], [0, 1, −y]] / z
+    dxy = jnp.concatenate([jnp.eye(2, dtype=p.dtype), -xy[:, None]], axis=1) / z
+    return mm(cal.uncalibrate_jacobian(xy), dxy)
+
+
+def _stereo_d(k: Cal3_S2Stereo, p: Array, z: Array) -> Array:
+    x, y = p[0] / z, p[1] / z
+    xr = (p[0] - k.baseline) / z
+    zero = jnp.zeros_like(x)
+    return (
+        jnp.stack(
+            [
+                jnp.stack([k.fx, zero, -k.fx * x]),
+                jnp.stack([k.fx, zero, -k.fx * xr]),
+                jnp.stack([zero, k.fy, -k.fy * y]),
+            ]
+        )
+        / z
+    )
+
+
 class ProjectionFactor(AbstractAnalyticFactor):
     """A landmark seen by a monocular camera (GTSAM's `GenericProjectionFactor`):
     residual `project(pose · body_P_sensor, point) − measured`, in pixels.
@@ -596,30 +652,7 @@ class ProjectionFactor(AbstractAnalyticFactor):
         self.throw_cheirality = bool(throw_cheirality)
 
     def _row(self, pose: PyTree, point: PyTree, jacobians: bool):
-        name = "ProjectionFactor"
-        _check_row(name, pose, point)
-        cam = _camera_pose(pose, self.body_P_sensor)
-        p = cam.inverse().apply(point)
-        front, z = _safe_depth(p, self.min_depth)
-        xy = p[:2] / z
-        cal = self.calibration
-        penalty = jax.lax.stop_gradient(jnp.broadcast_to(2.0 * cal.fx, (2,)))
-        r = jnp.where(front, cal.uncalibrate(xy) - self.measured, penalty)
-        r = _cheirality(name, r, front, self.throw_cheirality)
-        if not jacobians:
-            return r, ()
-        # ∂(x, y)/∂p = [[1, 0, −x], [0, 1, −y]] / z
-        dxy = jnp.concatenate([jnp.eye(2, dtype=p.dtype), -xy[:, None]], axis=1) / z
-        d = mm(cal.uncalibrate_jacobian(xy), dxy)
-        dp_pose, dp_point = _point_jacobians(cam, p)
-        h_pose = mm(d, dp_pose)
-        if self.body_P_sensor is not None:
-            h_pose = mm(h_pose, self.body_P_sensor.inverse().adjoint())
-        h_point = mm(d, dp_point)
-        return r, (
-            jnp.where(front, h_pose, jnp.zeros_like(h_pose)),
-            jnp.where(front, h_point, jnp.zeros_like(h_point)),
-        )
+        return _camera_row(self, pose, point, jacobians, _mono_pixels, _mono_d)
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " 2"]:
         return self._row(pose, point, jacobians=False)[0]
@@ -704,40 +737,7 @@ class StereoProjectionFactor(AbstractAnalyticFactor):
         self.throw_cheirality = bool(throw_cheirality)
 
     def _row(self, pose: PyTree, point: PyTree, jacobians: bool):
-        name = "StereoProjectionFactor"
-        _check_row(name, pose, point)
-        cam = _camera_pose(pose, self.body_P_sensor)
-        p = cam.inverse().apply(point)
-        front, z = _safe_depth(p, self.min_depth)
-        k = self.calibration
-        x, y = p[0] / z, p[1] / z
-        xr = (p[0] - k.baseline) / z
-        uvv = _stereo_pixels(k, p, z)
-        penalty = jax.lax.stop_gradient(jnp.broadcast_to(2.0 * k.fx, (3,)))
-        r = jnp.where(front, uvv - self.measured, penalty)
-        r = _cheirality(name, r, front, self.throw_cheirality)
-        if not jacobians:
-            return r, ()
-        zero = jnp.zeros_like(x)
-        d = (
-            jnp.stack(
-                [
-                    jnp.stack([k.fx, zero, -k.fx * x]),
-                    jnp.stack([k.fx, zero, -k.fx * xr]),
-                    jnp.stack([zero, k.fy, -k.fy * y]),
-                ]
-            )
-            / z
-        )
-        dp_pose, dp_point = _point_jacobians(cam, p)
-        h_pose = mm(d, dp_pose)
-        if self.body_P_sensor is not None:
-            h_pose = mm(h_pose, self.body_P_sensor.inverse().adjoint())
-        h_point = mm(d, dp_point)
-        return r, (
-            jnp.where(front, h_pose, jnp.zeros_like(h_pose)),
-            jnp.where(front, h_point, jnp.zeros_like(h_point)),
-        )
+        return _camera_row(self, pose, point, jacobians, _stereo_pixels, _stereo_d)
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " 3"]:
         return self._row(pose, point, jacobians=False)[0]
