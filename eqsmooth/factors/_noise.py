@@ -309,6 +309,43 @@ class AbstractNoiseModel(eqx.Module):
         return self.whiten(eye)
 
 
+class AbstractGaussianNoise(AbstractNoiseModel):
+    """A Gaussian noise model: whitening only (`ρ` is the identity), every
+    row counts, its curvature model is itself, and it masks rows by being
+    wrapped in a [`eqsmooth.factors.MaskedNoise`][]. Its `name` is its type's.
+
+    Subclasses give `whiten`, `log_det_sqrt_information`, `check_shapes` and
+    `take_rows`.
+    """
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def rho(self, s):
+        return s, jnp.ones_like(s)
+
+    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
+        return gaussian_log_normalizer(self, n, m)
+
+    def active_rows(self) -> None:
+        return None
+
+    def curvature_model(self) -> "AbstractGaussianNoise":
+        return self
+
+    def mask_rows(self, active: RowMask) -> "MaskedNoise":
+        return mask_gaussian(self, active)
+
+
+def _positive(name: str, field: str, value) -> Array:
+    """`value` as a float array, checked positive and finite: at once when
+    concrete, with `eqx.error_if` when traced."""
+    value = positive_under_jit(name, field, as_float(value))
+    check_positive(name, field, value)
+    return value
+
+
 def _sqrt_precision(name: str, positional: tuple, sqrt_precision) -> Array:
     """The keyword-only `sqrt_precision` of `name`, as a float array (checked
     positive, with `eqx.error_if` when traced)."""
@@ -331,7 +368,7 @@ def _keyword_only(name: str, positional: tuple, sqrt_precision):
     return sqrt_precision
 
 
-class IsotropicNoise(AbstractNoiseModel):
+class IsotropicNoise(AbstractGaussianNoise):
     """Isotropic Gaussian noise: `R = sqrt_precision · I`.
 
     **Arguments:**
@@ -356,15 +393,13 @@ class IsotropicNoise(AbstractNoiseModel):
     @classmethod
     def from_sigma(cls, sigma: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
         """Build from standard deviation(s) σ (`sqrt_precision = 1/σ`)."""
-        sigma = positive_under_jit("IsotropicNoise", "sigma", as_float(sigma))
-        check_positive("IsotropicNoise", "sigma", sigma)
+        sigma = _positive("IsotropicNoise", "sigma", sigma)
         return cls(sqrt_precision=1.0 / sigma)
 
     @classmethod
     def from_precision(cls, precision: Float[ArrayLike, "*rows"]) -> "IsotropicNoise":
         """Build from precision(s) `1/σ²` (`sqrt_precision = √precision`)."""
-        p = positive_under_jit("IsotropicNoise", "precision", as_float(precision))
-        check_positive("IsotropicNoise", "precision", p)
+        p = _positive("IsotropicNoise", "precision", precision)
         return cls(sqrt_precision=jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -377,15 +412,6 @@ class IsotropicNoise(AbstractNoiseModel):
             return n * m * jnp.log(s)
         return m * jnp.sum(jnp.log(s))
 
-    def rho(self, s):
-        return s, jnp.ones_like(s)
-
-    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
-        return gaussian_log_normalizer(self, n, m)
-
-    def active_rows(self) -> None:
-        return None
-
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_precision.shape not in ((), (n,)):
             raise ValueError(
@@ -393,21 +419,11 @@ class IsotropicNoise(AbstractNoiseModel):
                 f"{self.sqrt_precision.shape}; expected () or ({n},)"
             )
 
-    @property
-    def name(self) -> str:
-        return "IsotropicNoise"
-
-    def curvature_model(self) -> "IsotropicNoise":
-        return self
-
     def take_rows(self, index: RowIndex) -> "IsotropicNoise":
         return take_per_row(self, "sqrt_precision", 1, index)
 
-    def mask_rows(self, active: RowMask) -> "MaskedNoise":
-        return mask_gaussian(self, active)
 
-
-class DiagonalNoise(AbstractNoiseModel):
+class DiagonalNoise(AbstractGaussianNoise):
     """Diagonal Gaussian noise: `R = diag(sqrt_precision)`.
 
     **Arguments:**
@@ -437,8 +453,7 @@ class DiagonalNoise(AbstractNoiseModel):
     @classmethod
     def from_sigmas(cls, sigmas: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate standard deviations σ_j (`1/σ_j`)."""
-        sigmas = positive_under_jit("DiagonalNoise", "sigmas", as_float(sigmas))
-        check_positive("DiagonalNoise", "sigmas", sigmas)
+        sigmas = _positive("DiagonalNoise", "sigmas", sigmas)
         return cls(sqrt_precision=1.0 / sigmas)
 
     @classmethod
@@ -477,15 +492,13 @@ class DiagonalNoise(AbstractNoiseModel):
     @classmethod
     def from_variances(cls, variances: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate variances σ_j² (`1/σ_j`)."""
-        v = positive_under_jit("DiagonalNoise", "variances", as_float(variances))
-        check_positive("DiagonalNoise", "variances", v)
+        v = _positive("DiagonalNoise", "variances", variances)
         return cls(sqrt_precision=1.0 / jnp.sqrt(v))
 
     @classmethod
     def from_precision(cls, precision: Float[ArrayLike, "*rows m"]) -> "DiagonalNoise":
         """Build from per-coordinate precisions `1/σ_j²` (`√precision`)."""
-        p = positive_under_jit("DiagonalNoise", "precision", as_float(precision))
-        check_positive("DiagonalNoise", "precision", p)
+        p = _positive("DiagonalNoise", "precision", precision)
         return cls(sqrt_precision=jnp.sqrt(p))
 
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -499,15 +512,6 @@ class DiagonalNoise(AbstractNoiseModel):
         total = jnp.sum(jnp.log(s))
         return n * total if s.ndim == 1 else total
 
-    def rho(self, s):
-        return s, jnp.ones_like(s)
-
-    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
-        return gaussian_log_normalizer(self, n, m)
-
-    def active_rows(self) -> None:
-        return None
-
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_precision.shape not in ((m,), (n, m)):
             raise ValueError(
@@ -515,21 +519,11 @@ class DiagonalNoise(AbstractNoiseModel):
                 f"{self.sqrt_precision.shape}; expected ({m},) or ({n}, {m})"
             )
 
-    @property
-    def name(self) -> str:
-        return "DiagonalNoise"
-
-    def curvature_model(self) -> "DiagonalNoise":
-        return self
-
     def take_rows(self, index: RowIndex) -> "DiagonalNoise":
         return take_per_row(self, "sqrt_precision", 2, index)
 
-    def mask_rows(self, active: RowMask) -> "MaskedNoise":
-        return mask_gaussian(self, active)
 
-
-class SqrtInformationNoise(AbstractNoiseModel):
+class SqrtInformationNoise(AbstractGaussianNoise):
     """Full Gaussian noise given by a lower-triangular square-root information `R`.
 
     The whitened residual is `R r` and the information matrix is `RᵀR`.
@@ -628,15 +622,6 @@ class SqrtInformationNoise(AbstractNoiseModel):
         total = jnp.sum(jnp.log(jnp.diagonal(R, axis1=-2, axis2=-1)))
         return n * total if R.ndim == 2 else total
 
-    def rho(self, s):
-        return s, jnp.ones_like(s)
-
-    def log_normalizer(self, n: int, m: int) -> Float[Array, ""]:
-        return gaussian_log_normalizer(self, n, m)
-
-    def active_rows(self) -> None:
-        return None
-
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         if self.sqrt_information.shape not in ((m, m), (n, m, m)):
             raise ValueError(
@@ -644,18 +629,8 @@ class SqrtInformationNoise(AbstractNoiseModel):
                 f"{self.sqrt_information.shape}; expected ({m}, {m}) or ({n}, {m}, {m})"
             )
 
-    @property
-    def name(self) -> str:
-        return "SqrtInformationNoise"
-
-    def curvature_model(self) -> "SqrtInformationNoise":
-        return self
-
     def take_rows(self, index: RowIndex) -> "SqrtInformationNoise":
         return take_per_row(self, "sqrt_information", 3, index)
-
-    def mask_rows(self, active: RowMask) -> "MaskedNoise":
-        return mask_gaussian(self, active)
 
 
 def _check_scale(name: str, scale) -> None:
