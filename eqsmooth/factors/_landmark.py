@@ -219,6 +219,14 @@ def _finite_rows(name: str, x: Array) -> Array:
     )
 
 
+def _positions(field: str, x) -> Array:
+    """Validated measured positions: `(n, 2)` or `(n, 3)`, with finite rows."""
+    x = jnp.asarray(x)
+    if x.ndim != 2 or x.shape[1] not in (2, 3):
+        raise ValueError(f"{field} must have shape (n, 2) or (n, 3), got {x.shape}")
+    return _finite_rows(field, x)
+
+
 def _bearings(name: str, bearing) -> Array:
     """Validated bearings of a landmark factor: `(n,)` angles, or `(n, 3)`
     directions normalised to unit vectors (like GTSAM's `Unit3`, so a ray
@@ -402,13 +410,7 @@ class TranslationPriorFactor(AbstractFactor):
         self, pose: Var, position: Float[ArrayLike, "n s"], noise: AbstractNoiseModel
     ):
         self.variables = (pose,)
-        position = jnp.asarray(position)
-        if position.ndim != 2 or position.shape[1] not in (2, 3):
-            raise ValueError(
-                "TranslationPriorFactor.position must have shape (n, 2) or (n, 3), "
-                f"got {position.shape}"
-            )
-        self.position = _finite_rows("TranslationPriorFactor.position", position)
+        self.position = _positions("TranslationPriorFactor.position", position)
         self.noise = noise
 
     def residual(self, pose: PyTree) -> Float[Array, " s"]:
@@ -444,13 +446,7 @@ class PoseToPointFactor(AbstractFactor):
         noise: AbstractNoiseModel,
     ):
         self.variables = (pose, point)
-        measured = jnp.asarray(measured)
-        if measured.ndim != 2 or measured.shape[1] not in (2, 3):
-            raise ValueError(
-                "PoseToPointFactor.measured must have shape (n, 2) or (n, 3), got "
-                f"{measured.shape}"
-            )
-        self.measured = _finite_rows("PoseToPointFactor.measured", measured)
+        self.measured = _positions("PoseToPointFactor.measured", measured)
         self.noise = noise
 
     def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " s"]:
