@@ -405,6 +405,17 @@ class AbstractRigidMotion(AbstractLieGroup):
         r, t = broadcast_batch(rotation, t)
         return cls(jnp.concatenate([r, t], axis=-1), check=False)
 
+    def _apply_rigid(self, points: ArrayLike) -> Array:
+        """`apply` of every rigid motion: rotate the points by the rotation
+        part of the parameters, then add the translation part."""
+        k = self.rotation_group.parameters_dim
+        params, p = broadcast_batch(
+            self.parameters(),
+            as_vectors(points, self.space_dim, type(self).__name__, "points"),
+        )
+        rotation = self.rotation_group(params[..., :k], check=False)
+        return rotation.apply(p) + params[..., k:]
+
     @classmethod
     def _from_group_matrix(cls: type[_R], matrix: Float[Array, "*batch n n"]) -> _R:
         n = cls.space_dim

@@ -223,11 +223,7 @@ class SE2(AbstractRigidMotion):
         )
 
     def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
-        params, p = broadcast_batch(
-            self.unit_complex_xy,
-            as_vectors(points, self.space_dim, type(self).__name__, "points"),
-        )
-        return SO2(params[..., :2], check=False).apply(p) + params[..., 2:]
+        return self._apply_rigid(points)
 
     def adjoint(self) -> Float[Array, "*batch 3 3"]:
         c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))

@@ -171,11 +171,7 @@ class SE3(AbstractRigidMotion):
         return SE3(jnp.concatenate([q, t], axis=-1), check=False)
 
     def apply(self, points: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
-        params, p = broadcast_batch(
-            self.wxyz_xyz,
-            as_vectors(points, self.space_dim, type(self).__name__, "points"),
-        )
-        return SO3(params[..., :4], check=False).apply(p) + params[..., 4:]
+        return self._apply_rigid(points)
 
     def adjoint(self) -> Float[Array, "*batch 6 6"]:
         r = self.rotation().as_matrix()
