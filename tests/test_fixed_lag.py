@@ -110,8 +110,11 @@ def test_hostile_input():
         run(trans, meas, m0, p0, lag=0)
     with raises(ValueError, "lag 7", "6 states"):
         run(trans, meas, m0, p0, lag=T + 1)
-    with raises(ValueError, "at least one measurement stack"):
-        run(trans, (), m0, p0, lag=2)
+    masked = eqx.tree_at(
+        lambda f: f.noise, trans, eqs.MaskedNoise(trans.noise, jnp.ones(T - 1, bool))
+    )
+    with raises(TypeError, "transition's rows cannot be masked", "measurement"):
+        run(masked, meas, m0, p0, lag=2)
     # (the test suite's jaxtyping hook checks the annotation first; without
     # it, the function's own check raises a TypeError naming the solver)
     with raises(jaxtyping.TypeCheckError, "fixed_lag_smoother", "parameter 'solver'"):
@@ -435,8 +438,11 @@ def test_updates_hostile_input():
         eqs.filters.FixedLagSmoother(lag=0)
     smoother = eqs.filters.FixedLagSmoother(lag=2)
     trans0 = step_trans[0]
-    with raises(ValueError, "FixedLagSmoother.init", "at least one measurement"):
-        smoother.init(mean0, cov0, trans0, ())
+    masked = eqx.tree_at(
+        lambda f: f.noise, trans0, eqs.MaskedNoise(trans0.noise, jnp.ones(1, bool))
+    )
+    with raises(TypeError, "FixedLagSmoother.init", "transition's rows cannot be"):
+        smoother.init(mean0, cov0, masked, step_meas[0])
     with raises(ValueError, "the transition FunctionFactor must be one row", "2 rows"):
         two = eqs.FunctionFactor(
             _se2_trans,
@@ -479,3 +485,108 @@ def test_updates_name_another_lag_and_another_dtype():
     )
     with raises(TypeError, "measurements[0] data has dtype float32", "float64"):
         eqs.filters.FixedLagSmoother(lag=2).update(state, step_trans[0], f32)
+
+
+# --- masked rows and lags in seconds -------------------------------------------
+
+_MISSING = (2, 4)  # the times whose GPS fix is masked
+
+
+def _masked(factor, active):
+    return eqx.tree_at(
+        lambda f: f.noise, factor, eqs.MaskedNoise(factor.noise, jnp.asarray(active))
+    )
+
+
+@pytest.fixture(scope="module")
+def dropped_fixes():
+    """The SE(2) problem per step, the fixes' mask, and the scan without the
+    masked fixes' rows (what masking must equal)."""
+    (trans, meas, truth), step_trans, step_meas = _se2_steps(1.0)
+    mean0, cov0 = _se2_initial(truth)
+    keep = np.ones(T, bool)
+    keep[list(_MISSING)] = False
+    dropped = eqs.FunctionFactor(
+        meas.fn,
+        (eqs.Var("s", np.flatnonzero(keep)),),
+        eqs.IsotropicNoise(sqrt_precision=meas.noise.sqrt_precision[keep]),
+        data=meas.data[keep],
+    )
+    want = _run(trans, dropped, mean0, cov0, 3, _GN, _UNROLLED)
+    return (trans, meas, mean0, cov0), (step_trans, step_meas), keep, want
+
+
+def test_masked_measurements_are_dropped_measurements(dropped_fixes):
+    """A `MaskedNoise` row adds nothing: the scan with masked fixes equals
+    the scan without those rows (every field)."""
+    (trans, meas, mean0, cov0), _, keep, want = dropped_fixes
+    got = _run(trans, _masked(meas, keep), mean0, cov0, 3, _GN, _UNROLLED)
+    for field in ("mean", "lagged_mean", "windows", "prior_mean"):
+        a, b = getattr(got, field), getattr(want, field)
+        np.testing.assert_allclose(
+            eqs.local(a, b, batch_ndim=jnp.ndim(b["vel"]) - 1), 0, atol=1e-10
+        )
+    np.testing.assert_allclose(
+        got.prior_covariance, want.prior_covariance, rtol=0, atol=1e-10
+    )
+
+
+def test_masked_updates_are_dropped_measurements(dropped_fixes):
+    """A run of updates whose missing fixes are masked (one row per step,
+    `MaskedNoise(noise, [False])`) equals the scan without them."""
+    (_, _, mean0, cov0), (step_trans, step_meas), keep, want = dropped_fixes
+    smoother = eqs.filters.FixedLagSmoother(lag=3, solver=_GN, adjoint=_UNROLLED)
+    steps = [_masked(f, [bool(keep[t])]) for t, f in enumerate(step_meas)]
+    online, _, _ = _updates(smoother, step_trans, steps, mean0, cov0)
+    np.testing.assert_allclose(
+        eqs.local(online, want.mean, batch_ndim=1), 0, atol=1e-10
+    )
+
+
+@pytest.mark.slow
+def test_updates_without_measurements_are_all_masked(dropped_fixes):
+    """Odometry only: updates without a measurement stack equal the scan with
+    every fix masked."""
+    (trans, meas, mean0, cov0), (step_trans, _), _, _ = dropped_fixes
+    none = _run(trans, _masked(meas, np.zeros(T, bool)), mean0, cov0, 3, _GN, _UNROLLED)
+    smoother = eqs.filters.FixedLagSmoother(lag=3, solver=_GN, adjoint=_UNROLLED)
+    state, first = smoother.init(mean0, cov0, step_trans[0])
+    update = eqx.filter_jit(smoother.update)
+    out = [first]
+    for t in range(1, T):
+        state, x = update(state, step_trans[t - 1])
+        out.append(x)
+    online = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *out)
+    np.testing.assert_allclose(
+        eqs.local(online, none.mean, batch_ndim=1), 0, atol=1e-10
+    )
+
+
+def test_masked_row_needs_finite_data():
+    trans, meas, _ = _linear_problem()
+    m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
+    n = meas[0].num_rows
+    bad = eqx.tree_at(lambda f: f.data, meas[0], meas[0].data.at[2].set(jnp.nan))
+    bad = _masked(bad, np.arange(n) != 2)
+    with raises(ValueError, "non-finite", "rows [2]", "finite placeholder"):
+        eqs.filters.fixed_lag_smoother(trans, (bad, meas[1]), m0, p0, lag=2)
+
+
+def test_lag_from_seconds_is_gtsams_window():
+    # GTSAM keeps the states within smoother_lag of the newest and optimises
+    # them with the new one (counted on gtsam.BatchFixedLagSmoother: after an
+    # update it holds 3, 4, 3, 3 states for these).
+    lag = eqs.filters.lag_from_seconds
+    assert [lag(2.0, 1.0), lag(0.3, 0.1), lag(0.25, 0.1), lag(1.0, 0.5)] == [4, 5, 4, 4]
+    assert lag(0.0, 0.1) == 2
+    assert lag(8, 1) == 10  # the benchmarks' GTSAM lag L - 2 for lag L = 10
+    with raises(ValueError, "lag_from_seconds", "dt must be > 0", "0.0"):
+        lag(1.0, 0.0)
+    with raises(ValueError, "smoother_lag must be >= 0", "-1.0"):
+        lag(-1.0, 0.1)
+    with raises(ValueError, "dt must be finite", "nan"):
+        lag(1.0, float("nan"))
+    # (the jaxtyping hook names the parameter first; without it, the
+    # function's own check says "must be a number of seconds")
+    with raises(jaxtyping.TypeCheckError, "smoother_lag"):
+        lag("2s", 0.1)  # type: ignore[arg-type]

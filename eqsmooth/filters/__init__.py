@@ -9,6 +9,7 @@ from ._ekf import ekf as ekf, EKFSolution as EKFSolution
 from ._fixed_lag import (
     fixed_lag_smoother as fixed_lag_smoother,
     FixedLagSolution as FixedLagSolution,
+    lag_from_seconds as lag_from_seconds,
 )
 from ._fixed_lag_update import (
     FixedLagSmoother as FixedLagSmoother,

@@ -134,8 +134,29 @@ def checked_covariance(who: str, cov: ArrayLike, d: int) -> Array:
     return cov
 
 
-def checked_measurements(transition, measurements) -> tuple[AbstractFactor, ...]:
-    """The measurement stacks as a tuple, each checked against the chain."""
+def check_smoother_noise(noise, where: str, *, maskable: bool) -> None:
+    """Gaussian noise for the fixed-lag smoother; a row mask
+    ([`eqsmooth.factors.MaskedNoise`][]) where `maskable` (measurements and
+    closures). A masked row whitens to a zero square-root information, so its
+    residual and Jacobian are zero in every window and marginal: it adds
+    exactly what a dropped row adds, nothing."""
+    if noise.is_gaussian and noise.active_rows() is not None:
+        if maskable:
+            return  # MaskedNoise checks that its base is Gaussian
+        raise TypeError(
+            f"{where}: the transition's rows cannot be masked (MaskedNoise): each "
+            "step's transition predicts the new state, so every step needs one. "
+            "Mask a missing measurement or closure instead"
+        )
+    check_gaussian(noise, where)
+
+
+def checked_measurements(
+    transition, measurements, *, maskable: bool = False
+) -> tuple[AbstractFactor, ...]:
+    """The measurement stacks as a tuple, each checked against the chain
+    (masked rows allowed in the measurements where `maskable`: the
+    fixed-lag smoother)."""
     if isinstance(measurements, AbstractFactor):
         measurements = (measurements,)
     measurements = tuple(measurements)
@@ -170,5 +191,9 @@ def checked_measurements(transition, measurements) -> tuple[AbstractFactor, ...]
             )
     for f in (transition,) + measurements:
         check_rows(f)
-        check_gaussian(f.noise, f"ekf: factor {type(f).__name__}")
+        where = f"ekf: factor {type(f).__name__}"
+        if maskable:
+            check_smoother_noise(f.noise, where, maskable=f is not transition)
+        else:
+            check_gaussian(f.noise, where)
     return measurements

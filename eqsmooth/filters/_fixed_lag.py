@@ -8,6 +8,8 @@ recorded sequence is one `lax.scan`, batched with `vmap` and differentiated
 through the solves with the adjoints of [`eqsmooth.solve.least_squares`][].
 """
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.lax as lax
@@ -24,8 +26,13 @@ from ..solve import (
     ImplicitAdjoint,
     LevenbergMarquardt,
 )
-from ._chain import chain_order, checked_covariance, checked_measurements
-from ._rows import check_gaussian, check_rows
+from ._chain import (
+    chain_order,
+    check_smoother_noise,
+    checked_covariance,
+    checked_measurements,
+)
+from ._rows import check_rows
 from ._window import chain_rows, information_floor, initial_prior, window_step
 
 
@@ -61,12 +68,12 @@ class FixedLagSolution(eqx.Module):
 
 def fixed_lag_smoother(
     transition: AbstractFactor,
-    measurements: AbstractFactor | tuple[AbstractFactor, ...],
+    measurements: AbstractFactor | Sequence[AbstractFactor],
     initial_mean: PyTree,
     initial_covariance: Float[ArrayLike, "d d"],
     *,
     lag: int,
-    closures: AbstractFactor | tuple[AbstractFactor, ...] = (),
+    closures: AbstractFactor | Sequence[AbstractFactor] = (),
     solver: AbstractGraphSolver = LevenbergMarquardt(),
     adjoint: AbstractAdjoint = ImplicitAdjoint(),
     prediction_steps: int = 1,
@@ -90,15 +97,19 @@ def fixed_lag_smoother(
     The factors are those of [`eqsmooth.filters.ekf`][]: `transition`, a
     stack whose rows link `x_t` to `x_{t+1}` with a residual that determines
     `x_{t+1}`, and measurement stacks touching one state each (several rows
-    per time step allowed), with Gaussian noise; and `closures`, links
-    between two states inside the window (loop closures).
+    per time step allowed, or none), with Gaussian noise; and `closures`,
+    links between two states inside the window (loop closures). A
+    measurement or closure row masked by [`eqsmooth.factors.MaskedNoise`][]
+    adds nothing, exactly as if it were dropped (tested to 1e-10); its data
+    must still be finite. The transition's rows cannot be masked.
 
     **Arguments:**
 
     - `transition`, `measurements`: as for [`eqsmooth.filters.ekf`][].
     - `initial_mean`, `initial_covariance`: the Gaussian belief on `x_0`
         (covariance in its tangent coordinates).
-    - `lag`: the number of states in the window, `1 ≤ lag ≤ T`.
+    - `lag`: the number of states in the window, `1 ≤ lag ≤ T`. From
+        GTSAM's lag in seconds: [`eqsmooth.filters.lag_from_seconds`][].
     - `closures`: factor stacks whose rows link two states of the chain at
         most `lag − 1` steps apart (loop closures, skip links). A row enters
         the window with its later state and is marginalised with its
@@ -151,6 +162,49 @@ def fixed_lag_smoother(
     return _solution(windows, start, priors, lag, T)
 
 
+def lag_from_seconds(smoother_lag: float | int, dt: float | int) -> int:
+    """The `lag`, in states, of the window a GTSAM fixed-lag smoother with a
+    lag of `smoother_lag` seconds optimises when a state comes every `dt`
+    seconds.
+
+    GTSAM's `BatchFixedLagSmoother(smoother_lag)` and
+    `IncrementalFixedLagSmoother(smoother_lag)` keep, after each update, the
+    states whose timestamp is within `smoother_lag` of the newest
+    (`⌊smoother_lag / dt⌋ + 1` of them), and optimise those plus the new
+    one: `⌊smoother_lag / dt⌋ + 2` states, which is what
+    [`eqsmooth.filters.fixed_lag_smoother`][] and
+    [`eqsmooth.filters.FixedLagSmoother`][] call `lag` (checked against
+    GTSAM's own smoothers, e.g. 0.3 s at 0.1 s per state: 5). A ratio within
+    1e-9 of a whole number counts as that number (0.3 / 0.1 is
+    2.9999999999999996 in floating point).
+
+    **Arguments:**
+
+    - `smoother_lag`: GTSAM's `smootherLag`, in seconds, `≥ 0`.
+    - `dt`: the time between consecutive states, in seconds, `> 0`.
+
+    **Returns:** the number of states, an `int ≥ 2`, to pass as `lag=`.
+    """
+    for name, value in (("smoother_lag", smoother_lag), ("dt", dt)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+            raise TypeError(
+                f"lag_from_seconds: {name} must be a number of seconds, got "
+                f"{type(value).__name__}"
+            )
+        if not np.isfinite(value):
+            raise ValueError(f"lag_from_seconds: {name} must be finite, got {value}")
+    if dt <= 0:
+        raise ValueError(f"lag_from_seconds: dt must be > 0 seconds, got {dt}")
+    if smoother_lag < 0:
+        raise ValueError(
+            f"lag_from_seconds: smoother_lag must be >= 0 seconds, got {smoother_lag}"
+        )
+    ratio = float(smoother_lag) / float(dt)
+    whole = round(ratio)
+    steps = whole if abs(ratio - whole) <= 1e-9 * max(1.0, ratio) else int(ratio)
+    return steps + 2
+
+
 def _checked_arguments(transition, measurements, closures, lag, solver):
     """`fixed_lag_smoother`'s checks: the measurement and closure stacks as
     tuples, or an error naming the argument."""
@@ -161,9 +215,7 @@ def _checked_arguments(transition, measurements, closures, lag, solver):
             "fixed_lag_smoother: transition must be an AbstractFactor, got "
             f"{type(transition).__name__}"
         )
-    measurements = checked_measurements(transition, measurements)
-    if not measurements:
-        raise ValueError("fixed_lag_smoother: give at least one measurement stack")
+    measurements = checked_measurements(transition, measurements, maskable=True)
     T = transition.num_rows + 1
     if lag > T:
         raise ValueError(
@@ -222,7 +274,9 @@ def _checked_closures(transition, closures, lag: int) -> tuple[AbstractFactor, .
                     "rows)"
                 )
         check_rows(f)
-        check_gaussian(f.noise, f"fixed_lag_smoother: closure factor {name}")
+        check_smoother_noise(
+            f.noise, f"fixed_lag_smoother: closure factor {name}", maskable=True
+        )
     return closures
 
 
@@ -241,8 +295,9 @@ def _check_finite_rows(factor: AbstractFactor) -> None:
         raise ValueError(
             f"fixed_lag_smoother: factor {type(factor).__name__} has non-finite "
             f"data in rows {np.flatnonzero(bad)[:10].tolist()} (times "
-            f"{factor.variables[0].ids[bad][:10].tolist()}); drop those rows or "
-            "mask them in the smoother's own graph"
+            f"{factor.variables[0].ids[bad][:10].tolist()}); drop those rows, or "
+            "mask them with MaskedNoise and fill them with any finite placeholder "
+            "(a masked row's residual is multiplied by zero, and 0 * NaN is NaN)"
         )
 
 

@@ -9,6 +9,8 @@ over those `lag + 1` slots and runs the same step as
 same estimates as the scan.
 """
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,8 +25,8 @@ from ..solve import (
     ImplicitAdjoint,
     LevenbergMarquardt,
 )
-from ._chain import checked_covariance, residual_dim
-from ._rows import check_gaussian, check_rows, row_whitening
+from ._chain import check_smoother_noise, checked_covariance, residual_dim
+from ._rows import check_rows, row_whitening
 from ._window import ChainRows, initial_prior, window_step
 
 
@@ -75,7 +77,8 @@ def _write(buffers, new, slot, shift):
 
 def _check_step(who, transition, measurements, group: str | None):
     """The step's factor stacks: a one-row transition and measurement stacks
-    touching one state, all of one group, with Gaussian noise."""
+    (none, or several) touching one state, all of one group, with Gaussian
+    noise (measurement rows may be masked)."""
     if not isinstance(transition, AbstractFactor):
         raise TypeError(
             f"{who}: transition must be an AbstractFactor, got "
@@ -84,8 +87,6 @@ def _check_step(who, transition, measurements, group: str | None):
     if isinstance(measurements, AbstractFactor):
         measurements = (measurements,)
     measurements = tuple(measurements)
-    if not measurements:
-        raise ValueError(f"{who}: give at least one measurement stack")
     name = type(transition).__name__
     if len(transition.variables) != 2 or transition.num_rows != 1:
         raise ValueError(
@@ -111,7 +112,9 @@ def _check_step(who, transition, measurements, group: str | None):
                 f"{[v.group for v in f.variables]}, not the chain's {group!r}"
             )
         check_rows(f)
-        check_gaussian(f.noise, f"{who}: factor {type(f).__name__}")
+        check_smoother_noise(
+            f.noise, f"{who}: factor {type(f).__name__}", maskable=f is not transition
+        )
     return transition, measurements, group
 
 
@@ -154,20 +157,28 @@ class FixedLagSmoother(eqx.Module):
     Each step takes the new state's factors: a one-row `transition` linking
     the previous state to the new one, and measurement stacks touching the
     new state, with the same structure every step (the number of rows per
-    stack fixed; mask a missing one with [`eqsmooth.factors.MaskedNoise`][]).
+    stack fixed; mask a missing one with [`eqsmooth.factors.MaskedNoise`][]:
+    a masked row adds nothing, exactly as if it were dropped, tested to
+    1e-10; its data must still be finite, e.g. the last measurement). A
+    step may have no measurement stack at all (odometry only), if every
+    step has none.
     The factors' variable indices are not read (build them with fixed ids,
     e.g. `Var("x", [0])` and `Var("x", [1])`, so that every step is the same
     compiled program); only their group, data and noise are. A run of
     updates gives the estimates of [`eqsmooth.filters.fixed_lag_smoother`][]
     on the same factors (tested to 1e-10), and every update is a pure
     function: `jax.jit`, `jax.grad` through a sequence of updates, and
-    `jax.vmap` over robots apply. Loop closures are not taken here (use
-    the scan's `closures`).
+    `jax.vmap` over robots apply. `init` and `update` run one compiled
+    program (compiled by `init`: the state has the same shapes after every
+    step), also when `update` is not wrapped in a `jit`. Loop closures are
+    not taken here (use the scan's `closures`).
 
     **Arguments:**
 
     - `lag`, `solver`, `adjoint`, `prediction_steps`, `max_steps`: as for
         [`eqsmooth.filters.fixed_lag_smoother`][].
+        A lag in seconds, as GTSAM gives it: `lag=`
+        [`eqsmooth.filters.lag_from_seconds`][]`(smoother_lag, dt)`.
     """
 
     lag: int = eqx.field(static=True)
@@ -186,7 +197,7 @@ class FixedLagSmoother(eqx.Module):
         initial_mean: PyTree,
         initial_covariance: Float[ArrayLike, "d d"],
         transition: AbstractFactor,
-        measurements: AbstractFactor | tuple[AbstractFactor, ...],
+        measurements: AbstractFactor | Sequence[AbstractFactor] = (),
     ) -> tuple[FixedLagState, PyTree]:
         """The state after the first time step.
 
@@ -195,7 +206,8 @@ class FixedLagSmoother(eqx.Module):
         - `initial_mean`, `initial_covariance`: the Gaussian belief on `x_0`.
         - `transition`: a one-row transition of the kind every update will
             give (its data is not used: `x_0` has no predecessor).
-        - `measurements`: the measurement stacks of `x_0`.
+        - `measurements`: the measurement stacks of `x_0` (none by default;
+            every update must then give the same stacks, with the same rows).
 
         **Returns:** `(state, estimate of x_0)`.
         """
@@ -216,13 +228,13 @@ class FixedLagSmoother(eqx.Module):
             initial_prior(1, initial_mean, cov0),
             rows,
         )
-        return self._advance(state, transition, measurements, step, who)
+        return _advance(self, state, transition, measurements, step)
 
     def update(
         self,
         state: FixedLagState,
         transition: AbstractFactor,
-        measurements: AbstractFactor | tuple[AbstractFactor, ...],
+        measurements: AbstractFactor | Sequence[AbstractFactor] = (),
     ) -> tuple[FixedLagState, PyTree]:
         """Add the next state: its transition from the newest state and its
         measurements; solve the window.
@@ -260,43 +272,46 @@ class FixedLagSmoother(eqx.Module):
                 "those the state was built with (init); every step must have the "
                 "same structure"
             )
-        return self._advance(state, transition, measurements, step, who)
+        return _advance(self, state, transition, measurements, step)
 
-    def _advance(self, state, transition, measurements, step, who):
-        lag = self.lag
-        t = _finite(step, state.t + 1, who)
-        vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
-        rows = _write(state.rows, step, vt, t > lag)
-        (trans_rows, trans_R), *meas = rows
-        k = [R.shape[0] // (lag + 1) for _, R in meas]
-        # Kept step v holds the transition into v; the model's row v is the
-        # transition v -> v + 1.
-        model = ChainRows(
-            transition=transition,
-            trans_rows=jax.tree_util.tree_map(lambda a: a[1:], trans_rows),
-            trans_R=trans_R[1:],
-            measurements=measurements,
-            meas_rows=tuple(r for r, _ in meas),
-            meas_R=tuple(R for _, R in meas),
-            meas_table=tuple(
-                np.arange((lag + 1) * kj).reshape(lag + 1, kj) for kj in k
-            ),
-            meas_mask=tuple(np.ones((lag + 1, kj), bool) for kj in k),
-            links=(),
-            group=transition.variables[0].group,
-            T=lag + 1,
-            S=1,
-        )
-        carry, (window, start, prior) = window_step(
-            model,
-            lag,
-            self.solver,
-            self.adjoint,
-            self.prediction_steps,
-            (state.window, state.prior),
-            vt,
-            self.max_steps,
-        )
-        newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
-        new = FixedLagState(t, window, t - vt + start, prior, rows)
-        return new, newest
+
+# One compiled program for `init` and every `update` of a smoother (the state
+# has the same shapes before and after each step), also when `update` is
+# not wrapped in a `jit`; under a caller's `jit` it is inlined.
+@eqx.filter_jit
+def _advance(smoother, state, transition, measurements, step):
+    lag = smoother.lag
+    t = _finite(step, state.t + 1, "FixedLagSmoother.init/update")
+    vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
+    rows = _write(state.rows, step, vt, t > lag)
+    (trans_rows, trans_R), *meas = rows
+    k = [R.shape[0] // (lag + 1) for _, R in meas]
+    # Kept step v holds the transition into v; the model's row v is the
+    # transition v -> v + 1.
+    model = ChainRows(
+        transition=transition,
+        trans_rows=jax.tree_util.tree_map(lambda a: a[1:], trans_rows),
+        trans_R=trans_R[1:],
+        measurements=measurements,
+        meas_rows=tuple(r for r, _ in meas),
+        meas_R=tuple(R for _, R in meas),
+        meas_table=tuple(np.arange((lag + 1) * kj).reshape(lag + 1, kj) for kj in k),
+        meas_mask=tuple(np.ones((lag + 1, kj), bool) for kj in k),
+        links=(),
+        group=transition.variables[0].group,
+        T=lag + 1,
+        S=1,
+    )
+    carry, (window, start, prior) = window_step(
+        model,
+        lag,
+        smoother.solver,
+        smoother.adjoint,
+        smoother.prediction_steps,
+        (state.window, state.prior),
+        vt,
+        smoother.max_steps,
+    )
+    newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
+    new = FixedLagState(t, window, t - vt + start, prior, rows)
+    return new, newest
