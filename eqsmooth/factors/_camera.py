@@ -114,6 +114,14 @@ def _affine(cal, xy: Array) -> Array:
     return jnp.stack([u, v], axis=-1)
 
 
+def _unaffine(cal, uv: ArrayLike) -> Array:
+    """`K⁻¹ · (u, v, 1)`, the inverse of `_affine`."""
+    uv = jnp.asarray(uv)
+    y = (uv[..., 1] - cal.v0) / cal.fy
+    x = (uv[..., 0] - cal.u0 - cal.skew * y) / cal.fx
+    return jnp.stack([x, y], axis=-1)
+
+
 def _affine_matrix(cal, like: Array) -> Array:
     zero = jnp.zeros_like(cal.fx)
     k = jnp.stack([jnp.stack([cal.fx, cal.skew]), jnp.stack([zero, cal.fy])])
@@ -165,10 +173,7 @@ class Cal3_S2(AbstractCalibration):
     def calibrate(self, uv: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 2"]:
         """Normalised image coordinates of pixels `uv` (the inverse of
         `uncalibrate`): the direction `(x, y, 1)` of the ray through them."""
-        uv = jnp.asarray(uv)
-        y = (uv[..., 1] - self.v0) / self.fy
-        x = (uv[..., 0] - self.u0 - self.skew * y) / self.fx
-        return jnp.stack([x, y], axis=-1)
+        return _unaffine(self, uv)
 
     def matrix(self) -> Float[Array, "3 3"]:
         """The calibration matrix `K` (3×3)."""
@@ -279,10 +284,7 @@ class Cal3DS2(AbstractCalibration):
         """Normalised image coordinates of pixels `uv`: the distortion is
         inverted by `iterations` Newton steps from the undistorted guess
         (ample for the distortion of real lenses inside the image)."""
-        uv = jnp.asarray(uv)
-        yd = (uv[..., 1] - self.v0) / self.fy
-        xd = (uv[..., 0] - self.u0 - self.skew * yd) / self.fx
-        target = jnp.stack([xd, yd], axis=-1)
+        target = _unaffine(self, uv)
         xy = target
         for _ in range(iterations):
             e = self.distort(xy) - target
