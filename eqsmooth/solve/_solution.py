@@ -33,6 +33,13 @@ with warnings.catch_warnings():
             "several orders of magnitude can also make it numerically singular: "
             "use float64)."
         )
+        fn_not_graph_residuals = (
+            "The solver's fn returned other residuals than the factor graph passed as "
+            "args, at the initial values or at a perturbation of them. An eqsmooth "
+            "solver linearises the graph itself, so its fn must be "
+            "eqsmooth.solve.graph_residuals (use optimistix's solvers, or "
+            "eqsmooth.solve.tangent_least_squares, for another residual function)."
+        )
 
 
 # The codes of optimistix's result enumeration, in its order; the first seven

@@ -215,7 +215,7 @@ def _probe_tangent(lin: Linearization) -> Tangent:
 
 def _fn_output(fn, y, graph) -> list:
     out = fn(y, graph)
-    want = jax.eval_shape(_residuals, y, graph)
+    want = eqx.filter_eval_shape(_residuals, y, graph)
     # optimistix wraps `fn` so that it returns `(residuals, aux)`.
     wrapped = isinstance(out, tuple) and len(out) == 2
     if wrapped and jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(
@@ -262,7 +262,7 @@ class Start(NamedTuple):
     lin: Linearization  # placeholder zeros; cost NaN where `done`
     done: Bool[Array, ""]
     result: RESULTS
-    step: Int[Array, ""]  # 0, with the check of `fn` attached
+    step: Int[Array, ""]  # 0
 
 
 def start(fn, values, args, options, f_struct, who: str) -> Start:
@@ -275,25 +275,16 @@ def start(fn, values, args, options, f_struct, who: str) -> Start:
     lin = placeholder_linearization(graph, values, f_struct)
     mismatch = _fn_mismatch(fn, values, graph, lin, who)
     done, result = initial_status(values)
+    if mismatch is not None:
+        # A result code, not an error callback: the compiled solve holds no
+        # host callback, and `throw` raises with the code's message.
+        result = RESULTS.where(mismatch, RESULTS.fn_not_graph_residuals, result)
+        done = done | mismatch
     # No cost before the first linearisation: NaN where the solve ends
-    # before it (non-finite initial values).
+    # before it (non-finite initial values, another fn).
     no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
     lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
-    return Start(lin, done, result, fn_error_if(jnp.array(0), mismatch, who))
-
-
-def fn_error_if(x, mismatch: Bool[Array, ""] | None, who: str):
-    """`x`, raising at run time where `fn` was not the graph's residual function."""
-    if mismatch is None:
-        return x
-    return eqx.error_if(
-        x,
-        mismatch,
-        f"{who} solves the factor graph passed as args: its fn must be "
-        "eqsmooth.solve.graph_residuals, and the fn given returned other residuals "
-        "at the initial values or near them (use optimistix's solvers for another "
-        "residual function)",
-    )
+    return Start(lin, done, result, jnp.array(0))
 
 
 _OPTX_CODES = (
@@ -317,6 +308,11 @@ def to_optx_result(result: RESULTS) -> optx.RESULTS:
         )
     out = optx.RESULTS.where(
         result == RESULTS.linear_solve_failed, optx.RESULTS.singular, out
+    )
+    # Another fn: the solve did not start. optimistix has no code for it;
+    # the state's eqsmooth code (`Solution.state.result`) names it.
+    out = optx.RESULTS.where(
+        result == RESULTS.fn_not_graph_residuals, optx.RESULTS.nonlinear_divergence, out
     )
     return optx.RESULTS.where(
         result == RESULTS.nonfinite_problem, optx.RESULTS.nonfinite, out
