@@ -45,7 +45,7 @@ import numpy as np
 import eqsmooth as eqs
 
 name = sys.argv[1]
-REPEAT = 7
+REPEAT = 31
 
 def timed(f, *a):
     t0 = time.perf_counter(); out = jax.block_until_ready(f(*a))
