@@ -110,15 +110,13 @@ class AbstractGaussNewton(AbstractGraphSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del aux_struct, tags
-        lin, done, result, step = start(
-            fn, y, args, options, f_struct, type(self).__name__
-        )
+        lin, done, result = start(fn, y, args, options, f_struct, type(self).__name__)
         dtype = lin.dtype
         return GaussNewtonState(
             lin=lin,
             delta=zeros_tangent(lin),
             solved=jnp.array(True),
-            step=step,
+            step=jnp.array(0),
             num_accepted=jnp.array(0),
             damping=jnp.asarray(self.descent.initial_damping_value(), dtype),
             nu=jnp.asarray(2.0, dtype),

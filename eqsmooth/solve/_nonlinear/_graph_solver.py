@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float
 
 from ...factors import FactorGraph
 from ...factors._graph import Values
@@ -262,7 +262,6 @@ class Start(NamedTuple):
     lin: Linearization  # placeholder zeros; cost NaN where `done`
     done: Bool[Array, ""]
     result: RESULTS
-    step: Int[Array, ""]  # 0
 
 
 def start(fn, values, args, options, f_struct, who: str) -> Start:
@@ -284,7 +283,7 @@ def start(fn, values, args, options, f_struct, who: str) -> Start:
     # before it (non-finite initial values, another fn).
     no_cost = jnp.where(done, jnp.nan, 0.0).astype(lin.cost.dtype)
     lin = eqx.tree_at(lambda x: x.cost, lin, no_cost)
-    return Start(lin, done, result, jnp.array(0))
+    return Start(lin, done, result)
 
 
 _OPTX_CODES = (
