@@ -273,6 +273,45 @@ def _assert_refused(fn, solver, graph, init, options=None):
         optx.least_squares(fn, solver, init, args=graph, options=options, max_steps=4)
 
 
+def test_the_graph_route_is_proven_at_trace_time_and_other_fns_checked_at_run_time(
+    monkeypatch,
+):
+    # optimistix hands the solver a closure-converted copy of fn: the
+    # graph's own residuals are recognised from that program (no run-time
+    # comparison in the compiled solve); a wrapper that computes the same
+    # thing through other operations, or closes over an array, is compared
+    # at run time and accepted.
+    import eqsmooth as eqs
+    from eqsmooth.solve._nonlinear import _graph_solver
+
+    seen = []
+    check = _graph_solver.fn_mismatch
+
+    def spy(*args):
+        out = check(*args)
+        seen.append(out is None)
+        return out
+
+    monkeypatch.setattr(_graph_solver, "fn_mismatch", spy)
+    graph, init = _chain()
+    one = jnp.ones(())
+
+    def same(y, g):
+        return eqs.solve.graph_residuals(y, g)
+
+    def rescaled(y, g):
+        return tuple(r * one for r in eqs.solve.graph_residuals(y, g))
+
+    for fn in (eqs.solve.graph_residuals, same, rescaled):
+        sol = optx.least_squares(
+            fn, eqs.GaussNewton(), init, args=graph, max_steps=8, throw=False
+        )
+        assert sol.result == optx.RESULTS.successful
+    assert seen == [True, True, False]
+    eqs.least_squares(graph, init, eqs.GaussNewton())
+    assert seen[-1] is True
+
+
 def test_fixed_step_solution_keeps_the_linearisation_at_its_values():
     import eqsmooth as eqs
 

@@ -58,11 +58,9 @@ from ._nonlinear._gauss_newton import (
     LevenbergMarquardt as LevenbergMarquardt,
     LevenbergMarquardtState as LevenbergMarquardtState,
 )
-from ._nonlinear._graph_solver import (
-    AbstractGraphSolver as AbstractGraphSolver,
-    graph_residuals as graph_residuals,
-)
+from ._nonlinear._graph_solver import AbstractGraphSolver as AbstractGraphSolver
 from ._nonlinear._least_squares import least_squares as least_squares
+from ._nonlinear._residuals import graph_residuals as graph_residuals
 from ._nonlinear._stopping import (
     AbstractStopping as AbstractStopping,
     FixedSteps as FixedSteps,

@@ -15,112 +15,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from ...factors import FactorGraph
 from ...factors._graph import Values
-from ...lie import AbstractLieGroup
-from .._derivatives import stop_arrays
-from .._linearization import (
-    Linearization,
-    placeholder_linearization,
-    retract_values,
-    Tangent,
-)
+from .._linearization import Linearization, placeholder_linearization
 from .._solution import RESULTS
+from ._fn_check import fn_mismatch
 from ._stopping import AbstractStopping
-
-
-def _residuals(values: Values, graph: FactorGraph) -> tuple[Array, ...]:
-    out = []
-    for f, rw in zip(graph.factors, graph.whitened_residuals(values)):
-        s = jnp.sum(rw * rw, axis=1)
-        positive = s > 0
-        safe = jnp.where(positive, s, 1.0)
-        rho, _ = f.noise.rho(safe)
-        _, drho0 = f.noise.rho(jnp.zeros_like(s))
-        scale = jnp.where(positive, jnp.sqrt(rho / safe), jnp.sqrt(drho0))
-        out.append(rw * scale[:, None])
-    return tuple(out)
-
-
-_AMBIENT = (
-    "eqsmooth.solve.graph_residuals was differentiated with respect to Lie-group "
-    "values in their ambient coordinates (the stored parameters). That derivative "
-    "is not the derivative on the manifold, and an optimality condition written "
-    "with it gives wrong gradients. This happens under optimistix's default "
-    "adjoint: call optx.least_squares(eqsmooth.solve.graph_residuals, solver, "
-    "values, args=graph, adjoint=eqsmooth.ImplicitAdjoint()) (or UnrolledAdjoint / "
-    "TruncatedAdjoint), or eqsmooth.least_squares(graph, values, solver); with "
-    "optimistix's own solvers use eqsmooth.solve.tangent_least_squares. To "
-    "differentiate residuals on the manifold use eqsmooth.linearize or "
-    "eqsmooth.solve.TangentResiduals."
-)
-
-
-@eqx.filter_custom_jvp
-def _residuals_on_groups(values, graph):
-    return _residuals(values, graph)
-
-
-@_residuals_on_groups.def_jvp
-def _residuals_on_groups_jvp(primals, tangents):
-    values, graph = primals
-    t_values, t_graph = tangents
-    if jax.tree_util.tree_leaves(t_values):
-        raise ValueError(_AMBIENT)
-    return eqx.filter_jvp(lambda g: _residuals(values, g), (graph,), (t_graph,))
-
-
-def _has_groups(values) -> bool:
-    is_group = lambda x: isinstance(x, AbstractLieGroup)
-    leaves = jax.tree_util.tree_leaves(values, is_leaf=is_group)
-    return any(is_group(x) for x in leaves)
-
-
-def graph_residuals(
-    values: Values, graph: FactorGraph
-) -> tuple[Float[Array, "_n _m"], ...]:
-    """Residuals of every factor stack whose half squared norm is the graph's cost.
-
-    The residual function to pass to `optx.least_squares` together with
-    `args=graph` and an eqsmooth solver: `½ Σ‖r‖² = graph.cost(values)`.
-    Gaussian factors give their whitened residuals; a robust noise model
-    scales row `i` by `√(ρ(sᵢ)/sᵢ)` (`sᵢ` its squared whitened norm; `√ρ'(0)`
-    at `sᵢ = 0`).
-
-    Differentiable with respect to the graph. With respect to `values` it is
-    differentiable only where they are Euclidean (arrays): for Lie-group
-    values, a derivative in the ambient coordinates of the stored parameters
-    is not a derivative on the manifold (optimistix's default
-    `optx.ImplicitAdjoint` would build a wrong optimality condition from
-    it), so asking for one raises a `ValueError` that says what to use
-    instead ([`eqsmooth.solve.linearize`][], [`eqsmooth.solve.TangentResiduals`][],
-    or an eqsmooth adjoint).
-
-    **Arguments:**
-
-    - `values`: the values dict `{group: stacked states}`.
-    - `graph`: the [`eqsmooth.factors.FactorGraph`][].
-
-    **Returns:** a tuple of `(n, m)` arrays, one per factor stack.
-    """
-    if not isinstance(graph, FactorGraph):
-        raise TypeError(
-            f"graph_residuals(values, graph): graph must be a FactorGraph, got "
-            f"{type(graph).__name__}"
-        )
-    if _has_groups(values):
-        return _residuals_on_groups(values, graph)
-    return _residuals(values, graph)
-
-
-def manifold_residuals(values: Values, graph: FactorGraph) -> tuple[Array, ...]:
-    """`graph_residuals` without the ambient-derivative guard, for callers whose
-    values are already on the manifold's chart (e.g. `x̄ ⊕ δ`)."""
-    return _residuals(values, graph)
 
 
 # Per-call options eqsmooth's driver sets (optimistix's `options` dict):
@@ -163,83 +66,6 @@ def graph_of(args, who: str) -> FactorGraph:
     return args
 
 
-def _fn_mismatch(
-    fn, y, graph: FactorGraph, lin: Linearization, who: str
-) -> Bool[Array, ""] | None:
-    """Whether `fn(y, graph)` differs from the graph's residuals (None when `fn` is
-    `graph_residuals` itself).
-
-    The solvers linearise the graph, not `fn`, so a different `fn` would be
-    silently ignored. Its shapes are checked here at trace time, and its
-    values at run time at two points: the initial values `y` and `y ⊕ u`,
-    a fixed pseudo-random tangent perturbation `u` (entries of size about
-    0.1), so that a function that agrees with the graph at `y` only is
-    caught. Nothing skips the check: optimistix hands the solvers a wrapped
-    copy of `fn`, so `graph_residuals` itself is checked too (two residual
-    evaluations, once per solve).
-    """
-    if fn is graph_residuals or fn is manifold_residuals:
-        return None
-    y, graph = stop_arrays((y, graph))
-    hint = (
-        f"{who} solves the factor graph passed as args, so its fn must be "
-        "eqsmooth.solve.graph_residuals (the graph's own residuals); for another "
-        "residual function use optimistix's solvers, or "
-        "eqsmooth.solve.tangent_least_squares for Lie-group values"
-    )
-    bad = jnp.array(False)
-    for point in (y, retract_values(y, _probe_tangent(lin))):
-        got, want = _fn_output(fn, point, graph), _residuals(point, graph)
-        if len(got) != len(want) or any(
-            jnp.shape(a) != jnp.shape(b) for a, b in zip(got, want)
-        ):
-            raise ValueError(
-                f"{hint}; fn returned shapes {[jnp.shape(a) for a in got]}, the "
-                f"graph's residuals have shapes {[jnp.shape(b) for b in want]}"
-            )
-        bad = bad | _differ(got, want)
-    return bad
-
-
-def _probe_tangent(lin: Linearization) -> Tangent:
-    """A fixed, deterministic tangent perturbation with entries in
-    [-0.15, 0.15] (a low-discrepancy sequence: no PRNG in the program)."""
-    out, offset = {}, 0
-    for g in lin.layout:
-        n = g.count * g.dim
-        k = jnp.arange(offset, offset + n, dtype=lin.dtype) + 1.0
-        out[g.name] = (0.15 * jnp.sin(2.399963 * k)).reshape(g.count, g.dim)
-        offset += n
-    return out
-
-
-def _fn_output(fn, y, graph) -> list:
-    out = fn(y, graph)
-    want = eqx.filter_eval_shape(_residuals, y, graph)
-    # optimistix wraps `fn` so that it returns `(residuals, aux)`.
-    wrapped = isinstance(out, tuple) and len(out) == 2
-    if wrapped and jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(
-        want
-    ):
-        out = out[0]
-    return jax.tree_util.tree_leaves(out)
-
-
-def _differ(got: list, want: tuple) -> Bool[Array, ""]:
-    """Whether two lists of residual arrays differ beyond `√ε` (relative to the
-    largest finite entry); entries non-finite in both the same way agree."""
-    dtype = jnp.result_type(*want)
-    tol = float(np.sqrt(np.finfo(dtype).eps))
-    bad = jnp.array(False)
-    for a, b in zip(got, want):
-        same = (a == b) | (jnp.isnan(a) & jnp.isnan(b))
-        gap = jnp.where(same, 0.0, jnp.abs(a - b))
-        finite_b = jnp.where(jnp.isfinite(b), jnp.abs(b), 0.0)
-        scale = 1.0 + jnp.max(finite_b, initial=0.0)
-        bad = bad | ~(jnp.max(gap, initial=0.0) <= tol * scale)
-    return bad
-
-
 def initial_status(values: Values) -> tuple[Bool[Array, ""], RESULTS]:
     """`(done, result)` of a solver's initial state.
 
@@ -272,7 +98,7 @@ def start(fn, values, args, options, f_struct, who: str) -> Start:
     del options
     graph = graph_of(args, who)
     lin = placeholder_linearization(graph, values, f_struct)
-    mismatch = _fn_mismatch(fn, values, graph, lin, who)
+    mismatch = fn_mismatch(fn, values, graph, lin, who)
     done, result = initial_status(values)
     if mismatch is not None:
         # A result code, not an error callback: the compiled solve holds no

@@ -22,7 +22,8 @@ from .._linear._default_solver import default_linear_solver
 from .._solution import raise_unless_successful, RESULTS, Solution
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._diagnose import failure_detail
-from ._graph_solver import AbstractGraphSolver, graph_residuals, HISTORY, VERBOSE
+from ._graph_solver import AbstractGraphSolver, HISTORY, VERBOSE
+from ._residuals import graph_residuals
 
 
 def least_squares(

@@ -19,7 +19,7 @@ from ...factors import FactorGraph
 from ...factors._graph import graph_cost, Values
 from .._linearization import retract_values, Tangent
 from .._solution import promote_result, raise_unless_successful, Solution
-from ._graph_solver import manifold_residuals
+from ._residuals import manifold_residuals
 
 
 class TangentResiduals(eqx.Module):
