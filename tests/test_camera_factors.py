@@ -54,26 +54,17 @@ def _body():
 def _factor(kind, n, measured=None, body=None, **kw):
     import eqsmooth as eqs
 
-    noise = eqs.IsotropicNoise.from_sigma(1.0)
-    rows = np.arange(n)
     if kind == "stereo":
-        measured = jnp.zeros((n, 3)) if measured is None else measured
-        return eqs.StereoProjectionFactor(
-            eqs.Var("x", rows),
-            eqs.Var("l", rows),
-            measured,
-            noise,
-            eqs.Cal3_S2Stereo(*STEREO),
-            body_P_sensor=body,
-            **kw,
-        )
-    cal = eqs.Cal3_S2(*S2) if kind == "s2" else eqs.Cal3DS2(*DS2)
-    measured = jnp.zeros((n, 2)) if measured is None else measured
-    return eqs.ProjectionFactor(
+        cls, cal, width = eqs.StereoProjectionFactor, eqs.Cal3_S2Stereo(*STEREO), 3
+    else:
+        cls, width = eqs.ProjectionFactor, 2
+        cal = eqs.Cal3_S2(*S2) if kind == "s2" else eqs.Cal3DS2(*DS2)
+    rows = np.arange(n)
+    return cls(
         eqs.Var("x", rows),
         eqs.Var("l", rows),
-        measured,
-        noise,
+        jnp.zeros((n, width)) if measured is None else measured,
+        eqs.IsotropicNoise.from_sigma(1.0),
         cal,
         body_P_sensor=body,
         **kw,

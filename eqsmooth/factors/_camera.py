@@ -35,6 +35,8 @@ evaluation, trial steps included: GTSAM's `throwCheirality`).
 """
 
 import abc
+from collections.abc import Callable
+from typing import Any, ClassVar, Generic, NamedTuple, TypeVar
 
 import equinox as eqx
 import jax
@@ -375,6 +377,75 @@ def _safe_depth(p: Array, min_depth: float) -> tuple[Array, Array]:
     return front, jnp.where(front, p[..., 2], jnp.ones_like(p[..., 2]))
 
 
+def _mono_pixels(cal: AbstractCalibration, p: Array, z: Array) -> Array:
+    return cal.uncalibrate(p[..., :2] / z[..., None])
+
+
+def _mono_d(cal: AbstractCalibration, p: Array, z: Array) -> Array:
+    xy = p[:2] / z
+    # ∂(x, y)/∂p = [[1, 0, −x], [0, 1, −y]] / z
+    dxy = jnp.concatenate([jnp.eye(2, dtype=p.dtype), -xy[:, None]], axis=1) / z
+    return mm(cal.uncalibrate_jacobian(xy), dxy)
+
+
+def _stereo_pixels(k: Cal3_S2Stereo, p: Array, z: Array) -> Array:
+    x, y = p[..., 0] / z, p[..., 1] / z
+    xr = (p[..., 0] - k.baseline) / z
+    return jnp.stack([k.u0 + k.fx * x, k.u0 + k.fx * xr, k.v0 + k.fy * y], axis=-1)
+
+
+def _stereo_d(k: Cal3_S2Stereo, p: Array, z: Array) -> Array:
+    x, y = p[0] / z, p[1] / z
+    xr = (p[0] - k.baseline) / z
+    zero = jnp.zeros_like(x)
+    return (
+        jnp.stack(
+            [
+                jnp.stack([k.fx, zero, -k.fx * x]),
+                jnp.stack([k.fx, zero, -k.fx * xr]),
+                jnp.stack([zero, k.fy, -k.fy * y]),
+            ]
+        )
+        / z
+    )
+
+
+class _Camera(NamedTuple):
+    """What a monocular and a stereo camera differ in; everything else about
+    projecting a point, and the two factors, is shared."""
+
+    calibration: type  # the calibration class it takes
+    calibration_names: str  # the same, in words, for errors
+    width: int  # pixel coordinates per point
+    # The pixels of camera-frame points `p` (`(*batch, 3)`) at safe depths
+    # `z` (see `_safe_depth`), and their derivative w.r.t. one `p` (`width×3`).
+    pixels: Callable[[Any, Array, Array], Array]
+    pixels_d: Callable[[Any, Array, Array], Array]
+
+
+_MONO = _Camera(AbstractCalibration, "a Cal3_S2 or Cal3DS2", 2, _mono_pixels, _mono_d)
+_STEREO = _Camera(Cal3_S2Stereo, "a Cal3_S2Stereo", 3, _stereo_pixels, _stereo_d)
+
+
+def _check_calibration(what: str, calibration, camera: _Camera) -> None:
+    if not isinstance(calibration, camera.calibration):
+        raise TypeError(
+            f"{what} must be {camera.calibration_names}, got "
+            f"{type(calibration).__name__}"
+        )
+
+
+def _project(name: str, camera: _Camera, pose, point, calibration, min_depth):
+    """`project` and `project_stereo`, for `camera`."""
+    if not isinstance(pose, SE3):
+        raise TypeError(f"{name}: pose must be an SE3, got {type(pose).__name__}")
+    _check_calibration(f"{name}: calibration", calibration, camera)
+    p = pose.inverse().apply(jnp.asarray(point))
+    front, z = _safe_depth(p, min_depth)
+    pixels = camera.pixels(calibration, p, z)
+    return jnp.where(front[..., None], pixels, jnp.nan), front
+
+
 def project(
     pose: SE3,
     point: Float[ArrayLike, "*batch 3"],
@@ -398,17 +469,7 @@ def project(
     point is not in front of the camera (so that an unchecked use shows),
     and the flags `(*batch,)`.
     """
-    if not isinstance(pose, SE3):
-        raise TypeError(f"project: pose must be an SE3, got {type(pose).__name__}")
-    if not isinstance(calibration, AbstractCalibration):
-        raise TypeError(
-            "project: calibration must be a Cal3_S2 or Cal3DS2, got "
-            f"{type(calibration).__name__}"
-        )
-    p = pose.inverse().apply(jnp.asarray(point))
-    front, z = _safe_depth(p, min_depth)
-    uv = calibration.uncalibrate(p[..., :2] / z[..., None])
-    return jnp.where(front[..., None], uv, jnp.nan), front
+    return _project("project", _MONO, pose, point, calibration, min_depth)
 
 
 def project_stereo(
@@ -432,25 +493,7 @@ def project_stereo(
     **Returns:** `(uvv, in_front)`: `(uL, uR, v)` of shape `(*batch, 3)`, NaN
     where the point is not in front of the camera, and the flags.
     """
-    if not isinstance(pose, SE3):
-        raise TypeError(
-            f"project_stereo: pose must be an SE3, got {type(pose).__name__}"
-        )
-    if not isinstance(calibration, Cal3_S2Stereo):
-        raise TypeError(
-            "project_stereo: calibration must be a Cal3_S2Stereo, got "
-            f"{type(calibration).__name__}"
-        )
-    p = pose.inverse().apply(jnp.asarray(point))
-    front, z = _safe_depth(p, min_depth)
-    uvv = _stereo_pixels(calibration, p, z)
-    return jnp.where(front[..., None], uvv, jnp.nan), front
-
-
-def _stereo_pixels(k: Cal3_S2Stereo, p: Array, z: Array) -> Array:
-    x, y = p[..., 0] / z, p[..., 1] / z
-    xr = (p[..., 0] - k.baseline) / z
-    return jnp.stack([k.u0 + k.fx * x, k.u0 + k.fx * xr, k.v0 + k.fy * y], axis=-1)
+    return _project("project_stereo", _STEREO, pose, point, calibration, min_depth)
 
 
 def _point_jacobians(pose: SE3, p: Array) -> tuple[Array, Array]:
@@ -533,63 +576,94 @@ def _in_front(factor, values: dict[str, PyTree]) -> Bool[Array, " n"]:
     return cam.inverse().apply(jnp.asarray(point))[..., 2] > factor.min_depth
 
 
-def _camera_row(factor, pose, point, jacobians: bool, pixels, pixels_d):
-    """One row of a camera factor: its residual and, with `jacobians`, its
-    pose and point blocks (zero where the row is inert). `pixels(cal, p, z)`
-    are the predicted pixels of the camera-frame point `p` at safe depth `z`,
-    `pixels_d(cal, p, z)` their derivative w.r.t. `p`."""
-    name = type(factor).__name__
-    _check_row(name, pose, point)
-    cam = _camera_pose(pose, factor.body_P_sensor)
-    p = cam.inverse().apply(point)
-    front, z = _safe_depth(p, factor.min_depth)
-    cal = factor.calibration
-    predicted = pixels(cal, p, z)
-    penalty = jax.lax.stop_gradient(jnp.broadcast_to(2.0 * cal.fx, predicted.shape))
-    r = jnp.where(front, predicted - factor.measured, penalty)
-    r = _cheirality(name, r, front, factor.throw_cheirality)
-    if not jacobians:
-        return r, ()
-    d = pixels_d(cal, p, z)
-    dp_pose, dp_point = _point_jacobians(cam, p)
-    h_pose = mm(d, dp_pose)
-    if factor.body_P_sensor is not None:
-        h_pose = mm(h_pose, factor.body_P_sensor.inverse().adjoint())
-    h_point = mm(d, dp_point)
-    return r, (
-        jnp.where(front, h_pose, jnp.zeros_like(h_pose)),
-        jnp.where(front, h_point, jnp.zeros_like(h_point)),
-    )
+_Calibration = TypeVar("_Calibration", AbstractCalibration, Cal3_S2Stereo)
 
 
-def _mono_pixels(cal: AbstractCalibration, p: Array, z: Array) -> Array:
-    return cal.uncalibrate(p[:2] / z)
+class AbstractCameraFactor(AbstractAnalyticFactor, Generic[_Calibration]):
+    """A landmark seen by a camera: the fields, constructor, residual and
+    closed-form Jacobians that [`eqsmooth.factors.ProjectionFactor`][] and
+    [`eqsmooth.factors.StereoProjectionFactor`][] share. A final subclass names
+    its camera (`_camera`, a `_Camera`: the calibration it takes and its
+    projection) and documents its arguments and `in_front`.
+    """
 
+    # Unlike STYLE.md's "a final class holds all its fields and its
+    # `__init__`", both live here: the two camera factors differ only in
+    # their `_camera`, so they would repeat seven fields and the constructor.
+    variables: tuple[Var, ...]
+    measured: Float[Array, "n m"]
+    noise: AbstractNoiseModel
+    calibration: _Calibration = shared_field()
+    body_P_sensor: SE3 | None = shared_field()
+    min_depth: float = eqx.field(static=True)
+    throw_cheirality: bool = eqx.field(static=True)
+    _camera: eqx.AbstractClassVar[_Camera]
 
-def _mono_d(cal: AbstractCalibration, p: Array, z: Array) -> Array:
-    xy = p[:2] / z
-    # ∂(x, y)/∂p = [[1, 0, −x], [0, 1, −y]] / z
-    dxy = jnp.concatenate([jnp.eye(2, dtype=p.dtype), -xy[:, None]], axis=1) / z
-    return mm(cal.uncalibrate_jacobian(xy), dxy)
+    def __init__(
+        self,
+        pose: Var,
+        point: Var,
+        measured: Float[ArrayLike, "n _"],
+        noise: AbstractNoiseModel,
+        calibration: _Calibration,
+        *,
+        body_P_sensor: SE3 | None = None,
+        min_depth: float = _DEFAULT_MIN_DEPTH,
+        throw_cheirality: bool = False,
+    ):
+        name = type(self).__name__
+        _check_calibration(f"{name}.calibration", calibration, self._camera)
+        self.variables = (pose, point)
+        self.measured = _pixels(name, measured, self._camera.width)
+        self.noise = noise
+        self.calibration = calibration
+        self.body_P_sensor = _body_pose(name, body_P_sensor)
+        self.min_depth = _min_depth(name, min_depth)
+        self.throw_cheirality = bool(throw_cheirality)
 
-
-def _stereo_d(k: Cal3_S2Stereo, p: Array, z: Array) -> Array:
-    x, y = p[0] / z, p[1] / z
-    xr = (p[0] - k.baseline) / z
-    zero = jnp.zeros_like(x)
-    return (
-        jnp.stack(
-            [
-                jnp.stack([k.fx, zero, -k.fx * x]),
-                jnp.stack([k.fx, zero, -k.fx * xr]),
-                jnp.stack([zero, k.fy, -k.fy * y]),
-            ]
+    def _row(self, pose: PyTree, point: PyTree, jacobians: bool):
+        """One row's residual and, with `jacobians`, its pose and point blocks
+        (zero where the row is inert)."""
+        name = type(self).__name__
+        _check_row(name, pose, point)
+        cam = _camera_pose(pose, self.body_P_sensor)
+        p = cam.inverse().apply(point)
+        front, z = _safe_depth(p, self.min_depth)
+        cal = self.calibration
+        predicted = self._camera.pixels(cal, p, z)
+        penalty = jax.lax.stop_gradient(jnp.broadcast_to(2.0 * cal.fx, predicted.shape))
+        r = jnp.where(front, predicted - self.measured, penalty)
+        r = _cheirality(name, r, front, self.throw_cheirality)
+        if not jacobians:
+            return r, ()
+        d = self._camera.pixels_d(cal, p, z)
+        dp_pose, dp_point = _point_jacobians(cam, p)
+        h_pose = mm(d, dp_pose)
+        if self.body_P_sensor is not None:
+            h_pose = mm(h_pose, self.body_P_sensor.inverse().adjoint())
+        h_point = mm(d, dp_point)
+        return r, (
+            jnp.where(front, h_pose, jnp.zeros_like(h_pose)),
+            jnp.where(front, h_point, jnp.zeros_like(h_point)),
         )
-        / z
-    )
+
+    def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " m"]:
+        return self._row(pose, point, jacobians=False)[0]
+
+    def residual_and_jacobians(
+        self, pose: PyTree, point: PyTree
+    ) -> tuple[Float[Array, " m"], tuple[Float[Array, "m 6"], Float[Array, "m 3"]]]:
+        r, jacs = self._row(pose, point, jacobians=True)
+        return r, jacs
+
+    # Abstract (each final class gives it as `_in_front(self, values)`) so
+    # that each documents it: the API pages show a class's own members.
+    @abc.abstractmethod
+    def in_front(self, values: dict[str, PyTree]) -> Bool[Array, " n"]:
+        """Whether each row's point is in front of its camera at `values`."""
 
 
-class ProjectionFactor(AbstractAnalyticFactor):
+class ProjectionFactor(AbstractCameraFactor[AbstractCalibration]):
     """A landmark seen by a monocular camera (GTSAM's `GenericProjectionFactor`):
     residual `project(pose · body_P_sensor, point) − measured`, in pixels.
 
@@ -619,51 +693,7 @@ class ProjectionFactor(AbstractAnalyticFactor):
         of making the row inert.
     """
 
-    variables: tuple[Var, ...]
-    measured: Float[Array, "n 2"]
-    noise: AbstractNoiseModel
-    calibration: AbstractCalibration = shared_field()
-    body_P_sensor: SE3 | None = shared_field()
-    min_depth: float = eqx.field(static=True)
-    throw_cheirality: bool = eqx.field(static=True)
-
-    def __init__(
-        self,
-        pose: Var,
-        point: Var,
-        measured: Float[ArrayLike, "n _"],
-        noise: AbstractNoiseModel,
-        calibration: AbstractCalibration,
-        *,
-        body_P_sensor: SE3 | None = None,
-        min_depth: float = _DEFAULT_MIN_DEPTH,
-        throw_cheirality: bool = False,
-    ):
-        name = "ProjectionFactor"
-        if not isinstance(calibration, AbstractCalibration):
-            raise TypeError(
-                f"{name}.calibration must be a Cal3_S2 or Cal3DS2, got "
-                f"{type(calibration).__name__}"
-            )
-        self.variables = (pose, point)
-        self.measured = _pixels(name, measured, 2)
-        self.noise = noise
-        self.calibration = calibration
-        self.body_P_sensor = _body_pose(name, body_P_sensor)
-        self.min_depth = _min_depth(name, min_depth)
-        self.throw_cheirality = bool(throw_cheirality)
-
-    def _row(self, pose: PyTree, point: PyTree, jacobians: bool):
-        return _camera_row(self, pose, point, jacobians, _mono_pixels, _mono_d)
-
-    def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " 2"]:
-        return self._row(pose, point, jacobians=False)[0]
-
-    def residual_and_jacobians(
-        self, pose: PyTree, point: PyTree
-    ) -> tuple[Float[Array, " 2"], tuple[Float[Array, "2 6"], Float[Array, "2 3"]]]:
-        r, jacs = self._row(pose, point, jacobians=True)
-        return r, jacs
+    _camera: ClassVar[_Camera] = _MONO
 
     def in_front(self, values: dict[str, PyTree]) -> Bool[Array, " n"]:
         """Whether each row's point is in front of its camera (depth
@@ -679,7 +709,7 @@ class ProjectionFactor(AbstractAnalyticFactor):
         return _in_front(self, values)
 
 
-class StereoProjectionFactor(AbstractAnalyticFactor):
+class StereoProjectionFactor(AbstractCameraFactor[Cal3_S2Stereo]):
     """A landmark seen by a rectified stereo camera (GTSAM's
     `GenericStereoFactor`): residual `(uL, uR, v)(pose · body_P_sensor, point)
     − measured`, in pixels (see [`eqsmooth.factors.Cal3_S2Stereo`][]).
@@ -704,51 +734,7 @@ class StereoProjectionFactor(AbstractAnalyticFactor):
         [`eqsmooth.factors.ProjectionFactor`][].
     """
 
-    variables: tuple[Var, ...]
-    measured: Float[Array, "n 3"]
-    noise: AbstractNoiseModel
-    calibration: Cal3_S2Stereo = shared_field()
-    body_P_sensor: SE3 | None = shared_field()
-    min_depth: float = eqx.field(static=True)
-    throw_cheirality: bool = eqx.field(static=True)
-
-    def __init__(
-        self,
-        pose: Var,
-        point: Var,
-        measured: Float[ArrayLike, "n _"],
-        noise: AbstractNoiseModel,
-        calibration: Cal3_S2Stereo,
-        *,
-        body_P_sensor: SE3 | None = None,
-        min_depth: float = _DEFAULT_MIN_DEPTH,
-        throw_cheirality: bool = False,
-    ):
-        name = "StereoProjectionFactor"
-        if not isinstance(calibration, Cal3_S2Stereo):
-            raise TypeError(
-                f"{name}.calibration must be a Cal3_S2Stereo, got "
-                f"{type(calibration).__name__}"
-            )
-        self.variables = (pose, point)
-        self.measured = _pixels(name, measured, 3)
-        self.noise = noise
-        self.calibration = calibration
-        self.body_P_sensor = _body_pose(name, body_P_sensor)
-        self.min_depth = _min_depth(name, min_depth)
-        self.throw_cheirality = bool(throw_cheirality)
-
-    def _row(self, pose: PyTree, point: PyTree, jacobians: bool):
-        return _camera_row(self, pose, point, jacobians, _stereo_pixels, _stereo_d)
-
-    def residual(self, pose: PyTree, point: PyTree) -> Float[Array, " 3"]:
-        return self._row(pose, point, jacobians=False)[0]
-
-    def residual_and_jacobians(
-        self, pose: PyTree, point: PyTree
-    ) -> tuple[Float[Array, " 3"], tuple[Float[Array, "3 6"], Float[Array, "3 3"]]]:
-        r, jacs = self._row(pose, point, jacobians=True)
-        return r, jacs
+    _camera: ClassVar[_Camera] = _STEREO
 
     def in_front(self, values: dict[str, PyTree]) -> Bool[Array, " n"]:
         """Whether each row's point is in front of its (left) camera at
@@ -777,7 +763,7 @@ def check_cheirality(graph: FactorGraph, values: dict[str, PyTree]) -> None:
     """
     parts = []
     for k, f in enumerate(graph.factors):
-        if not isinstance(f, (ProjectionFactor, StereoProjectionFactor)):
+        if not isinstance(f, AbstractCameraFactor):
             continue
         front = np.asarray(f.in_front(values))
         bad = np.flatnonzero(~front)
