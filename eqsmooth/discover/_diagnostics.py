@@ -174,6 +174,24 @@ def _bin_rows(label, values, resid, bins):
     return rows
 
 
+def _binned(label: str, comp, states, inputs, bins: int) -> list:
+    """Rows of one residual component `comp` (sequences × times) binned by
+    each state coordinate, by time (quarters) and by each varying input."""
+    rows = []
+    for s in range(states.shape[-1]):
+        rows += _bin_rows(
+            f"{label} by state[{s}]", states[..., s].ravel(), comp.ravel(), bins
+        )
+    times = np.broadcast_to(np.arange(comp.shape[1]), comp.shape).ravel()
+    rows += _bin_rows(f"{label} by time", times, comp.ravel(), 4)
+    for k in range(inputs.shape[-1]):
+        if np.ptp(inputs[..., k]) > 0:
+            rows += _bin_rows(
+                f"{label} by input[{k}]", inputs[..., k].ravel(), comp.ravel(), bins
+            )
+    return rows
+
+
 def localisation_table(
     model: ChainModel,
     data: Sequences,
@@ -192,48 +210,14 @@ def localisation_table(
     n, m = rt.shape[-1], rm.shape[-1]
     u = np.asarray(data.inputs)
     rows = []
-    states_t = xhat[:, :-1]
     for i in range(n):
         comp = rt[..., i]
         if np.std(comp) == 0:
             continue
-        for s in range(n):
-            rows += _bin_rows(
-                f"transition[{i}] by state[{s}]",
-                states_t[..., s].ravel(),
-                comp.ravel(),
-                bins,
-            )
-        T1 = comp.shape[1]
-        times = np.broadcast_to(np.arange(T1), comp.shape).ravel()
-        rows += _bin_rows(f"transition[{i}] by time", times, comp.ravel(), 4)
-        for k in range(u.shape[-1]):
-            if np.ptp(u[..., k]) > 0:
-                rows += _bin_rows(
-                    f"transition[{i}] by input[{k}]",
-                    u[:, :-1, k].ravel(),
-                    comp.ravel(),
-                    bins,
-                )
+        rows += _binned(f"transition[{i}]", comp, xhat[:, :-1], u[:, :-1], bins)
     for j in range(m):
         comp = rm[..., j]
-        for s in range(n):
-            rows += _bin_rows(
-                f"measurement[{j}] by state[{s}]",
-                xhat[..., s].ravel(),
-                comp.ravel(),
-                bins,
-            )
-        times = np.broadcast_to(np.arange(comp.shape[1]), comp.shape).ravel()
-        rows += _bin_rows(f"measurement[{j}] by time", times, comp.ravel(), 4)
-        for k in range(u.shape[-1]):
-            if np.ptp(u[..., k]) > 0:
-                rows += _bin_rows(
-                    f"measurement[{j}] by input[{k}]",
-                    u[..., k].ravel(),
-                    comp.ravel(),
-                    bins,
-                )
+        rows += _binned(f"measurement[{j}]", comp, xhat, u, bins)
         seq_means = comp.mean(axis=1)
         worst = int(np.argmax(np.abs(seq_means)))
         r = comp[worst]

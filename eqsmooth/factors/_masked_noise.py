@@ -125,10 +125,6 @@ class MaskedNoise(AbstractNoiseModel):
                 f"expected ({n},), one entry per row"
             )
 
-    @property
-    def name(self) -> str:
-        return "MaskedNoise"
-
     def curvature_model(self) -> "MaskedNoise":
         return self
 

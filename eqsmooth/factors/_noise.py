@@ -196,10 +196,11 @@ class AbstractNoiseModel(eqx.Module):
     is_gaussian: ClassVar[bool] = True
 
     @property
-    @abc.abstractmethod
     def name(self) -> str:
-        """The name messages give this model: its type (`"DiagonalNoise"`),
-        or for a robust model its constructor (`"HuberNoise"`)."""
+        """The name messages give this model: by default its type without a
+        leading underscore (`"DiagonalNoise"`); a robust model gives its
+        constructor (`"HuberNoise"`)."""
+        return type(self).__name__.lstrip("_")
 
     @abc.abstractmethod
     def whiten(self, r: Float[Array, "n m *rest"]) -> Float[Array, "n m *rest"]:
@@ -317,10 +318,6 @@ class AbstractGaussianNoise(AbstractNoiseModel):
     Subclasses give `whiten`, `log_det_sqrt_information`, `check_shapes` and
     `take_rows`.
     """
-
-    @property
-    def name(self) -> str:
-        return type(self).__name__
 
     def rho(self, s):
         return s, jnp.ones_like(s)

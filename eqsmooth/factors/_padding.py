@@ -66,10 +66,6 @@ class _PaddingNoise(AbstractNoiseModel):
                 f"expected ({n},)"
             )
 
-    @property
-    def name(self) -> str:
-        return "PaddingNoise"
-
     def curvature_model(self) -> "_PaddingNoise":
         return self
 

@@ -139,10 +139,6 @@ class StudentTNoise(AbstractNoiseModel):
                 f"expected () or ({n},)"
             )
 
-    @property
-    def name(self) -> str:
-        return "StudentTNoise"
-
     def curvature_model(self) -> AbstractNoiseModel:
         # The curvature at one residual changes with the residual, which
         # makes the Laplace evidence rough in the parameters; the Fisher
@@ -190,10 +186,6 @@ class _ScaledGaussian(AbstractNoiseModel):
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)
-
-    @property
-    def name(self) -> str:
-        return "ScaledGaussian"
 
     def curvature_model(self) -> "_ScaledGaussian":
         return self

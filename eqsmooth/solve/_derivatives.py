@@ -76,26 +76,11 @@ def refuse_derivative(witness, x, message: str):
     differentiated (so that JAX asks for this derivative at all); the error
     is raised only when a gradient actually reaches `x`.
     """
-    x = stop_arrays(x)
-    return _refuse(witness, x, message)
 
+    def refuse(*_):
+        raise ValueError(message)
 
-@eqx.filter_custom_vjp
-def _refuse(witness, x, message):
-    del witness, message
-    return x
-
-
-@_refuse.def_fwd
-def _refuse_fwd(perturbed, witness, x, message):
-    del perturbed, witness, message
-    return x, None
-
-
-@_refuse.def_bwd
-def _refuse_bwd(residuals, grad_x, perturbed, witness, x, message):
-    del residuals, grad_x, perturbed, witness, x
-    raise ValueError(message)
+    return recomputed((witness,), x, refuse)
 
 
 def checked_derivative(x, aux, fails: Callable, message: str):
