@@ -88,6 +88,24 @@ class AbstractLieGroup(eqx.Module):
         return value
 
     @classmethod
+    def _as_tangent(cls, tangent: ArrayLike) -> Array:
+        """`tangent` as a float array of tangent vectors; a last axis other than
+        `tangent_dim` raises `ValueError` naming the group."""
+        return as_vectors(tangent, cls.tangent_dim, cls.__name__)
+
+    @classmethod
+    def _as_points(cls, points: ArrayLike) -> Array:
+        """`points` as a float array of points; a last axis other than
+        `space_dim` raises `ValueError` naming the group."""
+        return as_vectors(points, cls.space_dim, cls.__name__, "points")
+
+    @classmethod
+    def _as_matrices(cls, matrix: ArrayLike) -> Array:
+        """`matrix` as a float array of `(matrix_dim, matrix_dim)` matrices;
+        another shape raises `ValueError` naming the group."""
+        return as_matrices(matrix, cls.matrix_dim, cls.__name__)
+
+    @classmethod
     @abc.abstractmethod
     def exp(cls: type[_G], tangent: Float[ArrayLike, "*batch d"]) -> _G:
         """Exponential map from tangent vectors to group elements.
@@ -126,7 +144,7 @@ class AbstractLieGroup(eqx.Module):
 
         The group element.
         """
-        matrix = as_matrices(matrix, cls.matrix_dim, cls.__name__)
+        matrix = cls._as_matrices(matrix)
         if check:
             homogeneous = cls.matrix_dim > cls.space_dim
             matrix = check_on_group(cls.__name__, matrix, cls.space_dim, homogeneous)
@@ -142,7 +160,6 @@ class AbstractLieGroup(eqx.Module):
         check_parameters(type(self).__name__, self.parameters(), self.parameters_dim)
 
     @classmethod
-    @abc.abstractmethod
     def sample_uniform(
         cls: type[_G],
         key: PRNGKeyArray,
@@ -162,6 +179,15 @@ class AbstractLieGroup(eqx.Module):
 
         A batch of random group elements.
         """
+        dtype = default_float_dtype() if dtype is None else dtype
+        return cls._sample(key, batch_shape, dtype)
+
+    @classmethod
+    @abc.abstractmethod
+    def _sample(
+        cls: type[_G], key: PRNGKeyArray, batch_shape: tuple[int, ...], dtype: DTypeLike
+    ) -> _G:
+        """`sample_uniform` with the dtype given."""
 
     @classmethod
     @abc.abstractmethod
@@ -408,13 +434,22 @@ class AbstractRigidMotion(AbstractLieGroup):
     def _apply_rigid(self, points: ArrayLike) -> Array:
         """`apply` of every rigid motion: rotate the points by the rotation
         part of the parameters, then add the translation part."""
-        k = self.rotation_group.parameters_dim
-        params, p = broadcast_batch(
-            self.parameters(),
-            as_vectors(points, self.space_dim, type(self).__name__, "points"),
+        params, p = broadcast_batch(self.parameters(), self._as_points(points))
+        rotation, translation = self._split_parameters(params)
+        return rotation.apply(p) + translation
+
+    @classmethod
+    def _split_parameters(cls, params: Array) -> tuple[AbstractLieGroup, Array]:
+        """The rotation part of parameters `params` (unchecked, an element of
+        `rotation_group`) and their translation part."""
+        k = cls.rotation_group.parameters_dim
+        return cls.rotation_group(params[..., :k], check=False), params[..., k:]
+
+    def normalize(self: _R) -> _R:
+        rotation, translation = self._split_parameters(self.parameters())
+        return self._from_rotation_parameters(
+            rotation.normalize().parameters(), translation
         )
-        rotation = self.rotation_group(params[..., :k], check=False)
-        return rotation.apply(p) + params[..., k:]
 
     @classmethod
     def _from_group_matrix(cls: type[_R], matrix: Float[Array, "*batch n n"]) -> _R:
@@ -423,13 +458,9 @@ class AbstractRigidMotion(AbstractLieGroup):
         return cls._from_rotation_parameters(rotation.parameters(), matrix[..., :n, n])
 
     @classmethod
-    def sample_uniform(
-        cls: type[_R],
-        key: PRNGKeyArray,
-        batch_shape: tuple[int, ...] = (),
-        dtype: DTypeLike | None = None,
+    def _sample(
+        cls: type[_R], key: PRNGKeyArray, batch_shape: tuple[int, ...], dtype: DTypeLike
     ) -> _R:
-        dtype = default_float_dtype() if dtype is None else dtype
         key_rot, key_trans = jax.random.split(key)
         translation = jax.random.uniform(
             key_trans,

@@ -7,8 +7,6 @@ from ._base import AbstractRigidMotion
 from ._so2 import SO2
 from ._utils import (
     as_float_array,
-    as_matrices,
-    as_vectors,
     broadcast_batch,
     coef_a,
     coef_b,
@@ -18,6 +16,23 @@ from ._utils import (
     sinc,
     stack_matrix,
 )
+
+
+def _affine(row0: list[Array], row1: list[Array]) -> Float[Array, "*batch 3 3"]:
+    """The 3x3 matrices with top rows `row0` and `row1` (lists of `(*batch,)`
+    arrays) and bottom row `(0, 0, 1)`."""
+    zero = jnp.zeros_like(row0[0])
+    one = jnp.ones_like(row0[0])
+    return stack_matrix([row0, row1, [zero, zero, one]])
+
+
+def _jacobian_column(
+    vx: Array, vy: Array, theta: Array, t: Array, coef_1mcos: Array
+) -> tuple[Array, Array]:
+    """The last entries `(m0, m1)` of the top rows of the right Jacobian at
+    `(vx, vy, theta)`, given `t = theta^2` and `coef_1mcos = (1 - cos) / theta^2`."""
+    p = theta * coef_b(t)  # (theta - sin) / theta^2
+    return vx * p - vy * coef_1mcos, vx * coef_1mcos + vy * p
 
 
 class SE2(AbstractRigidMotion):
@@ -90,9 +105,7 @@ class SE2(AbstractRigidMotion):
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 3"]) -> "SE2":
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
-        t = jnp.square(theta)
+        vx, vy, theta, t = cls._tangent_parts(tangent)
         a = sinc(t)
         b = theta * coef_a(t)
         x = a * vx - b * vy
@@ -105,14 +118,14 @@ class SE2(AbstractRigidMotion):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        tangent = cls._as_tangent(tangent)
         vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
         zero = jnp.zeros_like(theta)
         return stack_matrix([[zero, -theta, vx], [theta, zero, vy], [zero, zero, zero]])
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
-        matrix = as_matrices(matrix, cls.matrix_dim, cls.__name__)
+        matrix = cls._as_matrices(matrix)
         return jnp.stack(
             [matrix[..., 0, 2], matrix[..., 1, 2], matrix[..., 1, 0]], axis=-1
         )
@@ -123,22 +136,12 @@ class SE2(AbstractRigidMotion):
     ) -> Float[Array, "*batch 3 3"]:
         # Sola, Deray and Atchuthan, "A micro Lie theory for state estimation in
         # robotics" (2018), appendix on SE(2).
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
-        t = jnp.square(theta)
+        vx, vy, theta, t = cls._tangent_parts(tangent)
         a = sinc(t)
         coef_1mcos = coef_a(t)  # (1 - cos) / theta^2
         b = theta * coef_1mcos  # (1 - cos) / theta
-        p = theta * coef_b(t)  # (theta - sin) / theta^2
-        zero = jnp.zeros_like(theta)
-        one = jnp.ones_like(theta)
-        return stack_matrix(
-            [
-                [a, b, vx * p - vy * coef_1mcos],
-                [-b, a, vx * coef_1mcos + vy * p],
-                [zero, zero, one],
-            ]
-        )
+        m0, m1 = _jacobian_column(vx, vy, theta, t, coef_1mcos)
+        return _affine([a, b, m0], [-b, a, m1])
 
     @classmethod
     def right_jacobian_inv(
@@ -146,24 +149,21 @@ class SE2(AbstractRigidMotion):
     ) -> Float[Array, "*batch 3 3"]:
         # Block inverse of right_jacobian: the 2x2 block [[a, b], [-b, a]] has inverse
         # [[h, -theta/2], [theta/2, h]] with h = (theta/2) cot(theta/2) = 1 - t C(t).
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
-        t = jnp.square(theta)
+        vx, vy, theta, t = cls._tangent_parts(tangent)
         h = 1.0 - t * coef_c(t)
         half = 0.5 * theta
-        coef_1mcos = coef_a(t)
-        p = theta * coef_b(t)
-        m0 = vx * p - vy * coef_1mcos
-        m1 = vx * coef_1mcos + vy * p
-        zero = jnp.zeros_like(theta)
-        one = jnp.ones_like(theta)
-        return stack_matrix(
-            [
-                [h, -half, -(h * m0 - half * m1)],
-                [half, h, -(half * m0 + h * m1)],
-                [zero, zero, one],
-            ]
+        m0, m1 = _jacobian_column(vx, vy, theta, t, coef_a(t))
+        return _affine(
+            [h, -half, -(h * m0 - half * m1)], [half, h, -(half * m0 + h * m1)]
         )
+
+    @classmethod
+    def _tangent_parts(cls, tangent: ArrayLike) -> tuple[Array, Array, Array, Array]:
+        """`vx`, `vy`, `theta` and `t = theta^2` of tangent vectors
+        `(vx, vy, theta)`."""
+        tangent = cls._as_tangent(tangent)
+        vx, vy, theta = tangent[..., 0], tangent[..., 1], tangent[..., 2]
+        return vx, vy, theta, jnp.square(theta)
 
     # ---------------------------------------------------------------- operations
 
@@ -227,17 +227,8 @@ class SE2(AbstractRigidMotion):
 
     def adjoint(self) -> Float[Array, "*batch 3 3"]:
         c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
-        zero = jnp.zeros_like(c)
-        one = jnp.ones_like(c)
-        return stack_matrix([[c, -s, y], [s, c, -x], [zero, zero, one]])
+        return _affine([c, -s, y], [s, c, -x])
 
     def as_matrix(self) -> Float[Array, "*batch 3 3"]:
         c, s, x, y = (self.unit_complex_xy[..., i] for i in range(4))
-        zero = jnp.zeros_like(c)
-        one = jnp.ones_like(c)
-        return stack_matrix([[c, -s, x], [s, c, y], [zero, zero, one]])
-
-    def normalize(self) -> "SE2":
-        return SE2.from_rotation_and_translation(
-            self.rotation().normalize(), self.translation()
-        )
+        return _affine([c, -s, x], [s, c, y])

@@ -1,3 +1,4 @@
+from collections.abc import Callable
 from typing import ClassVar
 
 import jax.numpy as jnp
@@ -7,8 +8,6 @@ from .._precision import matmul as mm
 from ._base import AbstractRigidMotion
 from ._so3 import skew, SO3
 from ._utils import (
-    as_matrices,
-    as_vectors,
     broadcast_batch,
     coef_a,
     coef_b,
@@ -88,7 +87,7 @@ class SE3(AbstractRigidMotion):
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 6"]) -> "SE3":
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        tangent = cls._as_tangent(tangent)
         rho, omega = tangent[..., :3], tangent[..., 3:]
         t = jnp.sum(jnp.square(omega), axis=-1, keepdims=True)
         # translation = Jl(omega) @ rho, written with cross products.
@@ -102,14 +101,14 @@ class SE3(AbstractRigidMotion):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 6"]) -> Float[Array, "*batch 4 4"]:
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        tangent = cls._as_tangent(tangent)
         top = jnp.concatenate([skew(tangent[..., 3:]), tangent[..., :3, None]], axis=-1)
         bottom = jnp.zeros_like(top[..., :1, :])
         return jnp.concatenate([top, bottom], axis=-2)
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 6"]:
-        m = as_matrices(matrix, cls.matrix_dim, cls.__name__)
+        m = cls._as_matrices(matrix)
         return jnp.concatenate([m[..., :3, 3], SO3.vee(m[..., :3, :3])], axis=-1)
 
     @classmethod
@@ -117,20 +116,27 @@ class SE3(AbstractRigidMotion):
         cls, tangent: Float[ArrayLike, "*batch 6"]
     ) -> Float[Array, "*batch 6 6"]:
         # Jr(xi) = Jl(-xi) = [[Jr(omega), Q(-rho, -omega)], [0, Jr(omega)]].
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        rho, omega = tangent[..., :3], tangent[..., 3:]
-        jr = SO3.right_jacobian(omega)
-        return _block(jr, _q_matrix(-rho, -omega), jr)
+        jr, q = cls._jacobian_blocks(tangent, SO3.right_jacobian)
+        return _block(jr, q, jr)
 
     @classmethod
     def right_jacobian_inv(
         cls, tangent: Float[ArrayLike, "*batch 6"]
     ) -> Float[Array, "*batch 6 6"]:
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        rho, omega = tangent[..., :3], tangent[..., 3:]
-        jr_inv = SO3.right_jacobian_inv(omega)
-        q = _q_matrix(-rho, -omega)
+        # Block inverse: [[A, Q], [0, A]]^-1 = [[A^-1, -A^-1 Q A^-1], [0, A^-1]].
+        jr_inv, q = cls._jacobian_blocks(tangent, SO3.right_jacobian_inv)
         return _block(jr_inv, -mm(mm(jr_inv, q), jr_inv), jr_inv)
+
+    @classmethod
+    def _jacobian_blocks(
+        cls, tangent: ArrayLike, rotation_block: Callable[[Array], Array]
+    ) -> tuple[Array, Array]:
+        """`rotation_block(omega)` and `Q(-rho, -omega)` at `tangent = (rho,
+        omega)`: the blocks of `right_jacobian` (with `SO3.right_jacobian`) or of
+        its inverse (with `SO3.right_jacobian_inv`)."""
+        tangent = cls._as_tangent(tangent)
+        rho, omega = tangent[..., :3], tangent[..., 3:]
+        return rotation_block(omega), _q_matrix(-rho, -omega)
 
     # ---------------------------------------------------------------- operations
 
@@ -183,8 +189,3 @@ class SE3(AbstractRigidMotion):
         bottom = jnp.zeros_like(top[..., :1, :])
         bottom = bottom.at[..., 0, 3].set(1.0)
         return jnp.concatenate([top, bottom], axis=-2)
-
-    def normalize(self) -> "SE3":
-        return SE3.from_rotation_and_translation(
-            self.rotation().normalize(), self.translation()
-        )

@@ -5,15 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, PRNGKeyArray, Real
 
 from ._base import AbstractLieGroup
-from ._utils import (
-    as_float_array,
-    as_matrices,
-    as_vectors,
-    broadcast_batch,
-    default_float_dtype,
-    rotate_pairs,
-    stack_matrix,
-)
+from ._utils import as_float_array, broadcast_batch, rotate_pairs, stack_matrix
 
 
 class SO2(AbstractLieGroup):
@@ -62,7 +54,7 @@ class SO2(AbstractLieGroup):
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 1"]) -> "SO2":
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        tangent = cls._as_tangent(tangent)
         return cls.from_radians(tangent[..., 0])
 
     @classmethod
@@ -75,13 +67,9 @@ class SO2(AbstractLieGroup):
         return cls(z / jnp.linalg.norm(z, axis=-1, keepdims=True), check=False)
 
     @classmethod
-    def sample_uniform(
-        cls,
-        key: PRNGKeyArray,
-        batch_shape: tuple[int, ...] = (),
-        dtype: DTypeLike | None = None,
+    def _sample(
+        cls, key: PRNGKeyArray, batch_shape: tuple[int, ...], dtype: DTypeLike
     ) -> "SO2":
-        dtype = default_float_dtype() if dtype is None else dtype
         theta = jax.random.uniform(
             key, batch_shape, dtype=dtype, minval=-jnp.pi, maxval=jnp.pi
         )
@@ -91,29 +79,28 @@ class SO2(AbstractLieGroup):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 1"]) -> Float[Array, "*batch 2 2"]:
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        tangent = cls._as_tangent(tangent)
         theta = tangent[..., 0]
         zero = jnp.zeros_like(theta)
         return stack_matrix([[zero, -theta], [theta, zero]])
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 2 2"]) -> Float[Array, "*batch 1"]:
-        matrix = as_matrices(matrix, cls.matrix_dim, cls.__name__)
-        return matrix[..., 1, 0:1]
+        return cls._as_matrices(matrix)[..., 1, 0:1]
 
     @classmethod
     def right_jacobian(
         cls, tangent: Float[ArrayLike, "*batch 1"]
     ) -> Float[Array, "*batch 1 1"]:
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        tangent = cls._as_tangent(tangent)
         return jnp.ones_like(tangent)[..., None]
 
     @classmethod
     def right_jacobian_inv(
         cls, tangent: Float[ArrayLike, "*batch 1"]
     ) -> Float[Array, "*batch 1 1"]:
-        tangent = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        return jnp.ones_like(tangent)[..., None]
+        # SO(2) is abelian: Jr = 1 is its own inverse.
+        return cls.right_jacobian(tangent)
 
     # ---------------------------------------------------------------- operations
 
@@ -137,10 +124,7 @@ class SO2(AbstractLieGroup):
         return SO2(a[..., 0:1] * b + a[..., 1:2] * rotate_pairs(b), check=False)
 
     def apply(self, points: Float[ArrayLike, "... 2"]) -> Float[Array, "... 2"]:
-        z, p = broadcast_batch(
-            self.unit_complex,
-            as_vectors(points, self.space_dim, type(self).__name__, "points"),
-        )
+        z, p = broadcast_batch(self.unit_complex, self._as_points(points))
         c, s = z[..., 0], z[..., 1]
         x, y = p[..., 0], p[..., 1]
         return jnp.stack([c * x - s * y, s * x + c * y], axis=-1)

@@ -8,14 +8,11 @@ from .._precision import matmul as mm
 from ._base import AbstractLieGroup
 from ._utils import (
     as_float_array,
-    as_matrices,
-    as_vectors,
     broadcast_batch,
     coef_a,
     coef_b,
     coef_c,
     cos_half,
-    default_float_dtype,
     quat_log_scale,
     sin_half_over,
     stack_matrix,
@@ -65,23 +62,25 @@ class SO3(AbstractLieGroup):
     @classmethod
     def from_x_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO3":
         """Rotation by `theta` radians about the x axis."""
-        theta = as_float_array(theta)
-        zero = jnp.zeros_like(theta)
-        return cls.exp(jnp.stack([theta, zero, zero], axis=-1))
+        return cls._from_axis_radians(0, theta)
 
     @classmethod
     def from_y_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO3":
         """Rotation by `theta` radians about the y axis."""
-        theta = as_float_array(theta)
-        zero = jnp.zeros_like(theta)
-        return cls.exp(jnp.stack([zero, theta, zero], axis=-1))
+        return cls._from_axis_radians(1, theta)
 
     @classmethod
     def from_z_radians(cls, theta: Real[ArrayLike, "*batch"]) -> "SO3":
         """Rotation by `theta` radians about the z axis."""
+        return cls._from_axis_radians(2, theta)
+
+    @classmethod
+    def _from_axis_radians(cls, axis: int, theta: ArrayLike) -> "SO3":
+        """Rotation by `theta` radians about coordinate axis `axis` (0, 1 or 2)."""
         theta = as_float_array(theta)
         zero = jnp.zeros_like(theta)
-        return cls.exp(jnp.stack([zero, zero, theta], axis=-1))
+        omega = [theta if i == axis else zero for i in range(3)]
+        return cls.exp(jnp.stack(omega, axis=-1))
 
     @classmethod
     def from_rpy_radians(
@@ -111,7 +110,7 @@ class SO3(AbstractLieGroup):
 
     @classmethod
     def exp(cls, tangent: Float[ArrayLike, "*batch 3"]) -> "SO3":
-        omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        omega = cls._as_tangent(tangent)
         t = jnp.sum(jnp.square(omega), axis=-1)
         w = cos_half(t)
         v = sin_half_over(t)[..., None] * omega
@@ -148,15 +147,11 @@ class SO3(AbstractLieGroup):
         return cls(q, check=False)
 
     @classmethod
-    def sample_uniform(
-        cls,
-        key: PRNGKeyArray,
-        batch_shape: tuple[int, ...] = (),
-        dtype: DTypeLike | None = None,
+    def _sample(
+        cls, key: PRNGKeyArray, batch_shape: tuple[int, ...], dtype: DTypeLike
     ) -> "SO3":
         # A normalized standard Gaussian in R^4 is uniform on S^3, which maps to the
         # Haar measure on SO(3).
-        dtype = default_float_dtype() if dtype is None else dtype
         q = jax.random.normal(key, (*batch_shape, 4), dtype=dtype)
         return cls(q / jnp.linalg.norm(q, axis=-1, keepdims=True), check=False)
 
@@ -164,11 +159,11 @@ class SO3(AbstractLieGroup):
 
     @classmethod
     def hat(cls, tangent: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-        return skew(as_vectors(tangent, cls.tangent_dim, cls.__name__))
+        return skew(cls._as_tangent(tangent))
 
     @classmethod
     def vee(cls, matrix: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
-        m = as_matrices(matrix, cls.matrix_dim, cls.__name__)
+        m = cls._as_matrices(matrix)
         return jnp.stack([m[..., 2, 1], m[..., 0, 2], m[..., 1, 0]], axis=-1)
 
     @classmethod
@@ -178,20 +173,24 @@ class SO3(AbstractLieGroup):
         # Jr(w) = I - A(theta) hat(w) + B(theta) hat(w)^2; see Sola, Deray and
         # Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
         # appendix on SO(3).
-        omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
-        t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
-        w = skew(omega)
-        return _eye_like(omega, 3) - coef_a(t) * w + coef_b(t) * mm(w, w)
+        eye, w, t = cls._jacobian_terms(tangent)
+        return eye - coef_a(t) * w + coef_b(t) * mm(w, w)
 
     @classmethod
     def right_jacobian_inv(
         cls, tangent: Float[ArrayLike, "*batch 3"]
     ) -> Float[Array, "*batch 3 3"]:
         # Jr(w)^-1 = I + hat(w) / 2 + C(theta) hat(w)^2, C regular up to 2 pi.
-        omega = as_vectors(tangent, cls.tangent_dim, cls.__name__)
+        eye, w, t = cls._jacobian_terms(tangent)
+        return eye + 0.5 * w + coef_c(t) * mm(w, w)
+
+    @classmethod
+    def _jacobian_terms(cls, tangent: ArrayLike) -> tuple[Array, Array, Array]:
+        """What `Jr(w)` and `Jr(w)^-1` are series in: `I` and `hat(w)`, and
+        `t = |w|^2` shaped `(*batch, 1, 1)` to scale matrices."""
+        omega = cls._as_tangent(tangent)
         t = jnp.sum(jnp.square(omega), axis=-1)[..., None, None]
-        w = skew(omega)
-        return _eye_like(omega, 3) + 0.5 * w + coef_c(t) * mm(w, w)
+        return _eye_like(omega, 3), skew(omega), t
 
     # ---------------------------------------------------------------- operations
 
@@ -217,9 +216,7 @@ class SO3(AbstractLieGroup):
         return SO3(jnp.concatenate([w[..., None], v], axis=-1), check=False)
 
     def apply(self, points: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
-        q, p = broadcast_batch(
-            self.wxyz, as_vectors(points, self.space_dim, type(self).__name__, "points")
-        )
+        q, p = broadcast_batch(self.wxyz, self._as_points(points))
         w, v = q[..., :1], q[..., 1:]
         # p + (2 / |q|^2) (w (v x p) + v x (v x p)): exact for any nonzero scale.
         k = 2.0 / jnp.sum(jnp.square(q), axis=-1, keepdims=True)
