@@ -138,6 +138,19 @@ def se2_loop(seed: int, N: int = 8, noise_scale: float = 0.05):
     return graph, init, truth
 
 
+def oscillator_states(rng, accel, prior, q, batch: int, steps: int) -> np.ndarray:
+    """True states `(batch, steps, 2)` of the discovery tests' 1-D oscillator:
+    first states from N(0, diag(prior)²), then `p' = p + v`,
+    `v' = v + accel(p)`, plus process noise of std `q`, all drawn from `rng`."""
+    x = np.stack([rng.normal(0, prior[0], batch), rng.normal(0, prior[1], batch)], 1)
+    xs = []
+    for _ in range(steps):
+        xs.append(x.copy())
+        p, v = x[:, 0], x[:, 1]
+        x = np.stack([p + v, v + accel(p)], 1) + rng.normal(size=(batch, 2)) * q
+    return np.stack(xs, 1)
+
+
 def key(seed: int = 0):
     return jax.random.key(seed)
 

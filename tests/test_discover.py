@@ -635,17 +635,14 @@ def test_user_defined_candidate_is_first_class():
 
 
 def _saturating_spring_data(seed, limit):
+    from helpers import oscillator_states
+
     import eqsmooth.discover as dc
 
     rng = np.random.default_rng(seed)
-    x = np.stack([rng.normal(0, PRIOR[0], B), rng.normal(0, PRIOR[1], B)], 1)
-    xs = []
-    for _ in range(T):
-        xs.append(x.copy())
-        a = -0.05 * limit * np.tanh(x[:, 0] / limit)
-        x = np.stack([x[:, 0] + x[:, 1], x[:, 1] + a], 1)
-        x = x + rng.normal(size=(B, 2)) * Q
-    y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(B, T, 1))
+    spring = lambda p: -0.05 * limit * np.tanh(p / limit)
+    xs = oscillator_states(rng, spring, PRIOR, Q, B, T)
+    y = xs[..., :1] + R * rng.normal(size=(B, T, 1))
     init = np.concatenate([y, np.zeros_like(y)], -1)
     return dc.Sequences(y, np.zeros((B, 2)), initial_states=init)
 

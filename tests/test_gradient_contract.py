@@ -245,6 +245,16 @@ def _poses_and_marks(group, dof: int, seed: int, num_poses: int, mark_shape):
     return rng, draw, poses, jnp.asarray(rng.normal(size=mark_shape) * 2.0)
 
 
+def _truth_and_theta(draw, poses, marks, num_poses: int):
+    """The truth, and the start of a `theta`: values a solve starts from (the
+    poses moved by `draw(num_poses, 0.05)`, the landmarks by 0.05), then the
+    data's prior on the first pose (moved by `draw(1, 0.1)`), drawn in this
+    order; the caller adds the other data and the noise parameters."""
+    truth = {"pose": poses, "mark": marks}
+    start = {"pose": poses @ draw(num_poses, 0.05), "mark": marks + 0.05}
+    return truth, {"values": start, "data": {"prior": poses[:1] @ draw(1, 0.1)}}
+
+
 @functools.cache
 def _se2_theta():
     import eqsmooth as eqs
@@ -253,29 +263,26 @@ def _se2_theta():
     odo = poses[:2].inverse() @ poses[1:] @ se2(2, 0.1)
     local = (poses[np.array([0, 1, 2])].inverse()).apply(marks[np.array([0, 1, 1])])
     noisy = local + 0.1 * rng.normal(size=local.shape)
-    truth = {"pose": poses, "mark": marks}
-    return truth, {
-        "values": {"pose": poses @ se2(3, 0.05), "mark": marks + 0.05},
-        "data": {
-            "prior": poses[:1] @ se2(1, 0.1),
-            "odo": odo,
-            "bearing": jnp.arctan2(noisy[:, 1], noisy[:, 0]),
-            "range": jnp.linalg.norm(noisy, axis=1),
-            "gps": poses.translation() + jnp.asarray(0.1 * rng.normal(size=(3, 2))),
-            "point": noisy,
-        },
-        "noise": {
-            "prior_cov_factor": jnp.asarray(0.1 * rng.normal(size=(3, 3))),
-            "odo_log_sp": jnp.asarray(rng.normal(size=(2, 3)) * 0.2 + 2.0),
-            "br_log_sp": jnp.asarray([2.0, 1.5]),
-            "huber_k": jnp.asarray(0.3),
-            "range_sp": jnp.asarray([3.0, 2.0, 4.0]),
-            "bearing_info": jnp.asarray([[[9.0]], [[16.0]], [[25.0]]]),
-            "gps_sigmas": jnp.asarray([0.2, 0.3]),
-            "gps_log_dof": jnp.asarray(1.2),
-            "point_sp": jnp.asarray(5.0),
-        },
+    truth, theta = _truth_and_theta(se2, poses, marks, 3)
+    theta["data"] |= {
+        "odo": odo,
+        "bearing": jnp.arctan2(noisy[:, 1], noisy[:, 0]),
+        "range": jnp.linalg.norm(noisy, axis=1),
+        "gps": poses.translation() + jnp.asarray(0.1 * rng.normal(size=(3, 2))),
+        "point": noisy,
     }
+    theta["noise"] = {
+        "prior_cov_factor": jnp.asarray(0.1 * rng.normal(size=(3, 3))),
+        "odo_log_sp": jnp.asarray(rng.normal(size=(2, 3)) * 0.2 + 2.0),
+        "br_log_sp": jnp.asarray([2.0, 1.5]),
+        "huber_k": jnp.asarray(0.3),
+        "range_sp": jnp.asarray([3.0, 2.0, 4.0]),
+        "bearing_info": jnp.asarray([[[9.0]], [[16.0]], [[25.0]]]),
+        "gps_sigmas": jnp.asarray([0.2, 0.3]),
+        "gps_log_dof": jnp.asarray(1.2),
+        "point_sp": jnp.asarray(5.0),
+    }
+    return truth, theta
 
 
 def _se2_graph(theta):
@@ -419,29 +426,26 @@ def _se3_theta():
     # Bearings are unit vectors: the builder normalises these raw vectors, so
     # a perturbation of the raw vector is one in tangent coordinates of S².
     raw_dirs = local + 0.2 * rng.normal(size=local.shape)
-    truth = {"pose": poses, "mark": mark}
-    return truth, {
-        "values": {"pose": poses @ se3(2, 0.05), "mark": mark + 0.05},
-        "data": {
-            "prior": poses[:1] @ se3(1, 0.1),
-            "odo": poses[:1].inverse() @ poses[1:] @ se3(1, 0.1),
-            "bearing_raw": raw_dirs,
-            "range": jnp.linalg.norm(local, axis=1) + 0.1,
-            "gps": poses.translation() + jnp.asarray(0.1 * rng.normal(size=(2, 3))),
-            "point": local + 0.1 * rng.normal(size=local.shape),
-            "pose_range": jnp.asarray([1.7]),
-        },
-        "noise": {
-            "prior_log_sp": jnp.asarray(rng.normal(size=6) * 0.2 + 1.0),
-            "odo_cov_factor": jnp.asarray(0.2 * rng.normal(size=(1, 6, 6))),
-            "bearing_sp": jnp.asarray(4.0),
-            "br_sp": jnp.asarray([3.0, 3.0, 2.0]),
-            "cauchy_k": jnp.asarray(0.7),
-            "gps_sp": jnp.asarray([2.0, 3.0]),
-            "point_sp": jnp.asarray([4.0, 3.0, 2.0]),
-            "pose_range_sp": jnp.asarray(3.0),
-        },
+    truth, theta = _truth_and_theta(se3, poses, mark, 2)
+    theta["data"] |= {
+        "odo": poses[:1].inverse() @ poses[1:] @ se3(1, 0.1),
+        "bearing_raw": raw_dirs,
+        "range": jnp.linalg.norm(local, axis=1) + 0.1,
+        "gps": poses.translation() + jnp.asarray(0.1 * rng.normal(size=(2, 3))),
+        "point": local + 0.1 * rng.normal(size=local.shape),
+        "pose_range": jnp.asarray([1.7]),
     }
+    theta["noise"] = {
+        "prior_log_sp": jnp.asarray(rng.normal(size=6) * 0.2 + 1.0),
+        "odo_cov_factor": jnp.asarray(0.2 * rng.normal(size=(1, 6, 6))),
+        "bearing_sp": jnp.asarray(4.0),
+        "br_sp": jnp.asarray([3.0, 3.0, 2.0]),
+        "cauchy_k": jnp.asarray(0.7),
+        "gps_sp": jnp.asarray([2.0, 3.0]),
+        "point_sp": jnp.asarray([4.0, 3.0, 2.0]),
+        "pose_range_sp": jnp.asarray(3.0),
+    }
+    return truth, theta
 
 
 def _se3_graph(theta):

@@ -157,15 +157,12 @@ def _meas(x, params):
 
 
 def _oscillator(seed, heavy):
+    from helpers import oscillator_states
+
     rng = np.random.default_rng(seed)
-    x = np.stack([rng.normal(0, PRIOR[0], B), rng.normal(0, PRIOR[1], B)], 1)
-    xs = []
-    for _ in range(T):
-        xs.append(x.copy())
-        x = np.stack([x[:, 0] + x[:, 1], x[:, 1] - SPRING * x[:, 0]], 1)
-        x = x + rng.normal(size=(B, 2)) * Q
+    xs = oscillator_states(rng, lambda p: -SPRING * p, PRIOR, Q, B, T)
     e = rng.standard_t(3, size=(B, T, 1)) if heavy else rng.normal(size=(B, T, 1))
-    return jnp.asarray(np.stack(xs, 1)[..., :1] + e)
+    return jnp.asarray(xs[..., :1] + e)
 
 
 @eqx.filter_jit

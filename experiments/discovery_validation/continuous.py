@@ -37,10 +37,8 @@ already there (it can be stopped and resumed).
 
 import argparse
 import functools
-import json
 import time
 from collections import Counter
-from pathlib import Path
 
 import jax
 
@@ -51,11 +49,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
-from benchmarks._common import cli_command, machine  # noqa: E402
 
-from . import oscillator as d1  # noqa: E402
-from .nonsmooth import null_table, outcome_rates, saver, tally  # noqa: E402
-from .oscillator import fmt_rate, guarded_run, rate  # noqa: E402
+from ._run import cell_key, cell_runs, log, resume, run_info, run_lines, saver, stream  # noqa: E402
+from .nonsmooth import null_table, outcome_rates, rate_cells, tally  # noqa: E402
+from .oscillator import fmt_rate, rate  # noqa: E402
 
 
 B, T = 24, 40
@@ -160,17 +157,15 @@ def cell(library, effect, level, seeds, log, noise=1.0, num=B, first_seed=0) -> 
     coef = coefficient(effect, level) if effect else 0.0
     truth = effect
     c, names, alarms, times, snrs, rel = Counter(), Counter(), Counter(), [], [], []
-    key = [2026, 37, 3, _TAGS.get(effect, 0), int(round(level * 1000))]
-    key += [int(round(noise * 10))]
-    if num != B:  # the default size keeps the streams it always had
-        key.append(num)
-    for s in range(first_seed, first_seed + seeds):
-        rng = np.random.default_rng(np.random.SeedSequence(key + [s]))
-        data, snr = simulate(rng, effect, coef, noise, num)
-        out = guarded_run(data, model, log, f"{library} {effect} seed {s}")
-        if out is None:
-            c["crashes"] += 1
-            continue
+    for s, out, snr in cell_runs(
+        stream(3, _TAGS.get(effect, 0), level, noise, num),
+        range(first_seed, first_seed + seeds),
+        lambda rng: simulate(rng, effect, coef, noise, num),
+        model,
+        log,
+        f"{library} {effect}",
+        c,
+    ):
         snrs.append(snr)
         times.append(out["seconds"])
         kind = tally(out, truth, c, names, alarms)
@@ -211,16 +206,11 @@ def cell(library, effect, level, seeds, log, noise=1.0, num=B, first_seed=0) -> 
 
 
 def report(records: list[dict], info: dict) -> str:
-    m = info["machine"]
     lines = [
         "# discover benchmark: effects inside a continuous-time model (pendulum, "
         f"dt = {DT} s, ω₀ dt = {DT * W2**0.5:g})",
         "",
-        "- commands (cells are resumed and added across runs): "
-        + "; ".join(f"`{c}`" for c in info.get("commands", [info["command"]])),
-        f"- machine: {m.get('cores')} cores, {m.get('cpu')}; JAX {m.get('jax')}",
-        f"- git: {info['git']}",
-        f"- wall time {info['total_s'] / 60:.1f} min",
+        *run_lines(info),
         "- sequences per data set: "
         + ", ".join(str(v) for v in sorted({r.get("sequences", B) for r in records}))
         + f" (× {T} samples)",
@@ -241,9 +231,9 @@ def report(records: list[dict], info: dict) -> str:
             err = r["coef_rel_error_median_abs"]
             lines.append(
                 f"| {r['library']} | {r['effect']} | {r['snr_target']:g} | {r['n']} | "
-                + " | ".join(
-                    fmt_rate(r[k])
-                    for k in (
+                + rate_cells(
+                    r,
+                    (
                         "detected",
                         "truth_alone",
                         "truth_alone_confident",
@@ -251,7 +241,7 @@ def report(records: list[dict], info: dict) -> str:
                         "truth_plus_extra",
                         "wrong_name",
                         "coef_ci95_coverage",
-                    )
+                    ),
                 )
                 + f" | {'–' if err is None else f'{err:.3f}'}"
                 + f" | {r['median_s']:.1f} | {r['max_s']:.1f} |"
@@ -288,39 +278,18 @@ def main(argv=None):
         args.seeds, args.kick_seeds, args.null = 1, 1, 1
         args.effects, args.null_noises = ["viscous damping"], [1.0]
     t0 = time.perf_counter()
-    records, commands = [], []
-    if args.json and Path(args.json).exists():
-        earlier = json.loads(Path(args.json).read_text())
-        records, commands = earlier["records"], earlier["info"]["commands"]
-    done = {
-        (
-            r["library"],
-            r["effect"],
-            r["snr_target"],
-            r["measurement_noise_factor"],
-            r.get("sequences", B),
-            r.get("first_seed", 0),
-        )
-        for r in records
-    }
-    command = cli_command()
-    info = {
-        "command": command,
-        "commands": [*commands, command],
-        "git": "{} (uncommitted: {})".format(*d1._git()),
-        "machine": machine(),
-    }
+    records, commands, done = resume(
+        args.json,
+        lambda r: cell_key(r, "library", r["snr_target"]) + (r.get("first_seed", 0),),
+    )
+    info = run_info(commands)
     save = saver(args, records, info, report, t0)
-
-    def log(msg):
-        print(msg, flush=True)
-
     plan = [("rate", e, args.level, args.seeds, 1.0) for e in args.effects]
     plan += [("rate", None, None, args.null, nz) for nz in args.null_noises]
     plan += [("kick", e, args.level, args.kick_seeds, 1.0) for e in args.effects]
     for library, effect, level, seeds, noise in plan:
-        cell_key = (library, effect or "none", level, noise)
-        if cell_key + (args.sequences, args.first_seed) in done or seeds <= 0:
+        key = (library, effect or "none", level, noise, args.sequences, args.first_seed)
+        if key in done or seeds <= 0:
             continue
         t = time.perf_counter()
         rec = cell(

@@ -25,9 +25,7 @@ after a detection, so at most the decision test's level, α/2).
 """
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import jax
 
@@ -37,9 +35,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
-from benchmarks._common import cli_command, machine  # noqa: E402
 
-from . import nonsmooth as dn, oscillator as d1  # noqa: E402
+from . import nonsmooth as dn  # noqa: E402
+from ._run import log, resume, run_info, run_lines, saver  # noqa: E402
 from .oscillator import fmt_rate, rate  # noqa: E402
 
 
@@ -132,14 +130,10 @@ def cell(plant, effect, coef, truth, seeds, log) -> dict:
 
 
 def report(records, info) -> str:
-    m = info["machine"]
     lines = [
         "# discover benchmark: localisation of region-limited effects",
         "",
-        f"- command: `{info['command']}`",
-        f"- machine: {m.get('cores')} cores, {m.get('cpu')}; JAX {m.get('jax')}",
-        f"- git: {info['git']}",
-        f"- wall time {info['total_s'] / 60:.1f} min",
+        *run_lines(info),
         "",
         "| system | effect | true region | n | detected | right variable and "
         "equation | F1 median (mean) | precision / recall median | median s |",
@@ -187,20 +181,9 @@ def main(argv=None):
     if args.quick:
         args.systems, args.seeds, args.null = ["oscillator"], 1, 1
     t0 = time.perf_counter()
-    records = []
-    if args.json and Path(args.json).exists():
-        records = json.loads(Path(args.json).read_text())["records"]
-    done = {(r["system"], r["effect"]) for r in records}
-    info = {
-        "command": cli_command(),
-        "git": "{} (uncommitted: {})".format(*d1._git()),
-        "machine": machine(),
-    }
-
-    def log(msg):
-        print(msg, flush=True)
-
-    save = dn.saver(args, records, info, report, t0)
+    records, _, done = resume(args.json, lambda r: (r["system"], r["effect"]))
+    info = run_info()
+    save = saver(args, records, info, report, t0)
 
     plants = dn.plants()
     for name in args.systems:

@@ -40,11 +40,9 @@ already there (it can be stopped and resumed).
 """
 
 import argparse
-import json
 import math
 import time
 from collections import Counter
-from pathlib import Path
 
 import jax
 
@@ -54,10 +52,10 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
-from benchmarks._common import cli_command, machine, write_json, write_text  # noqa: E402
 
 from . import oscillator as d1, systems as d2  # noqa: E402
-from .oscillator import classify, fmt_rate, guarded_run, rate  # noqa: E402
+from ._run import cell_key, cell_runs, log, resume, run_info, run_lines, saver, stream  # noqa: E402
+from .oscillator import classify, fmt_rate, rate  # noqa: E402
 
 
 B, T = 24, 40
@@ -245,17 +243,15 @@ def cell(plant: Plant, effect, level, seeds, log, noise=1.0, num=B) -> dict:
     truth = None if (effect is None or out_of_library) else effect
     c, names, alarms, times, snrs = Counter(), Counter(), Counter(), [], []
     separate: list[float] = []
-    key = [2026, 37, plant.tag, _TAGS.get(effect, 0)]
-    key += [int(round(level * 1000)), int(round(noise * 10))]
-    if num != B:  # the default size keeps the streams it always had
-        key.append(num)
-    for s in range(seeds):
-        rng = np.random.default_rng(np.random.SeedSequence(key + [s]))
-        data, snr = plant.simulate(rng, effect, coef, noise, num)
-        out = guarded_run(data, plant.model, log, f"{plant.name} {effect} seed {s}")
-        if out is None:
-            c["crashes"] += 1
-            continue
+    for s, out, snr in cell_runs(
+        stream(plant.tag, _TAGS.get(effect, 0), level, noise, num),
+        range(seeds),
+        lambda rng: plant.simulate(rng, effect, coef, noise, num),
+        plant.model,
+        log,
+        f"{plant.name} {effect}",
+        c,
+    ):
         snrs.append(snr)
         times.append(out["seconds"])
         kind = tally(out, truth, c, names, alarms)
@@ -338,16 +334,11 @@ def outcome_rates(c: Counter, n: int, names, alarms, truth: str | None) -> dict:
 
 
 def report(records: list[dict], info: dict) -> str:
-    m = info["machine"]
     lines = [
         "# discover benchmark: out-of-library nonsmooth effects, in-library "
         "effects and null data on three systems",
         "",
-        "- commands (cells are resumed and added across runs): "
-        + "; ".join(f"`{c}`" for c in info.get("commands", [info["command"]])),
-        f"- machine: {m.get('cores')} cores, {m.get('cpu')}; JAX {m.get('jax')}",
-        f"- git: {info['git']}",
-        f"- wall time {info['total_s'] / 60:.1f} min",
+        *run_lines(info),
         "- `confident` = a name the verdict marks neither tentative nor partial; "
         "for an out-of-library effect every such name is wrong. `shape unchecked` "
         "= tentative because the named term is too weak for the adequacy test to "
@@ -368,15 +359,15 @@ def report(records: list[dict], info: dict) -> str:
                 f"| {r['system']} | {r['effect']} | {r['parameter']:g} | "
                 f"{r['snr_total']:.2f} / {r['snr_beyond_library']:.2f} | "
                 f"{r.get('sequences', B)} | {r['n']} | "
-                + " | ".join(
-                    fmt_rate(r[k])
-                    for k in (
+                + rate_cells(
+                    r,
+                    (
                         "detected",
                         "anything_named",
                         "named_confidently",
                         "partial",
                         "tentative",
-                    )
+                    ),
                 )
                 + " | "
                 + (fmt_rate(r["shape_unchecked"]) if "shape_unchecked" in r else "–")
@@ -396,9 +387,9 @@ def report(records: list[dict], info: dict) -> str:
             lines.append(
                 f"| {r['system']} | {r['effect']} | {r['snr_target']} | "
                 f"{r.get('sequences', B)} | {r['n']} | "
-                + " | ".join(
-                    fmt_rate(r[k])
-                    for k in (
+                + rate_cells(
+                    r,
+                    (
                         "detected",
                         "truth_alone",
                         "truth_alone_confident",
@@ -407,7 +398,7 @@ def report(records: list[dict], info: dict) -> str:
                         "truth_plus_extra",
                         "wrong_name",
                         "partial",
-                    )
+                    ),
                 )
                 + f" | {_separate(r)} | {r['median_s']:.2f} |"
             )
@@ -432,6 +423,11 @@ def _separate(r: dict) -> str:
     return ", ".join([str(v) for v in given] + ([f"none ×{none}"] if none else []))
 
 
+def rate_cells(r: dict, keys) -> str:
+    """The markdown cells of the rates `keys` of record `r`."""
+    return " | ".join(fmt_rate(r[k]) for k in keys)
+
+
 def null_table(records: list[dict], key: str, median_s: bool = False) -> list[str]:
     """Markdown rows of the null cells: every alarm's rate and their union;
     the first column is `record[key]`."""
@@ -454,20 +450,6 @@ def null_table(records: list[dict], key: str, median_s: bool = False) -> list[st
                 + (f" {r['median_s']:.1f} |" if median_s else "")
             )
     return lines
-
-
-def saver(args, records, info, render, t0):
-    """`save()` for a resumable run: the records as JSON and `render`'s
-    markdown, where `args.json` and `args.markdown` say."""
-
-    def save():
-        info["total_s"] = time.perf_counter() - t0
-        if args.json:
-            write_json(args.json, records, {"info": info})
-        if args.markdown:
-            write_text(args.markdown, render(records, info))
-
-    return save
 
 
 def main(argv=None):
@@ -498,33 +480,13 @@ def main(argv=None):
         args.shapes = "saturation=0.4,dead zone=0.4,backlash=0.6"
         args.null, args.null_noises = 1, [1.0]
     t0 = time.perf_counter()
-    records, commands = [], []
-    if args.json and Path(args.json).exists():
-        earlier = json.loads(Path(args.json).read_text())
-        records = earlier["records"]
-        commands = earlier["info"].get("commands", [earlier["info"]["command"]])
-    done = {
-        (
-            r["system"],
-            r["effect"],
-            r["parameter"] if r["out_of_library"] else r["snr_target"],
-            r["measurement_noise_factor"],
-            r.get("sequences", B),
-        )
-        for r in records
-    }
-
-    def log(msg):
-        print(msg, flush=True)
-
-    command = cli_command()
-    info = {
-        "command": command,
-        "commands": [*commands, command],
-        "git": "{} (uncommitted: {})".format(*d1._git()),
-        "machine": machine(),
-    }
-
+    records, commands, done = resume(
+        args.json,
+        lambda r: cell_key(
+            r, "system", r["parameter"] if r["out_of_library"] else r["snr_target"]
+        ),
+    )
+    info = run_info(commands)
     save = saver(args, records, info, report, t0)
 
     shapes = {}

@@ -115,8 +115,7 @@ def run(cfg: T.Config, fold: int, out: Path, work: Path, cache_dir, log=print) -
     )
     path = out / "fresh" / f"fold_{fold}.json"
     path.parent.mkdir(exist_ok=True)
-    text = json.dumps(record, indent=1, default=report.jsonable)
-    eqs.learn.atomic_write(path, lambda f: f.write(text.encode()))
+    report.write_json(path, record, report.jsonable)
     return path
 
 
@@ -175,10 +174,7 @@ def summarise(out: Path) -> tuple[dict, str]:
         "| method | fresh set | own test fold (retrained heads) |\n|---|---|---|\n"
         + "\n".join(lines)
         + "\n\nPaired over folds on the fresh set (negative: the first is better):"
-        "\n\n| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
-        + "\n".join(plines)
-        + "\n"
+        "\n\n" + report.PAIRED_HEAD + "\n".join(plines) + "\n"
     )
-    text = json.dumps(record, indent=1)
-    eqs.learn.atomic_write(out / "fresh.json", lambda f: f.write(text.encode()))
+    report.write_json(out / "fresh.json", record)
     return record, table

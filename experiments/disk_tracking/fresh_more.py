@@ -236,11 +236,6 @@ def score_split(cfg, results, heads_fold, split, methods, log) -> dict:
     return dict(rmse=rmse, uncertainty=unc, solves=solves, seconds=seconds)
 
 
-def _write(path: Path, record: dict) -> None:
-    text = json.dumps(record, indent=1, default=report.jsonable)
-    eqs.learn.atomic_write(path, lambda f: f.write(text.encode()))
-
-
 def run_pair(cfg, k, results, out, work, n, methods, log) -> Path:
     """Score test fold `k`'s committed sensor and heads on fresh fold `11 + k`
     and on test fold `k`; write `out/fresh_more/fold_F.json`."""
@@ -301,7 +296,7 @@ def run_pair(cfg, k, results, out, work, n, methods, log) -> Path:
                 m: committed[m]["test_rmse"] for m in rec["fold_rmse"] if m in committed
             }
         record[section] = rec
-        _write(path, record)
+        report.write_json(path, record, report.jsonable)
         log(f"pair {k}, {section} fold {fold}: {rec['seconds']['total']:.0f} s")
     return path
 
@@ -428,7 +423,7 @@ def summarise(out: Path, samples: int = BOOTSTRAP_SAMPLES) -> tuple[dict, str]:
             median=float(np.median(seconds)), all=[round(s, 1) for s in seconds]
         ),
     )
-    _write(out / "fresh_more.json", record)
+    report.write_json(out / "fresh_more.json", record, report.jsonable)
     table = (
         f"More never-seen folds ({len(pairs)}: folds {record['fresh_folds']}, "
         f"{n} sequences each): fold 11+K scored by test fold K's committed "

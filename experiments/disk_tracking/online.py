@@ -10,12 +10,9 @@ compiled; median over folds), training minutes, and paired differences per
 fold.
 """
 
-import json
 from pathlib import Path
 
 import numpy as np
-
-import eqsmooth as eqs
 
 from . import report
 
@@ -103,10 +100,9 @@ def summarise(out: Path) -> tuple[dict, str]:
         "ms per frame | training min |\n|---|---|---|---|---|\n"
         + "\n".join(lines)
         + "\n\nPaired over folds (negative: the first is better):\n\n"
-        "| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
+        + report.PAIRED_HEAD
         + "\n".join(plines)
         + "\n"
     )
-    text = json.dumps(record, indent=1)
-    eqs.learn.atomic_write(out / "online.json", lambda f: f.write(text.encode()))
+    report.write_json(out / "online.json", record)
     return record, table

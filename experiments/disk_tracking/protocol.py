@@ -274,9 +274,8 @@ def write_fold(out: Path, cfg_dict: dict, result: dict) -> Path:
         timings=result["timings"],
         records=result["records"],
     )
-    text = json.dumps(record, indent=1, default=report.jsonable)
     path = out / f"fold_{k}.json"
-    eqs.learn.atomic_write(path, lambda f: f.write(text.encode()))
+    report.write_json(path, record, report.jsonable)
     eqs.learn.atomic_write(
         out / f"sensor_fold{k}.eqx",
         lambda f: eqx.tree_serialise_leaves(f, result["sensor"]),

@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import eqsmooth as eqs
+
 from .._provenance import git_hash  # noqa: F401  (report.git_hash: __main__ --rerun)
 from . import data as D
 
@@ -188,6 +190,10 @@ FREE_START = "no_first_state_test_rmse"  # the record field protocol.py writes
 FREE_START_LABEL = "heads trained with the first-state prior, scored without it"
 
 
+# The head of a table of `paired` rows.
+PAIRED_HEAD = "| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
+
+
 def paired_table(
     summary: dict[str, dict], pairs, folds: list[dict] = ()
 ) -> tuple[dict, str]:
@@ -212,10 +218,7 @@ def paired_table(
             lines.append(line)
     if not lines:
         return out, ""
-    head = (
-        "\nPaired over folds (negative: the first is better):\n\n"
-        "| difference | mean ± se (px) | folds better |\n|---|---|---|\n"
-    )
+    head = "\nPaired over folds (negative: the first is better):\n\n" + PAIRED_HEAD
     return out, head + "\n".join(lines) + "\n"
 
 
@@ -316,6 +319,13 @@ def docs_table(path: Path) -> str:
     """The table currently between the result markers of `path`."""
     text = path.read_text()
     return text.split(DOCS_START, 1)[1].split(DOCS_END, 1)[0].lstrip("\n")
+
+
+def write_json(path: Path, record: dict, default=None) -> None:
+    """`record` as indented JSON at `path`, written atomically (`default` as
+    for `json.dumps`, e.g. `jsonable`)."""
+    text = json.dumps(record, indent=1, default=default)
+    eqs.learn.atomic_write(path, lambda f: f.write(text.encode()))
 
 
 def jsonable(x):

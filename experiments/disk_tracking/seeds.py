@@ -170,7 +170,6 @@ def summarise(base: Path, root: Path) -> tuple[dict, str]:
         paired=pairs,
     )
     text = "\n".join(lines) + "\n"
-    js = json.dumps(record, indent=1)
-    eqs.learn.atomic_write(root / "seeds.json", lambda f: f.write(js.encode()))
+    report.write_json(root / "seeds.json", record)
     eqs.learn.atomic_write(root / "seeds.md", lambda f: f.write(text.encode()))
     return record, text

@@ -24,14 +24,11 @@ correlated in time, so the band is nominal). The frame band:
 figure.
 """
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
-
-import eqsmooth as eqs
 
 from . import report
 
@@ -256,8 +253,7 @@ def summarise(out: Path, folds: list[dict]) -> dict:
             f"disk: calibration on the test folds "
             f"{','.join(str(f['heads_fold']) for f in test)} (mean over folds)",
         )
-    text = json.dumps(record, indent=1)
-    eqs.learn.atomic_write(out / "uncertainty.json", lambda f: f.write(text.encode()))
+    report.write_json(out / "uncertainty.json", record)
     return record
 
 

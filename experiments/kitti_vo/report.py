@@ -194,18 +194,10 @@ def write_summary(out: Path) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", *test_feedback_lines(results)]
     lines += ["", *criterion_lines(results), "", *best_step_lines(results)]
-    derived = derived_lines(results)
-    if derived:
-        lines += ["", *derived]
-    metrics = paired_metrics_lines(results)
-    if metrics:
-        lines += ["", *metrics]
-    windows = window_lines(results)
-    if windows:
-        lines += ["", *windows]
-    rescored = rescored_lines(results)
-    if rescored:
-        lines += ["", *rescored]
+    for section in (derived_lines, paired_metrics_lines, window_lines, rescored_lines):
+        more = section(results)
+        if more:
+            lines += ["", *more]
     if declared is not None:
         lines += ["", *declared_lines(declared)]
     text = "\n".join(lines) + "\n"
