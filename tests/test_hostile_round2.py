@@ -528,13 +528,13 @@ def _feature_scales(name, feature):
     from eqsmooth.discover._fit import feature_scales
 
     model = dc.ChainModel(
-        _dyn,
-        _meas_first,
-        jnp.asarray(0.0),
-        np.array([0.1, 0.1]),
-        np.array([0.1]),
-        np.array([1.0, 1.0]),
-        [dc.Candidate(name, feature)],
+        dynamics=_dyn,
+        measurement=_meas_first,
+        params=jnp.asarray(0.0),
+        process_sigma=np.array([0.1, 0.1]),
+        measurement_sigma=np.array([0.1]),
+        prior_sigma=np.array([1.0, 1.0]),
+        candidates=[dc.Candidate(name, feature)],
     )
     states = np.stack([np.linspace(-1, 1, 6), np.zeros(6)], -1)[None]
     data = dc.Sequences(states[..., :1], np.zeros((1, 2)))

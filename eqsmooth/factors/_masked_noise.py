@@ -10,6 +10,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._noise import (
     AbstractNoiseModel,
+    check_row_mask,
     is_concrete,
     RowIndex,
     RowMask,
@@ -119,11 +120,7 @@ class MaskedNoise(AbstractNoiseModel):
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
         self.base.check_shapes(factor_name, n, m)
-        if self.active.shape != (n,):
-            raise ValueError(
-                f"{factor_name}: MaskedNoise.active has shape {self.active.shape}; "
-                f"expected ({n},), one entry per row"
-            )
+        check_row_mask(factor_name, "MaskedNoise.active", self.active, n)
 
     def curvature_model(self) -> "MaskedNoise":
         return self

@@ -146,6 +146,16 @@ def device_mask(active: RowMask) -> Bool[Array, " n"]:
     return jnp.asarray(active)
 
 
+def check_row_mask(factor_name: str, what: str, active: Array, n: int) -> None:
+    """Raise a `ValueError` naming `factor_name` and `what` (the mask's
+    owner) unless the row mask `active` has one entry per row, `(n,)`."""
+    if active.shape != (n,):
+        raise ValueError(
+            f"{factor_name}: {what} has shape {active.shape}; expected ({n},), "
+            "one entry per row"
+        )
+
+
 def mask_gaussian(noise: "AbstractNoiseModel", active: RowMask) -> "MaskedNoise":
     """`MaskedNoise(noise, active)`: how a Gaussian model masks its rows."""
     # Imported here: MaskedNoise wraps the models defined in this module.

@@ -23,6 +23,7 @@ from ._factor import AbstractFactor, per_row_fields, with_rows
 from ._graph import FactorGraph, group_count, Values
 from ._noise import (
     AbstractNoiseModel,
+    check_row_mask,
     device_mask,
     RowIndex,
     RowMask,
@@ -60,11 +61,7 @@ class _PaddingNoise(AbstractNoiseModel):
         return self.active
 
     def check_shapes(self, factor_name: str, n: int, m: int) -> None:
-        if self.active.shape != (n,):
-            raise ValueError(
-                f"{factor_name}: padding mask of shape {self.active.shape}, "
-                f"expected ({n},)"
-            )
+        check_row_mask(factor_name, "the padding mask", self.active, n)
 
     def curvature_model(self) -> "_PaddingNoise":
         return self
