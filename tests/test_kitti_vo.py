@@ -478,10 +478,13 @@ def _fake_release(root: Path, num_frames: int) -> None:
             (root / f"{seq:02d}_{pose_file}.txt").write_text(text)
 
 
+@pytest.mark.slow
 def test_real_data_dir_runs_end_to_end(tmp_path):
     """`python -m experiments.kitti_vo --quick --real-data-dir` on a generated
     release tree:
-    the protocol as shipped, from the loader to the fold's JSON."""
+    the protocol as shipped, from the loader to the fold's JSON. Slow (a
+    whole quick run in a child process, about 4 minutes on 2 cores); CI runs
+    the quick experiment itself, and the loader's tests here run by default."""
     import json
     import subprocess
     import sys
