@@ -16,7 +16,10 @@ newest pose's estimate from eqsmooth_lm's, over all steps
 `--se2vel`: the SE(2) + velocity chain instead (GTSAM through Python
 CustomFactors with numeric Jacobians: its values compare, its time does
 not). `--first-window-only`: GTSAM's own graph error at the first
-marginalisation, for GTSAM's answer and eqsmooth's.
+marginalisation, for GTSAM's answer and eqsmooth's. `--per-update`: a
+robot's loop, `FixedLagSmoother.update_rows` (arrays in, the state on the
+device), `update` (factors) and GTSAM's `update`, each call timed with its
+newest estimate awaited (`max_diff`: from update_rows' estimates).
 
     python -m benchmarks.fixed_lag --json benchmarks/results/fixed_lag.json
     python -m benchmarks.fixed_lag --closures \
@@ -25,6 +28,8 @@ marginalisation, for GTSAM's answer and eqsmooth's.
         --json benchmarks/results/fixed_lag_first_window.json
     python -m benchmarks.fixed_lag --se2vel --steps 100 --lags 10 50 \
         --json benchmarks/results/fixed_lag_se2vel.json
+    python -m benchmarks.fixed_lag --per-update \
+        --json benchmarks/results/fixed_lag_per_update.json
 """
 
 import statistics
@@ -78,12 +83,10 @@ def timed_fixed_lag(
     """eqsmooth's fixed-lag estimates (compiled), the first call's seconds and
     the median seconds per update over `repeats` runs."""
     options = dict(lag=lag, solver=solver, adjoint=adjoint)
-
-    @eqx.filter_jit
-    def run(trans, meas, closures):
-        smoother = eqs.filters.fixed_lag_smoother
-        return smoother(trans, meas, mean0, cov0, closures=closures, **options).mean
-
+    smoother = eqs.filters.fixed_lag_smoother
+    run = eqx.filter_jit(
+        lambda tr, m, c: smoother(tr, m, mean0, cov0, closures=c, **options).mean
+    )
     call = lambda: jax.block_until_ready(run(trans, meas, closures))
     first, times, mean = time_host(call, repeats)
     return mean, first, statistics.median(times) / (trans.num_rows + 1)
@@ -95,11 +98,7 @@ def _pose(gtsam, r):
 
 
 def gtsam_run(gtsam, smoother, data):
-    pose = lambda r: _pose(gtsam, r)
-    diag = gtsam.noiseModel.Diagonal.Sigmas
-    closes = {}
-    for a, b, rel in data["pairs"]:
-        closes.setdefault(b, []).append((a, rel))
+    pose, diag = (lambda r: _pose(gtsam, r)), gtsam.noiseModel.Diagonal.Sigmas
     est, times = [], []
     for t in range(len(data["fixes"])):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -112,7 +111,7 @@ def gtsam_run(gtsam, smoother, data):
             graph.add(gtsam.BetweenFactorPose2(t - 1, t, odo, diag(ODO)))
             values.insert(t, est[-1].compose(odo))
         graph.add(gtsam.PriorFactorPose2(t, pose(data["fixes"][t]), diag(FIX)))
-        for a, rel in closes.get(t, []):
+        for a, rel in [(a, rel) for a, b, rel in data["pairs"] if b == t]:
             graph.add(gtsam.BetweenFactorPose2(a, t, pose(rel), diag(LOOP)))
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         stamps.insert((t, float(t)))
@@ -142,8 +141,7 @@ def first_marginal_window(gtsam, lag: int) -> dict:
     (LevenbergMarquardtOptimizer on the smoother's graph after update
     `lag - 1` plus update `lag`'s factors) and of eqsmooth's window (30
     fixed Gauss-Newton steps)."""
-    data = problem(lag + 1, 1, False)
-    mean0 = eqs.SE2.identity(dtype=jnp.float64)
+    data, mean0 = problem(lag + 1, 1, False), eqs.SE2.identity(dtype=jnp.float64)
     solver = eqs.FixedStepGaussNewton(num_steps=30)
     sol = eqs.filters.fixed_lag_smoother(
         data["trans"], data["fix"], mean0, COV0 * jnp.eye(3), lag=lag, solver=solver
@@ -193,38 +191,29 @@ def se2vel_problem(T: int, seed: int = 0):
     pos = np.stack([np.asarray(p.translation()) for p in poses])
     gps = pos + GPS_SIG * rng.normal(size=pos.shape)
     t = np.arange(T)
-    trans = eqs.FunctionFactor(
-        _car_trans,
-        (eqs.Var("s", t[:-1]), eqs.Var("s", t[1:])),
-        eqs.DiagonalNoise.from_sigmas(jnp.asarray(TRANS_SIG)),
-    )
-    meas = eqs.FunctionFactor(
-        _car_gps,
-        (eqs.Var("s", t),),
-        eqs.IsotropicNoise.from_sigma(jnp.asarray(GPS_SIG)),
-        data=jnp.asarray(gps),
-    )
+    var = lambda ids: eqs.Var("s", ids)
+    noise = eqs.DiagonalNoise.from_sigmas(jnp.asarray(TRANS_SIG))
+    trans = eqs.FunctionFactor(_car_trans, (var(t[:-1]), var(t[1:])), noise)
+    noise = eqs.IsotropicNoise.from_sigma(jnp.asarray(GPS_SIG))
+    meas = eqs.FunctionFactor(_car_gps, (var(t),), noise, data=jnp.asarray(gps))
     mean0 = {"pose": eqs.SE2.identity(dtype=jnp.float64), "vel": jnp.asarray(VEL0)}
     return trans, meas, mean0, gps
 
 
 def _numeric_jacobians(gtsam, error, values, keys, jacobians, h=1e-6):
     """Central-difference Jacobians of `error(values)` in GTSAM's tangent
-    coordinates of each key (Pose2 or 3-vector)."""
+    coordinates of each key (Pose2 at even keys, 3-vector at odd)."""
     for j, k in enumerate(keys):
-        cols = []
-        for i in range(3):
-            e = np.zeros(3)
-            e[i] = h
-            out = []
-            for step in (e, -e):
-                v = gtsam.Values(values)
-                if values.exists(k) and k % 2 == 0:
-                    v.update(k, values.atPose2(k).retract(step))
-                else:
-                    v.update(k, values.atVector(k) + step)
-                out.append(error(v))
-            cols.append((out[0] - out[1]) / (2 * h))
+
+        def moved(step, k=k):
+            v = gtsam.Values(values)
+            if k % 2 == 0:
+                v.update(k, values.atPose2(k).retract(step))
+            else:
+                v.update(k, values.atVector(k) + step)
+            return error(v)
+
+        cols = [(moved(e) - moved(-e)) / (2 * h) for e in h * np.eye(3)]
         jacobians[j] = np.column_stack(cols)
 
 
@@ -232,35 +221,27 @@ def _se2vel_factors(gtsam, gps):
     """GTSAM factors of the chain: pose keys 2t, velocity keys 2t+1."""
     P, V = (lambda t: 2 * t), (lambda t: 2 * t + 1)  # noqa: E731
 
-    def trans_error(keys, values):
-        pa, va = values.atPose2(keys[0]), values.atVector(keys[1])
-        pb, vb = values.atPose2(keys[2]), values.atVector(keys[3])
-        pred = pa.compose(gtsam.Pose2.Expmap(DT * va))
-        return np.concatenate([gtsam.Pose2.Logmap(pred.between(pb)), vb - va])
-
-    def trans_factor(t):
-        keys = [P(t - 1), V(t - 1), P(t), V(t)]
-
+    def custom(noise, keys, err):
         def f(this, values, jacobians):
-            err = lambda v: trans_error(keys, v)  # noqa: E731
             if jacobians is not None:
                 _numeric_jacobians(gtsam, err, values, keys, jacobians)
             return err(values)
 
-        return gtsam.CustomFactor(gtsam.noiseModel.Diagonal.Sigmas(TRANS_SIG), keys, f)
+        return gtsam.CustomFactor(noise, keys, f)
+
+    def trans_factor(t):
+        def error(values):
+            pa, va = values.atPose2(P(t - 1)), values.atVector(V(t - 1))
+            pred = pa.compose(gtsam.Pose2.Expmap(DT * va)).between(values.atPose2(P(t)))
+            dv = values.atVector(V(t)) - va
+            return np.concatenate([gtsam.Pose2.Logmap(pred), dv])
+
+        noise = gtsam.noiseModel.Diagonal.Sigmas(TRANS_SIG)
+        return custom(noise, [P(t - 1), V(t - 1), P(t), V(t)], error)
 
     def gps_factor(t):
-        z = gps[t]
-
-        def f(this, values, jacobians):
-            err = lambda v: v.atPose2(P(t)).translation() - z  # noqa: E731
-            if jacobians is not None:
-                _numeric_jacobians(gtsam, err, values, [P(t)], jacobians)
-            return err(values)
-
-        return gtsam.CustomFactor(
-            gtsam.noiseModel.Isotropic.Sigma(2, GPS_SIG), [P(t)], f
-        )
+        noise = gtsam.noiseModel.Isotropic.Sigma(2, GPS_SIG)
+        return custom(noise, [P(t)], lambda v: v.atPose2(P(t)).translation() - gps[t])
 
     return P, V, trans_factor, gps_factor
 
@@ -272,16 +253,14 @@ def gtsam_se2vel(gtsam, smoother, gps, T: int):
     for t in range(T):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        pa, va = est[-1] if t else (gtsam.Pose2(), VEL0)
+        values.insert(P(t), pa.compose(gtsam.Pose2.Expmap(DT * va)) if t else pa)
+        values.insert(V(t), va)
         if t == 0:
             sig = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(COV0) * np.ones(3))
             graph.add(gtsam.PriorFactorPose2(P(0), gtsam.Pose2(), sig))
             graph.add(gtsam.PriorFactorVector(V(0), VEL0, sig))
-            values.insert(P(0), gtsam.Pose2())
-            values.insert(V(0), VEL0)
         else:
-            pa, va = est[-1]
-            values.insert(P(t), pa.compose(gtsam.Pose2.Expmap(DT * va)))
-            values.insert(V(t), va)
             graph.add(trans_factor(t))
         graph.add(gps_factor(t))
         stamps.insert((P(t), float(t)))
@@ -328,26 +307,20 @@ def se2vel_first_window(gtsam, lag: int) -> dict:
 def se2vel_record(gtsam, T: int, lag: int, repeats: int) -> dict:
     trans, meas, mean0, gps = se2vel_problem(T)
     rec = dict(benchmark="fixed_lag_se2vel", T=T, lag=lag)
-
-    def run(solver, adjoint):
-        cov0 = COV0 * jnp.eye(6)
-        return timed_fixed_lag(trans, meas, mean0, cov0, lag, solver, adjoint, repeats)
-
     fs = eqs.FixedStepGaussNewton(num_steps=3), eqs.UnrolledAdjoint()
     # undamped Gauss-Newton does not converge in every window of this chain
     lm = eqs.LevenbergMarquardt(), eqs.ImplicitAdjoint()
     means = {}
-    for name, (solver, adjoint) in (("eqsmooth_fixed3", fs), ("eqsmooth_lm", lm)):
-        means[name], first, per = run(solver, adjoint)
+    for name, solver in (("eqsmooth_fixed3", fs), ("eqsmooth_lm", lm)):
+        run = (trans, meas, mean0, COV0 * jnp.eye(6), lag, *solver, repeats)
+        means[name], first, per = timed_fixed_lag(*run)
         rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
     ref = means["eqsmooth_lm"]
     diff = lambda a: tangent_diff(a, ref)  # noqa: E731
     rec["eqsmooth_fixed3"]["max_diff"] = float(diff(means["eqsmooth_fixed3"]).max())
     if gtsam:
-        lm = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"].params()
-        est, times = gtsam_se2vel(
-            gtsam, gtsam.BatchFixedLagSmoother(float(lag - 2), lm), np.asarray(gps), T
-        )
+        smoother = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"]
+        est, times = gtsam_se2vel(gtsam, smoother, np.asarray(gps), T)
         d = diff(est)
         rec["BatchFixedLagSmoother"] = dict(
             ms_per_update_python_factors=1e3 * statistics.median(times),
@@ -374,11 +347,10 @@ def chain_record(gtsam, data, lag: int, a) -> dict:
         eqsmooth_fixed3=(eqs.FixedStepGaussNewton(num_steps=3), eqs.UnrolledAdjoint()),
     )
     mean0, cov0 = eqs.SE2.identity(dtype=jnp.float64), COV0 * jnp.eye(3)
-    problem_args = (data["trans"], data["fix"], mean0, cov0, lag)
     means = {}
     for name, (solver, adjoint) in solvers.items():
-        run = (*problem_args, solver, adjoint, a.repeats, data["closures"])
-        means[name], first, per = timed_fixed_lag(*run)
+        run = (data["trans"], data["fix"], mean0, cov0, lag, solver, adjoint, a.repeats)
+        means[name], first, per = timed_fixed_lag(*run, data["closures"])
         rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
     ref = means["eqsmooth_lm"]
     for name in ("eqsmooth_gn", "eqsmooth_fixed3"):
@@ -393,6 +365,42 @@ def chain_record(gtsam, data, lag: int, a) -> dict:
     return rec
 
 
+def per_update_record(gtsam, data, lag: int) -> dict:
+    """`--per-update`: the rows, factors and GTSAM graphs are built before
+    the timed calls; medians over the calls after the first."""
+    T, one = len(data["fixes"]), (eqs.Var("x", [0]), eqs.Var("x", [1]))
+    odo, fix = (eqs.SE2(jnp.asarray(data[k])) for k in ("odo", "fixes"))
+    trans = lambda k: eqs.BetweenFactor(*one, odo[k - 1 : k], data["trans"].noise)
+    prior = lambda k: eqs.PriorFactor(one[1], fix[k : k + 1], data["fix"].noise)
+    steps = [(trans(k), prior(k)) for k in range(1, T)]
+    rows = [tuple(map(eqs.factors.per_row_fields, f)) for f in steps]
+    smoother, ests = eqs.filters.FixedLagSmoother(lag=lag), {}
+    rec = dict(benchmark="fixed_lag_per_update", T=T, lag=lag)
+    for name, update, args in (
+        ("update_rows", smoother.update_rows, [(r, (m,)) for r, m in rows]),
+        ("update", smoother.update, steps),
+    ):
+        mean0 = eqs.SE2.identity(dtype=jnp.float64)
+        state, x = smoother.init(mean0, COV0 * jnp.eye(3), trans(1), prior(0))
+        out, times = [x], []
+        for step in args:
+            t0 = time.perf_counter()
+            state, x = update(state, *step)
+            jax.block_until_ready(x)
+            times.append(time.perf_counter() - t0)
+            out.append(x)
+        ests[name] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *out)
+        rec[name] = dict(first_call_s=times[0], median_s=statistics.median(times[1:]))
+    med = rec["update_rows"]["median_s"]
+    rec |= dict(median_s=med, compile_s=rec["update_rows"]["first_call_s"] - med)
+    diff = lambda est: float(tangent_diff(est, ests["update_rows"]).max())
+    rec["update"]["max_diff"] = diff(ests["update"])
+    for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
+        est, median = gtsam_run(gtsam, smoother, data)
+        rec[name] = dict(median_s=median, max_diff=diff(est))
+    return rec
+
+
 def main():
     ap = cli(__doc__)
     ap.add_argument("--steps", type=int, default=500)
@@ -402,7 +410,10 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--first-window-only", action="store_true", help="no timing")
     ap.add_argument("--se2vel", action="store_true", help="SE(2) + velocity chain")
+    ap.add_argument("--per-update", action="store_true", help="update_rows per call")
     a = ap.parse_args()
+    if a.per_update and a.closures:
+        ap.error("--per-update: FixedLagSmoother takes no closures")
     gtsam = optional("gtsam", " (GTSAM's fixed-lag smoothers)")
     chain = not (a.se2vel or a.first_window_only)
     data = problem(a.steps, a.span, a.closures) if chain else None
@@ -410,6 +421,8 @@ def main():
     for lag in a.lags:
         if a.se2vel:
             rec = se2vel_record(gtsam, a.steps, lag, a.repeats)
+        elif a.per_update:
+            rec = per_update_record(gtsam, data, lag)
         elif a.first_window_only:
             rec = dict(lag=lag, **first_marginal_window(gtsam, lag))
         else:

@@ -588,3 +588,176 @@ def test_lag_from_seconds_is_gtsams_window():
     # function's own check says "must be a number of seconds")
     with raises(jaxtyping.TypeCheckError, "smoother_lag"):
         lag("2s", 0.1)  # type: ignore[arg-type]
+
+
+# --- update_rows: each step's data as arrays ---------------------------------
+
+_ROWS_SMOOTHER = eqs.filters.FixedLagSmoother(lag=2, solver=_GN, adjoint=_UNROLLED)
+
+
+@pytest.fixture(scope="module")
+def row_steps():
+    """The linear chain of test_filters one step at a time: a transition
+    (no per-row data), a 1-row position stack and a 2-row 2-D stack per
+    step; each step's data as `update_rows` takes it, and masks for both
+    stacks (a missing position at `_MISSING`, every other second row)."""
+    from test_filters import _lin_meas, _lin_trans, H1, R2_COV
+
+    one = (eqs.Var("x", [0]), eqs.Var("x", [1]))
+    sqrt_info = eqs.SqrtInformationNoise.from_covariance
+    trans = eqs.FunctionFactor(
+        _lin_trans, one, sqrt_info(jnp.asarray(Q_COV)), params=jnp.asarray(F_MAT)
+    )
+    stacks = (
+        eqs.FunctionFactor(
+            _lin_meas,
+            one[1:],
+            eqs.IsotropicNoise.from_sigma(jnp.asarray([0.3])),
+            data=jnp.zeros((1, 1)),
+            params=jnp.asarray(H1),
+        ),
+        eqs.FunctionFactor(
+            _lin_meas,
+            (eqs.Var("x", [1, 1]),),
+            sqrt_info(jnp.asarray(R2_COV)),
+            data=jnp.zeros((2, 2)),
+            params=jnp.eye(2),
+        ),
+    )
+    rng = np.random.default_rng(2)
+    data = [jnp.asarray(rng.normal(size=(T, *f.data.shape))) for f in stacks]
+    rows = [tuple({"data": z[t]} for z in data) for t in range(T)]
+    active = [
+        (jnp.asarray([t not in _MISSING]), jnp.asarray([True, t % 2 == 0]))
+        for t in range(T)
+    ]
+    state0, _ = _ROWS_SMOOTHER.init(
+        jnp.asarray(M0),
+        jnp.asarray(P0),
+        trans,
+        [eqs.factors.with_rows(f, r) for f, r in zip(stacks, rows[0])],
+    )
+    return state0, (trans, stacks), rows, active
+
+
+def _rows_run(state, rows, active=None):
+    """`update_rows` for steps 1..T-1 (no transition rows: its data is
+    `None`); the newest estimates and the last state."""
+    out = []
+    for t in range(1, T):
+        mask = None if active is None else active[t]
+        state, x = _ROWS_SMOOTHER.update_rows(state, {}, rows[t], mask)
+        out.append(x)
+    return jnp.stack(out), state
+
+
+def _factor_run(state, factors, rows, active=None):
+    """`update` for the same steps, with factors (masked rows: `MaskedNoise`)."""
+    trans, stacks = factors
+    out = []
+    for t in range(1, T):
+        step = [eqs.factors.with_rows(f, r) for f, r in zip(stacks, rows[t])]
+        if active is not None:
+            step = [_masked(f, a) for f, a in zip(step, active[t])]
+        state, x = _ROWS_SMOOTHER.update(state, trans, step)
+        out.append(x)
+    return jnp.stack(out), state
+
+
+def test_update_rows_equal_updates(row_steps, monkeypatch):
+    """A run of `update_rows` gives `update`'s estimates and window (1e-10),
+    on the device; its checks run while tracing only (once)."""
+    state0, factors, rows, _ = row_steps
+    want, want_state = _factor_run(state0, factors, rows)
+    module = eqs.filters._fixed_lag_update
+    traced, checks = [], module._step_factors
+    monkeypatch.setattr(
+        module, "_step_factors", lambda *a: traced.append(1) or checks(*a)
+    )
+    got, state = _rows_run(state0, rows)
+    assert len(traced) <= 1  # traced once (or compiled by an earlier run)
+    assert isinstance(got, jax.Array) and got.shape == (T - 1, 2)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(state.window, want_state.window, rtol=0, atol=1e-10)
+    assert int(state.t) == T - 1 and int(state.window_start) == T - 2
+
+
+def test_update_rows_masks_are_masked_noise(row_steps):
+    """`active` false for missing rows (of both stacks, one of two rows) equals
+    `update` with those rows masked by `MaskedNoise` (1e-10), and differs
+    from the run without masks."""
+    state0, factors, rows, active = row_steps
+    want, _ = _factor_run(state0, factors, rows, active)
+    got, _ = _rows_run(state0, rows, active)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
+    every = [tuple(jnp.ones_like(a) for a in step) for step in active]
+    unmasked, _ = _rows_run(state0, rows, every)
+    assert float(jnp.abs(got - unmasked).max()) > 1e-3
+
+
+def test_update_rows_gradient_matches_central_differences(row_steps):
+    """`jax.grad` through three `update_rows` calls with respect to the
+    measurements' data matches float64 central differences."""
+    state0, _, rows, _ = row_steps
+    direction = jnp.asarray(np.random.default_rng(3).normal(size=(3, 2, 2)))
+
+    def loss(s):
+        # Every call gets a state with a tangent (zero for the first), so the
+        # three calls share one differentiated program (compile time).
+        state = jax.tree_util.tree_map(
+            lambda a: a + 0 * s if eqx.is_inexact_array(a) else a, state0
+        )
+        total = 0.0
+        for t in range(1, 4):
+            z = rows[t][1]["data"] + s * direction[t - 1]
+            state, x = _ROWS_SMOOTHER.update_rows(state, {}, (rows[t][0], {"data": z}))
+            total = total + jnp.sum(x**2)
+        return total
+
+    _check_gradient(loss, 1e-7)
+
+
+def test_update_rows_hostile_input(row_steps):
+    """Wrong fields, shapes, dtypes, masks and states are named while tracing;
+    non-finite data stops the compiled update."""
+    state, (trans, stacks), rows, _ = row_steps
+    update = _ROWS_SMOOTHER.update_rows
+    z, z2 = rows[1][0]["data"], rows[1][1]["data"]  # (1, 1), (2, 2)
+    who = "FixedLagSmoother.update_rows"
+    with raises(ValueError, who, "measurement_rows[1] has fields ['z']", "['data']"):
+        update(state, {}, ({"data": z}, {"z": z2}))
+    with raises(
+        ValueError, who, "measurement_rows[0]['data'] has shape (2, 1)", "(1, 1)"
+    ):
+        update(state, {}, ({"data": jnp.concatenate([z, z])}, {"data": z2}))
+    with raises(TypeError, "measurement_rows[1]['data'] has dtype float32", "float64"):
+        update(state, {}, ({"data": z}, {"data": z2.astype(jnp.float32)}))
+    with raises(TypeError, "measurement_rows[0]['data'] has the structure"):
+        update(state, {}, ({"data": (z, z)}, {"data": z2}))
+    with raises(ValueError, "transition_rows has fields ['params']", "['data']"):
+        update(state, {"data": None, "params": z}, rows[1])
+    with raises(ValueError, "measurement_rows has 1 stacks, init was given 2"):
+        update(state, {}, rows[1][:1])
+    with raises(ValueError, who, "active must be None or a tuple", "got 1 of them"):
+        update(state, {}, rows[1], (None,))
+    with raises(TypeError, "active[1] has shape (1,)", "2 rows"):
+        update(state, {}, rows[1], (None, jnp.ones(1, bool)))
+    with raises(ValueError, who, "lag=2", "lag=3"):
+        eqs.filters.FixedLagSmoother(lag=3).update_rows(state, {}, rows[1])
+    masked = [_masked(stacks[0], [True]), stacks[1]]
+    mstate, _ = _ROWS_SMOOTHER.init(jnp.asarray(M0), jnp.asarray(P0), trans, masked)
+    with raises(TypeError, who, "measurement stack 0", "masked noise", "`active`"):
+        update(mstate, {}, rows[1])
+    with raises(eqx.EquinoxRuntimeError, who, "non-finite factor data"):
+        update(state, {}, ({"data": z * jnp.nan}, {"data": z2}))
+    # The annotations name a wrong type first (the jaxtyping hook); the
+    # update's own checks say it without the hook.
+    with raises(jaxtyping.TypeCheckError, "measurement_rows"):
+        update(state, {}, (z, z2))
+    advance = eqs.filters._fixed_lag_update._advance_rows
+    with raises(TypeError, who, "measurement_rows[0] must be a dict"):
+        advance(_ROWS_SMOOTHER, state, {}, (z, z2), None)
+    with raises(TypeError, who, "state must be a FixedLagState", "str"):
+        advance(_ROWS_SMOOTHER, "state", {}, rows[1], None)
+    with raises(TypeError, "active[0] has shape (1,) and dtype int"):
+        advance(_ROWS_SMOOTHER, state, {}, rows[1], (jnp.ones(1, int), None))

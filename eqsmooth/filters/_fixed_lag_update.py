@@ -6,7 +6,9 @@ the rows (data and square-root information) of the factors of the window
 and of the state about to leave it. Each update builds the window's chain
 over those `lag + 1` slots and runs the same step as
 [`eqsmooth.filters.fixed_lag_smoother`][], so a run of updates gives the
-same estimates as the scan.
+same estimates as the scan. `update_rows` is the same update with the
+step's data given as arrays: the factors of `init`, kept in the state, are
+rebuilt with the new rows inside the one compiled program.
 """
 
 from collections.abc import Sequence
@@ -15,9 +17,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int, PyTree
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
-from ..factors import AbstractFactor, per_row_fields
+from ..factors import AbstractFactor, per_row_fields, with_rows
 from ..manifold import tangent_dim
 from ..solve import (
     AbstractAdjoint,
@@ -43,6 +45,10 @@ class FixedLagState(eqx.Module):
     - `prior`: the Gaussian prior on the window's first state (anchor,
         square-root information, offset), as the scan keeps it.
     - `rows`: the factor rows of the last `lag + 1` time steps.
+    - `templates`: the factor stacks `init` was given (the transition, then
+        each measurement stack): `update_rows` rebuilds each step's factors
+        from them, with that step's rows in place of their per-row data
+        (their noise, shared fields and structure serve every step).
     """
 
     t: Int[Array, ""]
@@ -50,6 +56,7 @@ class FixedLagState(eqx.Module):
     window_start: Int[Array, ""]
     prior: tuple
     rows: tuple
+    templates: tuple
 
 
 def _step_rows(transition, measurements, mean0, dtype):
@@ -150,6 +157,133 @@ def _finite(rows, t, who):
     )
 
 
+def _checked_rows(who, name, rows, template):
+    """`rows` as the per-row fields of `template` (a stack `init` was given):
+    the same fields, tree structures, shapes and dtypes (checked while
+    tracing, so a compiled update does no Python work)."""
+    stack = type(template).__name__
+    if not isinstance(rows, dict):
+        raise TypeError(
+            f"{who}: {name} must be a dict {{per-row field: array}} of the {stack} "
+            "stack, as eqsmooth.factors.per_row_fields gives it, got "
+            f"{type(rows).__name__}"
+        )
+    kept = per_row_fields(template)
+    unknown = sorted(set(rows) - set(kept))
+    if unknown:
+        raise ValueError(
+            f"{who}: {name} has fields {unknown} that are not per-row fields of "
+            f"init's {stack} stack; those are {sorted(kept)}"
+        )
+    out = {}
+    for field, old in kept.items():
+        if field not in rows:
+            if jax.tree_util.tree_leaves(old):
+                raise ValueError(
+                    f"{who}: {name} lacks the field {field!r} of init's {stack} "
+                    f"stack (its per-row fields: {sorted(kept)})"
+                )
+            out[field] = old  # a field without data (`data=None`)
+            continue
+        new = rows[field]
+        new_def = jax.tree_util.tree_structure(new)
+        old_def = jax.tree_util.tree_structure(old)
+        if new_def != old_def:
+            raise TypeError(
+                f"{who}: {name}[{field!r}] has the structure {new_def}, init's "
+                f"{stack} stack has {old_def}"
+            )
+        pairs = zip(
+            jax.tree_util.tree_flatten_with_path(new)[0],
+            jax.tree_util.tree_leaves(old),
+        )
+        for (path, a), b in pairs:
+            where = f"{name}[{field!r}]{jax.tree_util.keystr(path)}"
+            if jnp.shape(a) != jnp.shape(b):
+                raise ValueError(
+                    f"{who}: {where} has shape {jnp.shape(a)}, init's {stack} "
+                    f"stack has {jnp.shape(b)} (the same rows every step)"
+                )
+            if jnp.result_type(a) != jnp.result_type(b):
+                raise TypeError(
+                    f"{who}: {where} has dtype {jnp.result_type(a)}, init's "
+                    f"{stack} stack has {jnp.result_type(b)}"
+                )
+        out[field] = new
+    return out
+
+
+def _step_factors(who, lag, state, transition_rows, measurement_rows, active):
+    """`update_rows`' step as factors: `init`'s stacks (kept in the state)
+    with the given rows, measurement rows masked by `active`."""
+    if not isinstance(state, FixedLagState):
+        raise TypeError(
+            f"{who}: state must be a FixedLagState, got {type(state).__name__}"
+        )
+    lags = {jnp.shape(a)[0] for a in jax.tree_util.tree_leaves(state.window)}
+    if lags != {lag}:
+        raise ValueError(
+            f"{who}: the state was made by a FixedLagSmoother with lag="
+            f"{sorted(lags)[0]}, this smoother has lag={lag}: update a state with "
+            "the smoother whose init made it"
+        )
+    trans0, *meas0 = state.templates
+    if isinstance(measurement_rows, dict):
+        measurement_rows = (measurement_rows,)
+    if not isinstance(measurement_rows, (tuple, list)):
+        raise TypeError(
+            f"{who}: measurement_rows must be a tuple of dicts, one per measurement "
+            f"stack, got {type(measurement_rows).__name__}"
+        )
+    if len(measurement_rows) != len(meas0):
+        raise ValueError(
+            f"{who}: measurement_rows has {len(measurement_rows)} stacks, init was "
+            f"given {len(meas0)}; give one dict per stack, in init's order"
+        )
+    if active is None:
+        active = (None,) * len(meas0)
+    if not isinstance(active, (tuple, list)) or len(active) != len(meas0):
+        got = (
+            f"{len(active)} of them"
+            if isinstance(active, (tuple, list))
+            else f"a {type(active).__name__}"
+        )
+        raise ValueError(
+            f"{who}: active must be None or a tuple of one (k,) boolean array per "
+            f"measurement stack ({len(meas0)} of them), got {got}"
+        )
+    transition = with_rows(
+        trans0, _checked_rows(who, "transition_rows", transition_rows, trans0)
+    )
+    measurements = []
+    for j, (rows, template, mask) in enumerate(zip(measurement_rows, meas0, active)):
+        factor = with_rows(
+            template, _checked_rows(who, f"measurement_rows[{j}]", rows, template)
+        )
+        if template.noise.active_rows() is not None:
+            # `mask_rows` would combine init's mask with every step's.
+            raise TypeError(
+                f"{who}: init's measurement stack {j} ({type(template).__name__}) "
+                f"has masked noise ({template.noise.name}); its mask would hold for "
+                "every step. Give init the stack's unmasked noise (every row of "
+                "x_0 counts), mask the steps' rows with `active`, or use `update`"
+            )
+        if mask is not None:
+            mask = jnp.asarray(mask)
+            k = template.num_rows
+            if mask.shape != (k,) or mask.dtype != jnp.bool_:
+                raise TypeError(
+                    f"{who}: active[{j}] has shape {mask.shape} and dtype "
+                    f"{mask.dtype}; measurement stack {j} has {k} rows: give ({k},) "
+                    "booleans, false for a missing row"
+                )
+            factor = eqx.tree_at(
+                lambda f: f.noise, factor, factor.noise.mask_rows(mask)
+            )
+        measurements.append(factor)
+    return transition, tuple(measurements)
+
+
 class FixedLagSmoother(eqx.Module):
     """The fixed-lag smoother as `init` and `update`, one new state at a
     time (what a robot calls as measurements arrive).
@@ -172,6 +306,11 @@ class FixedLagSmoother(eqx.Module):
     program (compiled by `init`: the state has the same shapes after every
     step), also when `update` is not wrapped in a `jit`. Loop closures are
     not taken here (use the scan's `closures`).
+
+    `update_rows` is the same update with the step's data as arrays, for a
+    robot's loop: no factor objects per step and no Python checks per call
+    (they run while the update is traced); the state and the estimate stay
+    on the device.
 
     **Arguments:**
 
@@ -227,6 +366,7 @@ class FixedLagSmoother(eqx.Module):
             jnp.array(0),
             initial_prior(1, initial_mean, cov0),
             rows,
+            (transition, *measurements),
         )
         return _advance(self, state, transition, measurements, step)
 
@@ -274,14 +414,77 @@ class FixedLagSmoother(eqx.Module):
             )
         return _advance(self, state, transition, measurements, step)
 
+    def update_rows(
+        self,
+        state: FixedLagState,
+        transition_rows: dict[str, PyTree[ArrayLike]],
+        measurement_rows: Sequence[dict[str, PyTree[ArrayLike]]] = (),
+        active: Sequence[Bool[ArrayLike, " _k"] | None] | None = None,
+    ) -> tuple[FixedLagState, PyTree]:
+        """`update` with the step's data as arrays: one compiled call, no
+        factor objects built and nothing read back to the host.
+
+        The step's factors are `init`'s stacks (kept in `state.templates`)
+        with their per-row data replaced by these rows, so their noise,
+        shared fields (learned parameters) and row counts serve every step;
+        a step with other noise takes `update`. On the same data a run of
+        `update_rows` gives `update`'s estimates (tested to 1e-10). The
+        fields, shapes and dtypes are checked while the update is traced
+        (a wrong one raises naming the stack and the field), so a compiled
+        call does no Python work; a non-finite value stops the update with
+        an `EquinoxRuntimeError`, as in `update`.
+
+        **Arguments:**
+
+        - `state`: the state from `init` or the previous update.
+        - `transition_rows`: the new transition's per-row data, a dict
+            `{field: array with a leading row axis of 1}` as
+            [`eqsmooth.factors.per_row_fields`][] gives it for the
+            transition `init` was given (e.g. `{"measured": SE2}` for a
+            `BetweenFactor`; a field without data, `data=None`, may be left
+            out).
+        - `measurement_rows`: one such dict per measurement stack given to
+            `init`, in that order (leading axis: the stack's `k_j` rows).
+        - `active`: `None` (every row counts) or, per measurement stack, a
+            `(k_j,)` boolean array (or `None`), false for a missing row:
+            the row then adds nothing, exactly as a
+            [`eqsmooth.factors.MaskedNoise`][] row in `update` (its data must
+            still be finite). Give arrays, not Python booleans, so that every
+            mask runs the same compiled program.
+
+        **Returns:** `(state, estimate of the new state given everything so
+        far)`, both on the device; `state.window` holds the whole window's
+        estimates.
+        """
+        return _advance_rows(self, state, transition_rows, measurement_rows, active)
+
 
 # One compiled program for `init` and every `update` of a smoother (the state
 # has the same shapes before and after each step), also when `update` is
 # not wrapped in a `jit`; under a caller's `jit` it is inlined.
 @eqx.filter_jit
 def _advance(smoother, state, transition, measurements, step):
+    who = "FixedLagSmoother.init/update"
+    return _solve_step(smoother, state, transition, measurements, step, who)
+
+
+# `update_rows`: the step's factors are built while tracing, so a call is
+# one dispatch of one compiled program (no Python checks once compiled).
+@eqx.filter_jit
+def _advance_rows(smoother, state, transition_rows, measurement_rows, active):
+    who = "FixedLagSmoother.update_rows"
+    transition, measurements = _step_factors(
+        who, smoother.lag, state, transition_rows, measurement_rows, active
+    )
+    mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
+    step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
+    return _solve_step(smoother, state, transition, measurements, step, who)
+
+
+def _solve_step(smoother, state, transition, measurements, step, who):
+    """Write the step's rows into the state, and solve the new window."""
     lag = smoother.lag
-    t = _finite(step, state.t + 1, "FixedLagSmoother.init/update")
+    t = _finite(step, state.t + 1, who)
     vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
     rows = _write(state.rows, step, vt, t > lag)
     (trans_rows, trans_R), *meas = rows
@@ -313,5 +516,5 @@ def _advance(smoother, state, transition, measurements, step):
         smoother.max_steps,
     )
     newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
-    new = FixedLagState(t, window, t - vt + start, prior, rows)
+    new = FixedLagState(t, window, t - vt + start, prior, rows, state.templates)
     return new, newest
