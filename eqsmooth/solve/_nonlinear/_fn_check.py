@@ -28,7 +28,7 @@ def fn_mismatch(
 
     Proven when `fn` is `graph_residuals` (or the chart's
     `manifold_residuals`) itself, or optimistix's closure-converted copy of
-    one: the same program with no captured constants, up to optimistix's
+    one: the same program with the same captured constants, up to optimistix's
     identity casts of the outputs. Otherwise its shapes are checked at trace
     time and its values at run time at two points, the initial values `y` and
     `y ⊕ u` with `u` a fixed pseudo-random tangent perturbation (entries up
@@ -64,17 +64,33 @@ def _same_program(fn, y, graph: FactorGraph) -> bool:
     """Whether the closure-converted `fn` (`(y, args) ↦ (residuals, aux)`) is
     `graph_residuals` or `manifold_residuals`, read off its jaxpr."""
     jaxpr = getattr(fn, "jaxpr", None)
-    if not isinstance(jaxpr, jex.Jaxpr) or jax.tree_util.tree_leaves(
-        getattr(fn, "consts", None)
-    ):
+    if not isinstance(jaxpr, jex.Jaxpr):
         return False
+    consts = jax.tree_util.tree_leaves(getattr(fn, "consts", None))
     for reference in (graph_residuals, manifold_residuals):
         want, _, _ = eqx.filter_make_jaxpr(lambda v, a: (reference(v, a), None))(
             y, graph
         )
-        if not want.consts and _passes_through(jaxpr, want.jaxpr):
+        if _same_constants(consts, want.consts) and _passes_through(jaxpr, want.jaxpr):
             return True
     return False
+
+
+def _same_constants(got: list, want: list) -> bool:
+    """Whether two jaxprs' captured constants are the same concrete arrays
+    (the library's own constants, e.g. an identity matrix; a captured
+    tracer, such as a closed-over traced value, never is)."""
+    if len(got) != len(want):
+        return False
+    for a, b in zip(got, want):
+        if isinstance(a, jax.core.Tracer) or isinstance(b, jax.core.Tracer):
+            return False
+        a, b = np.asarray(a), np.asarray(b)
+        if a.shape != b.shape or a.dtype != b.dtype:
+            return False
+        if not np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"):
+            return False
+    return True
 
 
 def _passes_through(got: jex.Jaxpr, want: jex.Jaxpr) -> bool:
