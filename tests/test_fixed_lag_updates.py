@@ -441,3 +441,30 @@ def test_update_rows_hostile_input(row_steps):
         advance(_ROWS_SMOOTHER, "state", {}, rows[1], None)
     with raises(TypeError, "active[0] has shape (1,) and dtype int"):
         advance(_ROWS_SMOOTHER, state, {}, rows[1], (jnp.ones(1, int), None))
+
+
+def test_update_rows_without_throw_holds_no_host_callback(row_steps):
+    """`throw=False`: the compiled update has no error check (no host
+    callback, which JAX's persistent cache would refuse), gives the same
+    estimates, and a non-finite step is reported in `state.result` instead
+    of raising; with the default `throw=True` the check is there."""
+    state0, _, rows, _ = row_steps
+    quiet = eqs.filters.FixedLagSmoother(
+        lag=2, solver=_GN, adjoint=_UNROLLED, throw=False
+    )
+
+    def program(smoother):
+        update = lambda s, r: smoother.update_rows(s, {}, r)
+        return str(eqx.filter_make_jaxpr(update)(state0, rows[1])[0])
+
+    assert "callback" in program(_ROWS_SMOOTHER)
+    assert "callback" not in program(quiet)
+    state, want = _ROWS_SMOOTHER.update_rows(state0, {}, rows[1])
+    state, got = quiet.update_rows(state0, {}, rows[1])
+    np.testing.assert_allclose(got, want, rtol=0, atol=0)
+    assert state.result == eqs.solve.RESULTS.successful
+    bad = jax.tree_util.tree_map(lambda a: a.at[0].set(jnp.nan), rows[2])
+    state, _ = quiet.update_rows(state, {}, bad)
+    assert state.result == eqs.solve.RESULTS.nonfinite_problem
+    with pytest.raises(eqx.EquinoxRuntimeError, match="non-finite"):
+        _ROWS_SMOOTHER.update_rows(state0, {}, bad)

@@ -161,7 +161,7 @@ def fixed_lag_smoother(
             model, lag, solver, adjoint, prediction_steps, carry, t, max_steps
         )
 
-    _, (windows, start, priors) = lax.scan(step, (values, prior), jnp.arange(T))
+    _, (windows, start, priors, _) = lax.scan(step, (values, prior), jnp.arange(T))
     return _solution(windows, start, priors, lag, T)
 
 

@@ -26,6 +26,7 @@ from ..solve import (
     AbstractGraphSolver,
     ImplicitAdjoint,
     LevenbergMarquardt,
+    RESULTS,
 )
 from ._chain import check_smoother_noise, checked_covariance, residual_dim
 from ._rows import check_rows, row_whitening
@@ -49,6 +50,9 @@ class FixedLagState(eqx.Module):
         each measurement stack): `update_rows` rebuilds each step's factors
         from them, with that step's rows in place of their per-row data
         (their noise, shared fields and structure serve every step).
+    - `result`: the [`eqsmooth.solve.RESULTS`][] code of the last update
+        (`successful`; with `throw=False`, `nonfinite_problem` for
+        non-finite step data or the window solve's failure code).
     """
 
     t: Int[Array, ""]
@@ -57,6 +61,7 @@ class FixedLagState(eqx.Module):
     prior: tuple
     rows: tuple
     templates: tuple
+    result: RESULTS
 
 
 def _step_rows(transition, measurements, mean0, dtype):
@@ -145,16 +150,20 @@ def _check_dtypes(who, transition, measurements, kept):
                 )
 
 
-def _finite(rows, t, who):
-    """Stop on a non-finite value in the new rows (traced data: a runtime
-    error naming the step, instead of NaN estimates)."""
+def _nonfinite(rows) -> Bool[Array, ""]:
+    """Whether the new rows hold a non-finite value."""
     bad = jnp.array(False)
     for leaf in jax.tree_util.tree_leaves(rows):
         if eqx.is_inexact_array(leaf):
             bad = bad | ~jnp.all(jnp.isfinite(leaf))
-    return eqx.error_if(
-        t, bad, f"{who}: non-finite factor data or noise in this step's rows"
-    )
+    return bad
+
+
+def _finite(rows, t, who):
+    """Stop on a non-finite value in the new rows (traced data: a runtime
+    error naming the step, instead of NaN estimates)."""
+    message = f"{who}: non-finite factor data or noise in this step's rows"
+    return eqx.error_if(t, _nonfinite(rows), message)
 
 
 def _checked_rows(who, name, rows, template):
@@ -318,6 +327,11 @@ class FixedLagSmoother(eqx.Module):
         [`eqsmooth.filters.fixed_lag_smoother`][].
         A lag in seconds, as GTSAM gives it: `lag=`
         [`eqsmooth.filters.lag_from_seconds`][]`(smoother_lag, dt)`.
+    - `throw`: whether an update with non-finite step data or a failed
+        window solve raises an `EquinoxRuntimeError` (the default). With
+        `throw=False` the update's program holds no error check (no host
+        callback, so JAX's persistent compilation cache can keep it, and
+        each call is cheaper) and `state.result` says what went wrong.
     """
 
     lag: int = eqx.field(static=True)
@@ -325,6 +339,7 @@ class FixedLagSmoother(eqx.Module):
     adjoint: AbstractAdjoint = ImplicitAdjoint()
     prediction_steps: int = eqx.field(static=True, default=1)
     max_steps: int = eqx.field(static=True, default=100)
+    throw: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         lag = self.lag
@@ -367,6 +382,7 @@ class FixedLagSmoother(eqx.Module):
             initial_prior(1, initial_mean, cov0),
             rows,
             (transition, *measurements),
+            RESULTS.successful,
         )
         return _advance(self, state, transition, measurements, step)
 
@@ -484,7 +500,10 @@ def _advance_rows(smoother, state, transition_rows, measurement_rows, active):
 def _solve_step(smoother, state, transition, measurements, step, who):
     """Write the step's rows into the state, and solve the new window."""
     lag = smoother.lag
-    t = _finite(step, state.t + 1, who)
+    if smoother.throw:
+        t, bad = _finite(step, state.t + 1, who), jnp.array(False)
+    else:
+        t, bad = state.t + 1, _nonfinite(step)
     vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
     rows = _write(state.rows, step, vt, t > lag)
     (trans_rows, trans_R), *meas = rows
@@ -505,7 +524,7 @@ def _solve_step(smoother, state, transition, measurements, step, who):
         T=lag + 1,
         S=1,
     )
-    carry, (window, start, prior) = window_step(
+    carry, (window, start, prior, result) = window_step(
         model,
         lag,
         smoother.solver,
@@ -514,7 +533,9 @@ def _solve_step(smoother, state, transition, measurements, step, who):
         (state.window, state.prior),
         vt,
         smoother.max_steps,
+        smoother.throw,
     )
     newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
-    new = FixedLagState(t, window, t - vt + start, prior, rows, state.templates)
+    result = RESULTS.where(bad, RESULTS.nonfinite_problem, result)
+    new = FixedLagState(t, window, t - vt + start, prior, rows, state.templates, result)
     return new, newest

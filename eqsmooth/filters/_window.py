@@ -279,7 +279,9 @@ def _marginalise(model: ChainRows, prior, xs, tau):
 
 
 def _unit(dtype) -> IsotropicNoise:
-    return IsotropicNoise(sqrt_precision=jnp.asarray(1.0, dtype))
+    # A NumPy constant stays concrete under `jit`: checked once here, not by
+    # an error check (a host callback) in every compiled window solve.
+    return IsotropicNoise(sqrt_precision=np.asarray(1.0, dtype))
 
 
 def _window_graph(model: ChainRows, values, prior, start, t, lag: int):
@@ -351,11 +353,23 @@ def _window_graph(model: ChainRows, values, prior, start, t, lag: int):
     return FactorGraph(stacks)
 
 
-def window_step(model, lag, solver, adjoint, prediction_steps, carry, t, max_steps=100):
+def window_step(
+    model,
+    lag,
+    solver,
+    adjoint,
+    prediction_steps,
+    carry,
+    t,
+    max_steps=100,
+    throw=True,
+):
     """Step `t` of the smoother: `carry = (window, prior)` to the new carry
-    and `(window, its first slot's time, prior)`. The new state is predicted
-    from the newest; once the window is full the oldest state is
-    marginalised into the prior; then the window is solved by `solver`."""
+    and `(window, its first slot's time, prior, the solve's result code)`.
+    The new state is predicted from the newest; once the window is full the
+    oldest state is marginalised into the prior; then the window is solved
+    by `solver` (a failed solve raises when `throw`, else only its code
+    says so)."""
     values, prior = carry
     last = jnp.minimum(t - 1, lag - 1)
     x_prev = jax.tree_util.tree_map(lambda a: a[jnp.maximum(last, 0)], values)
@@ -382,10 +396,15 @@ def window_step(model, lag, solver, adjoint, prediction_steps, carry, t, max_ste
     start = jnp.maximum(t - lag + 1, 0)
     graph = _window_graph(model, values, prior, start, t, lag)
     sol = least_squares(
-        graph, {model.group: values}, solver, adjoint=adjoint, max_steps=max_steps
+        graph,
+        {model.group: values},
+        solver,
+        adjoint=adjoint,
+        max_steps=max_steps,
+        throw=throw,
     )
     values = sol.value[model.group]
-    return (values, prior), (values, start, prior)
+    return (values, prior), (values, start, prior, sol.result)
 
 
 def initial_prior(S: int, mean0, cov0, floor=None):
