@@ -371,7 +371,7 @@ def _find(alpha=0.05, constant=False):
 
 
 def _fixed_lag(case):
-    from test_fixed_lag import _se2_initial, _se2_steps
+    from test_fixed_lag_updates import _se2_initial, _se2_steps
 
     (_, _, truth), trans, meas = _se2_steps(1.0)
     mean0, cov0 = _se2_initial(truth)
