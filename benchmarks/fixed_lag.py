@@ -18,8 +18,9 @@ CustomFactors with numeric Jacobians: its values compare, its time does
 not). `--first-window-only`: GTSAM's own graph error at the first
 marginalisation, for GTSAM's answer and eqsmooth's. `--per-update`: a
 robot's loop, `FixedLagSmoother.update_rows` (arrays in, the state on the
-device), `update` (factors) and GTSAM's `update`, each call timed with its
-newest estimate awaited (`max_diff`: from update_rows' estimates).
+device; also with `throw=False`), `update` (factors) and GTSAM's `update`,
+each call timed with its newest estimate awaited (`max_diff`: from
+update_rows' estimates).
 
     python -m benchmarks.fixed_lag --json benchmarks/results/fixed_lag.json
     python -m benchmarks.fixed_lag --closures \
@@ -315,8 +316,7 @@ def se2vel_record(gtsam, T: int, lag: int, repeats: int) -> dict:
         run = (trans, meas, mean0, COV0 * jnp.eye(6), lag, *solver, repeats)
         means[name], first, per = timed_fixed_lag(*run)
         rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
-    ref = means["eqsmooth_lm"]
-    diff = lambda a: tangent_diff(a, ref)  # noqa: E731
+    diff = lambda a: tangent_diff(a, means["eqsmooth_lm"])  # noqa: E731
     rec["eqsmooth_fixed3"]["max_diff"] = float(diff(means["eqsmooth_fixed3"]).max())
     if gtsam:
         smoother = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"]
@@ -346,8 +346,7 @@ def chain_record(gtsam, data, lag: int, a) -> dict:
         eqsmooth_gn=(eqs.GaussNewton(), implicit),
         eqsmooth_fixed3=(eqs.FixedStepGaussNewton(num_steps=3), eqs.UnrolledAdjoint()),
     )
-    mean0, cov0 = eqs.SE2.identity(dtype=jnp.float64), COV0 * jnp.eye(3)
-    means = {}
+    mean0, cov0, means = eqs.SE2.identity(dtype=jnp.float64), COV0 * jnp.eye(3), {}
     for name, (solver, adjoint) in solvers.items():
         run = (data["trans"], data["fix"], mean0, cov0, lag, solver, adjoint, a.repeats)
         means[name], first, per = timed_fixed_lag(*run, data["closures"])
@@ -373,20 +372,21 @@ def per_update_record(gtsam, data, lag: int) -> dict:
     trans = lambda k: eqs.BetweenFactor(*one, odo[k - 1 : k], data["trans"].noise)
     prior = lambda k: eqs.PriorFactor(one[1], fix[k : k + 1], data["fix"].noise)
     steps = [(trans(k), prior(k)) for k in range(1, T)]
-    rows = [tuple(map(eqs.factors.per_row_fields, f)) for f in steps]
-    smoother, ests = eqs.filters.FixedLagSmoother(lag=lag), {}
-    rec = dict(benchmark="fixed_lag_per_update", T=T, lag=lag)
-    for name, update, args in (
-        ("update_rows", smoother.update_rows, [(r, (m,)) for r, m in rows]),
-        ("update", smoother.update, steps),
+    fields = eqs.factors.per_row_fields
+    rows = [(fields(a), (fields(b),)) for a, b in steps]
+    rec, ests = dict(benchmark="fixed_lag_per_update", T=T, lag=lag), {}
+    for name, throw, method, args in (
+        ("update_rows", True, "update_rows", rows),
+        ("update_rows_throw_false", False, "update_rows", rows),
+        ("update", True, "update", steps),
     ):
-        mean0 = eqs.SE2.identity(dtype=jnp.float64)
+        smoother = eqs.filters.FixedLagSmoother(lag=lag, throw=throw)
+        mean0, update = eqs.SE2.identity(dtype=jnp.float64), getattr(smoother, method)
         state, x = smoother.init(mean0, COV0 * jnp.eye(3), trans(1), prior(0))
         out, times = [x], []
         for step in args:
             t0 = time.perf_counter()
-            state, x = update(state, *step)
-            jax.block_until_ready(x)
+            state, x = jax.block_until_ready(update(state, *step))
             times.append(time.perf_counter() - t0)
             out.append(x)
         ests[name] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *out)
@@ -394,7 +394,8 @@ def per_update_record(gtsam, data, lag: int) -> dict:
     med = rec["update_rows"]["median_s"]
     rec |= dict(median_s=med, compile_s=rec["update_rows"]["first_call_s"] - med)
     diff = lambda est: float(tangent_diff(est, ests["update_rows"]).max())
-    rec["update"]["max_diff"] = diff(ests["update"])
+    for name in ("update", "update_rows_throw_false"):  # the same estimates
+        rec[name]["max_diff"] = diff(ests[name])
     for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
         est, median = gtsam_run(gtsam, smoother, data)
         rec[name] = dict(median_s=median, max_diff=diff(est))
