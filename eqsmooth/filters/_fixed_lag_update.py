@@ -222,6 +222,16 @@ def _checked_rows(who, name, rows, template):
     return out
 
 
+def _data_rows(template: AbstractFactor, rows):
+    """`rows` without the per-row fields that hold no data in `template`
+    (e.g. `data=None`), or `template`'s own rows where `rows` is empty."""
+    if not isinstance(rows, dict):
+        return rows  # refused, with the reason, while tracing
+    kept = per_row_fields(template)
+    empty = {k for k, v in kept.items() if not jax.tree_util.tree_leaves(v)}
+    return {k: v for k, v in rows.items() if not (k in empty and v is None)}
+
+
 def _step_factors(who, lag, state, transition_rows, measurement_rows, active):
     """`update_rows`' step as factors: `init`'s stacks (kept in the state)
     with the given rows, measurement rows masked by `active`."""
@@ -384,7 +394,12 @@ class FixedLagSmoother(eqx.Module):
             (transition, *measurements),
             RESULTS.successful,
         )
-        return _advance(self, state, transition, measurements, step)
+        if any(f.noise.active_rows() is not None for f in measurements):
+            return _advance(self, state, transition, measurements, step)
+        # `update_rows`' program, so that its first call compiles nothing new.
+        rows = tuple(_data_rows(f, per_row_fields(f)) for f in measurements)
+        trans_rows = _data_rows(transition, per_row_fields(transition))
+        return self.update_rows(state, trans_rows, rows)
 
     def update(
         self,
@@ -472,6 +487,17 @@ class FixedLagSmoother(eqx.Module):
         far)`, both on the device; `state.window` holds the whole window's
         estimates.
         """
+        # One form per step structure (fields without data left out, no
+        # masks as None), so that `init`'s compiled program serves it.
+        templates = state.templates if isinstance(state, FixedLagState) else ()
+        k = len(templates) - 1
+        if isinstance(measurement_rows, (tuple, list)) and len(measurement_rows) == k:
+            transition_rows = _data_rows(templates[0], transition_rows)
+            measurement_rows = tuple(
+                _data_rows(f, r) for f, r in zip(templates[1:], measurement_rows)
+            )
+        if isinstance(active, (tuple, list)) and len(active) == k:
+            active = None if all(a is None for a in active) else active
         return _advance_rows(self, state, transition_rows, measurement_rows, active)
 
 
