@@ -321,10 +321,12 @@ class FixedLagSmoother(eqx.Module):
     updates gives the estimates of [`eqsmooth.filters.fixed_lag_smoother`][]
     on the same factors (tested to 1e-10), and every update is a pure
     function: `jax.jit`, `jax.grad` through a sequence of updates, and
-    `jax.vmap` over robots apply. `init` and `update` run one compiled
-    program (compiled by `init`: the state has the same shapes after every
-    step), also when `update` is not wrapped in a `jit`. Loop closures are
-    not taken here (use the scan's `closures`).
+    `jax.vmap` over robots apply. Every `update` runs one compiled program
+    (the state has the same shapes after every step), also when it is not
+    wrapped in a `jit`; `init` compiles `update_rows`' program (unless its
+    measurement noise is masked), so a robot's loop of `update_rows`
+    compiles once, in `init`, and `update` compiles on its first call.
+    Loop closures are not taken here (use the scan's `closures`).
 
     `update_rows` is the same update with the step's data as arrays, for a
     robot's loop: no factor objects per step and no Python checks per call
