@@ -222,19 +222,8 @@ def _checked_rows(who, name, rows, template):
     return out
 
 
-def _data_rows(template: AbstractFactor, rows):
-    """`rows` without the per-row fields that hold no data in `template`
-    (e.g. `data=None`), or `template`'s own rows where `rows` is empty."""
-    if not isinstance(rows, dict):
-        return rows  # refused, with the reason, while tracing
-    kept = per_row_fields(template)
-    empty = {k for k, v in kept.items() if not jax.tree_util.tree_leaves(v)}
-    return {k: v for k, v in rows.items() if not (k in empty and v is None)}
-
-
-def _step_factors(who, lag, state, transition_rows, measurement_rows, active):
-    """`update_rows`' step as factors: `init`'s stacks (kept in the state)
-    with the given rows, measurement rows masked by `active`."""
+def _check_state(who: str, lag: int, state) -> None:
+    """`state` must be a FixedLagState made by a smoother with this `lag`."""
     if not isinstance(state, FixedLagState):
         raise TypeError(
             f"{who}: state must be a FixedLagState, got {type(state).__name__}"
@@ -246,6 +235,22 @@ def _step_factors(who, lag, state, transition_rows, measurement_rows, active):
             f"{sorted(lags)[0]}, this smoother has lag={lag}: update a state with "
             "the smoother whose init made it"
         )
+
+
+def _data_rows(template: AbstractFactor, rows):
+    """`rows` without the fields that hold no data in `template` (e.g.
+    `data=None`) when given as None: one form for `{}` and `{"data": None}`."""
+    if not isinstance(rows, dict):
+        return rows  # refused, with the reason, while tracing
+    kept = per_row_fields(template)
+    empty = {k for k, v in kept.items() if not jax.tree_util.tree_leaves(v)}
+    return {k: v for k, v in rows.items() if not (k in empty and v is None)}
+
+
+def _step_factors(who, lag, state, transition_rows, measurement_rows, active):
+    """`update_rows`' step as factors: `init`'s stacks (kept in the state)
+    with the given rows, measurement rows masked by `active`."""
+    _check_state(who, lag, state)
     trans0, *meas0 = state.templates
     if isinstance(measurement_rows, dict):
         measurement_rows = (measurement_rows,)
@@ -416,18 +421,8 @@ class FixedLagSmoother(eqx.Module):
         far)`; `state.window` holds the whole window's estimates.
         """
         who = "FixedLagSmoother.update"
-        if not isinstance(state, FixedLagState):
-            raise TypeError(
-                f"{who}: state must be a FixedLagState, got {type(state).__name__}"
-            )
+        _check_state(who, self.lag, state)
         transition, measurements, _ = _check_step(who, transition, measurements, None)
-        lags = {jnp.shape(a)[0] for a in jax.tree_util.tree_leaves(state.window)}
-        if lags != {self.lag}:
-            raise ValueError(
-                f"{who}: the state was made by a FixedLagSmoother with lag="
-                f"{sorted(lags)[0]}, this smoother has lag={self.lag}: update a "
-                "state with the smoother whose init made it"
-            )
         _check_dtypes(who, transition, measurements, state.rows)
         mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
         step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
