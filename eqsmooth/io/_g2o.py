@@ -15,24 +15,30 @@ from ..lie import AbstractLieGroup, SE2, SE3
 from ._pose_graph import make_pose_graph, POSE, PoseGraph
 
 
-# tag -> (kind, role, number of fields after the tag)
+# tag -> (kind, role, allowed numbers of fields after the tag)
 _TAGS = {
-    "VERTEX_SE2": ("se2", "vertex", 1 + 3),
-    "EDGE_SE2": ("se2", "edge", 2 + 3 + 6),
-    "VERTEX_SE3:QUAT": ("se3", "vertex", 1 + 7),
-    "EDGE_SE3:QUAT": ("se3", "edge", 2 + 7 + 21),
+    "VERTEX_SE2": ("se2", "vertex", (1 + 3,)),
+    "EDGE_SE2": ("se2", "edge", (2 + 3 + 6,)),
+    "EDGE2": ("se2", "edge", (2 + 3 + 6,)),
+    "VERTEX_SE3:QUAT": ("se3", "vertex", (1 + 7,)),
+    "EDGE_SE3:QUAT": ("se3", "edge", (2 + 7 + 21,)),
+    "VERTEX3": ("se3", "vertex", (1 + 6,)),
+    "EDGE3": ("se3", "edge", (2 + 6, 2 + 6 + 21)),
     "FIX": (None, "fix", None),
 }
 _FIELDS = {
     "VERTEX_SE2": "id x y theta",
     "EDGE_SE2": "id1 id2 dx dy dtheta and 6 information entries",
+    "EDGE2": "id1 id2 dx dy dtheta and 6 information entries",
     "VERTEX_SE3:QUAT": "id x y z qx qy qz qw",
     "EDGE_SE3:QUAT": "id1 id2 x y z qx qy qz qw and 21 information entries",
+    "VERTEX3": "id x y z roll pitch yaw",
+    "EDGE3": "id1 id2 x y z roll pitch yaw, optionally 21 information entries",
 }
-# TORO's names of the SE(2) lines (e.g. GTSAM's w10000.graph): the same
-# fields, except that EDGE2 lists its information as xx xy yy tt xt yt (as
-# GTSAM reads it); `_TORO_INFO` reorders that to g2o's xx xy xt yy yt tt.
-_ALIASES = {"VERTEX2": "VERTEX_SE2", "EDGE2": "EDGE_SE2"}
+# TORO's VERTEX2 has VERTEX_SE2's fields. TORO's EDGE2 lists its information
+# as xx xy yy tt xt yt (as GTSAM's load2D reads it); `_TORO_INFO` reorders that
+# to g2o's xx xy xt yy yt tt.
+_ALIASES = {"VERTEX2": "VERTEX_SE2"}
 _TORO_INFO = (0, 1, 4, 2, 5, 3)
 _VERTEX = {"se2": "VERTEX_SE2", "se3": "VERTEX_SE3:QUAT"}
 _EDGE = {"se2": "EDGE_SE2", "se3": "EDGE_SE3:QUAT"}
@@ -40,6 +46,8 @@ _DIM = {"se2": 3, "se3": 6}
 # Scaling from g2o's SE(3) error (translation, quaternion vector part ≈ ω/2)
 # to eqsmooth's tangent (translation, ω): e_g2o ≈ D r.
 _HALF_ANGLE = np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+# GTSAM's Pose3 tangent (ω, v) to eqsmooth's (v, ω) and back.
+_SWAP = np.array([3, 4, 5, 0, 1, 2])
 
 
 class _Lines:
@@ -86,8 +94,6 @@ def _tokenize(path: Path, skip_unsupported: bool) -> dict[str, _Lines]:
                     "to ignore "
                     "other lines)",
                 )
-            if tokens[0] == "EDGE2" and len(tokens) == 12:
-                tokens = tokens[:6] + [tokens[6 + k] for k in _TORO_INFO]
             lines = found[tag]
             lines.linenos.append(lineno)
             lines.tokens.append(tokens)
@@ -124,15 +130,25 @@ def _numbers(path, tag: str, lines: _Lines, start: int, stop: int | None, dtype)
 
 
 def _check_counts(path, tag: str, lines: _Lines) -> None:
-    expected = _TAGS[tag][2] + 1
-    counts = np.fromiter((len(t) for t in lines.tokens), np.int64, len(lines))
-    bad = counts != expected
+    allowed = _TAGS[tag][2]
+    counts = np.fromiter((len(t) - 1 for t in lines.tokens), np.int64, len(lines))
+    bad = ~np.isin(counts, allowed)
     if bad.any():
         k = int(np.argmax(bad))
+        needs = " or ".join(map(str, allowed))
         _fail(
             path,
             lines.linenos[k],
-            f"{tag} needs {expected - 1} fields ({_FIELDS[tag]}), got {counts[k] - 1}",
+            f"{tag} needs {needs} fields ({_FIELDS[tag]}), got {counts[k]}",
+        )
+    if len(allowed) > 1 and (counts != counts[0]).any():
+        k = int(np.argmax(counts != counts[0]))
+        _fail(
+            path,
+            lines.linenos[k],
+            f"{tag} has {counts[k]} fields here but {counts[0]} on line "
+            f"{lines.linenos[0]}: either every {tag} line has information entries "
+            "or none has",
         )
 
 
@@ -153,6 +169,21 @@ def _upper_to_full(upper: np.ndarray, d: int) -> np.ndarray:
     full[:, rows, cols] = upper
     full[:, cols, rows] = upper
     return full
+
+
+def _rpy_quaternions(rpy: np.ndarray) -> np.ndarray:
+    """`(qw, qx, qy, qz)` of `Rz(yaw) Ry(pitch) Rx(roll)` from rows `(roll, pitch,
+    yaw)`: the rotation of a `VERTEX3`/`EDGE3` line, as GTSAM's `Rot3::Ypr`."""
+    (cr, cp, cy), (sr, sp, sy) = np.cos(rpy.T / 2), np.sin(rpy.T / 2)
+    return np.stack(
+        [
+            cy * cp * cr + sy * sp * sr,
+            cy * cp * sr - sy * sp * cr,
+            cy * sp * cr + sy * cp * sr,
+            sy * cp * cr - cy * sp * sr,
+        ],
+        axis=1,
+    )
 
 
 def _se2_params(xyt: np.ndarray) -> np.ndarray:
@@ -299,11 +330,13 @@ def _check_load_options(se3_information, invalid_information, dtype) -> None:
         )
 
 
-def _kind(path, found) -> tuple[str, str, str]:
-    """`"se2"` or `"se3"` and its vertex and edge tags; the line counts checked."""
-    kinds = {_TAGS[t][0]: t for t in found if _TAGS[t][0] is not None}
+def _kind(path, found, se3_information) -> tuple[str, list[str], list[str], str]:
+    """`"se2"` or `"se3"`, its vertex and edge tags in the file, and how its SE(3)
+    information was read; the line counts checked."""
+    tags = [t for t in found if _TAGS[t][0] is not None]
+    kinds = {_TAGS[t][0]: t for t in tags}
     if len(kinds) > 1:
-        a, b = kinds["se2"], kinds["se3"]
+        a, b = sorted(kinds.values(), key=lambda t: found[t].linenos[0])
         _fail(
             path,
             found[b].linenos[0],
@@ -312,49 +345,111 @@ def _kind(path, found) -> tuple[str, str, str]:
     if not kinds:
         _fail(path, None, f"no pose vertices or edges ({', '.join(_FIELDS)})")
     kind = next(iter(kinds))
-    vtag, etag = _VERTEX[kind], _EDGE[kind]
-    for tag in (vtag, etag):
-        if tag in found:
-            _check_counts(path, tag, found[tag])
-    if etag not in found:
-        _fail(path, None, f"has {vtag} lines but no {etag} lines")
-    return kind, vtag, etag
+    for tag in tags:
+        _check_counts(path, tag, found[tag])
+    vtags = [t for t in tags if _TAGS[t][1] == "vertex"]
+    etags = [t for t in tags if _TAGS[t][1] == "edge"]
+    if not etags:
+        _fail(path, None, f"has {vtags[0]} lines but no {_EDGE[kind]} lines")
+    if "EDGE3" in found:
+        if "EDGE_SE3:QUAT" in found and se3_information == "g2o":
+            _fail(
+                path,
+                found["EDGE3"].linenos[0],
+                "EDGE3 information is read as GTSAM reads it, which conflicts with "
+                "se3_information='g2o' for this file's EDGE_SE3:QUAT lines (pass "
+                "se3_information='gtsam')",
+            )
+        se3_information = "gtsam"
+    return kind, vtags, etags, se3_information
 
 
-def _edges(path, kind, etag, elines, se3_information):
-    """The edges' vertex ids `(n, 2)`, measurements and information matrices."""
-    eids = _numbers(path, etag, elines, 1, 3, np.int64)
-    enums = _numbers(path, etag, elines, 3, None, np.float64)
-    loops = eids[:, 0] == eids[:, 1]
-    if loops.any():
-        k = int(np.argmax(loops))
-        _fail(path, elines.linenos[k], f"{etag} connects vertex {eids[k, 0]} to itself")
-    if kind == "se2":
-        return eids, _se2_params(enums[:, :3]), _upper_to_full(enums[:, 3:], 3)
-    q = _unit_quaternions(path, etag, elines, enums[:, 3:7])
-    meas = np.concatenate([q, enums[:, :3]], axis=1)
-    info = _upper_to_full(enums[:, 7:], 6)
-    if se3_information == "g2o":
-        info = info * _HALF_ANGLE[:, None] * _HALF_ANGLE[None, :]
-    return eids, meas, info
+def _merged(found, tags) -> _Lines:
+    """The lines of several tags, tag after tag (the order of `_parsed`)."""
+    out = _Lines()
+    for tag in tags:
+        out.linenos += found[tag].linenos
+        out.tokens += found[tag].tokens
+    return out
 
 
-def _vertices(path, kind, vtag, found, etag, eids):
+def _edge_information(path, tag, lines, nums, se3_information) -> np.ndarray:
+    """Information matrices in eqsmooth's tangent order from a tag's numbers."""
+    if tag in ("EDGE_SE2", "EDGE2"):
+        info = _upper_to_full(nums[:, 3:], 3)
+        if tag == "EDGE2":
+            # TORO's order, unless only g2o's gives a positive definite matrix
+            # (e.g. GTSAM's w100_30.g2o and w20000.txt write EDGE2 lines in g2o's
+            # order): GTSAM's load2D tells the two apart by their zero patterns.
+            toro = _upper_to_full(nums[:, 3:][:, _TORO_INFO], 3)
+            g2o = _not_positive_definite(toro)[0] & ~_not_positive_definite(info)[0]
+            info = np.where(g2o[:, None, None], info, toro)
+    elif tag == "EDGE3":
+        if nums.shape[1] == 6:  # no information entries: unit information
+            return np.broadcast_to(np.eye(6), (len(nums), 6, 6)).copy()
+        info = _upper_to_full(nums[:, 6:], 6)[:, _SWAP][:, :, _SWAP]
+    else:
+        info = _upper_to_full(nums[:, 7:], 6)
+        if se3_information == "g2o":
+            info = info * _HALF_ANGLE[:, None] * _HALF_ANGLE[None, :]
+    return info
+
+
+def _pose_params(path, tag, lines, nums) -> np.ndarray:
+    """Group parameters from a vertex's or edge's pose fields."""
+    if tag in ("VERTEX_SE2", "EDGE_SE2", "EDGE2"):
+        return _se2_params(nums[:, :3])
+    if tag in ("VERTEX3", "EDGE3"):
+        return np.concatenate([_rpy_quaternions(nums[:, 3:6]), nums[:, :3]], axis=1)
+    q = _unit_quaternions(path, tag, lines, nums[:, 3:7])
+    return np.concatenate([q, nums[:, :3]], axis=1)
+
+
+def _edges(path, etags, found, se3_information, invalid_information):
+    """The edges' vertex ids `(n, 2)`, measurements, information matrices and
+    lines, in file order."""
+    parts = []
+    for tag in etags:
+        lines = found[tag]
+        eids = _numbers(path, tag, lines, 1, 3, np.int64)
+        loops = eids[:, 0] == eids[:, 1]
+        if loops.any():
+            k = int(np.argmax(loops))
+            _fail(
+                path, lines.linenos[k], f"{tag} connects vertex {eids[k, 0]} to itself"
+            )
+        nums = _numbers(path, tag, lines, 3, None, np.float64)
+        info = _edge_information(path, tag, lines, nums, se3_information)
+        info = _checked_information(path, tag, lines, info, invalid_information)
+        parts.append((eids, _pose_params(path, tag, lines, nums), info))
+    lines = _merged(found, etags)
+    order = np.argsort(lines.linenos, kind="stable")  # file order
+    lines.linenos = [lines.linenos[k] for k in order]
+    lines.tokens = [lines.tokens[k] for k in order]
+    eids, meas, info = (np.concatenate(x)[order] for x in zip(*parts))
+    return eids, meas, info, lines
+
+
+def _vertices(path, vtags, found, etag, elines, eids):
     """The sorted vertex ids, their poses, and the edges as pose indices."""
-    vlines, elines = found[vtag], found[etag]
-    vids = _numbers(path, vtag, vlines, 1, 2, np.int64)[:, 0]
-    vnums = _numbers(path, vtag, vlines, 2, None, np.float64)
+    vlines = _merged(found, vtags)
+    vids = np.concatenate([_numbers(path, t, found[t], 1, 2, np.int64) for t in vtags])
+    vids = vids[:, 0]
+    params = np.concatenate(
+        [
+            _pose_params(
+                path, t, found[t], _numbers(path, t, found[t], 2, None, np.float64)
+            )
+            for t in vtags
+        ]
+    )
+    vtag = "/".join(vtags)
     order = np.argsort(vids, kind="stable")
     vertex_ids = vids[order]
     dup = vertex_ids[1:] == vertex_ids[:-1]
     if dup.any():
         k = int(order[int(np.argmax(dup)) + 1])
         _fail(path, vlines.linenos[k], f"{vtag}: vertex {vids[k]} defined twice")
-    if kind == "se2":
-        params = _se2_params(vnums)
-    else:
-        q = _unit_quaternions(path, vtag, vlines, vnums[:, 3:7])
-        params = np.concatenate([q, vnums[:, :3]], axis=1)
     idx = np.searchsorted(vertex_ids, eids).clip(0, len(vertex_ids) - 1)
     missing = vertex_ids[idx] != eids
     if missing.any():
@@ -402,10 +497,24 @@ def load_g2o(
     `EDGE_SE3:QUAT id1 id2 x y z qx qy qz qw` followed by the 21 upper-triangular
     information entries (row by row), `FIX id ...`, blank lines and `#`
     comments. Quaternions are scalar-last in the file and are normalised.
-    TORO's tags `VERTEX2` and `EDGE2` (e.g. GTSAM's `w10000.graph`) are read
-    as `VERTEX_SE2` and `EDGE_SE2`; `EDGE2` lists its information entries
-    as `I11 I12 I22 I33 I13 I23`, as GTSAM reads them. (TORO's `EQUIV` lines
-    are not read: pass `skip_unsupported=True`.)
+
+    **TORO's tags** (GTSAM's `.graph` files), read as GTSAM's `load2D` and
+    `load3D` read them:
+
+    - `VERTEX2` has `VERTEX_SE2`'s fields. `EDGE2` has `EDGE_SE2`'s, its
+        information listed as `I11 I12 I22 I33 I13 I23`, unless only g2o's
+        order gives a positive definite matrix (GTSAM's `w100_30.g2o` and
+        `w20000.txt` write diagonal matrices in g2o's order; GTSAM tells the
+        two apart by their zero patterns).
+    - `VERTEX3 id x y z roll pitch yaw` and
+        `EDGE3 id1 id2 x y z roll pitch yaw` followed by 21 upper-triangular
+        information entries, rotation `Rz(yaw) Ry(pitch) Rx(roll)`. The
+        information is that of GTSAM's tangent (rotation first), as GTSAM
+        reads it (so the result's `se3_information` is `"gtsam"`). `EDGE3`
+        lines without information entries (GTSAM's
+        `sphere_smallnoise.graph`) get unit information; GTSAM's `load3D`
+        stops reading such a file after its first edge.
+    - `EQUIV` lines are not read: pass `skip_unsupported=True`.
 
     Every edge becomes one row of a [`eqsmooth.factors.BetweenFactor`][] with
     residual `log(z⁻¹ xᵢ⁻¹ xⱼ)` in eqsmooth's tangent coordinates
@@ -423,7 +532,8 @@ def load_g2o(
 
     **Vertex ids** need not be contiguous: pose `i` is the `i`-th smallest id
     (`PoseGraph.vertex_ids` keeps the map). If the file has no vertex lines at
-    all (e.g. the SE-Sync versions of CSAIL, manhattan, kitti_00), the initial
+    all (e.g. the SE-Sync versions of CSAIL, manhattan, kitti_00; GTSAM's
+    `w20000.txt` and `sphere2500.txt`), the initial
     values compose the measurements along the odometry chain `(i, i+1)` if it
     is complete, else along a breadth-first spanning tree, starting from the
     identity at the first pose.
@@ -439,7 +549,8 @@ def load_g2o(
     - `path`: the file.
     - `anchor`: add the gauge prior (see above).
     - `anchor_sqrt_information`: its strength.
-    - `se3_information`: `"g2o"` or `"gtsam"` (see above; SE(3) only).
+    - `se3_information`: `"g2o"` or `"gtsam"` (see above; `EDGE_SE3:QUAT`
+        only).
     - `invalid_information`: what to do with information matrices that are
         not positive definite (some real data sets, e.g. cubicle, have
         thousands): `"raise"` (default); `"clip"` raises their eigenvalues to
@@ -461,11 +572,13 @@ def load_g2o(
     _check_load_options(se3_information, invalid_information, dtype)
     path = Path(path)
     found = _tokenize(path, skip_unsupported)
-    kind, vtag, etag = _kind(path, found)
-    eids, meas, info = _edges(path, kind, etag, found[etag], se3_information)
-    info = _checked_information(path, etag, found[etag], info, invalid_information)
-    if vtag in found:
-        vertex_ids, poses, edges = _vertices(path, kind, vtag, found, etag, eids)
+    kind, vtags, etags, se3_information = _kind(path, found, se3_information)
+    eids, meas, info, elines = _edges(
+        path, etags, found, se3_information, invalid_information
+    )
+    if vtags:
+        etag = "/".join(etags)
+        vertex_ids, poses, edges = _vertices(path, vtags, found, etag, elines, eids)
     else:
         vertex_ids, edges = np.unique(eids, return_inverse=True)
         edges = edges.reshape(eids.shape)
