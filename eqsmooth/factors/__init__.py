@@ -24,6 +24,16 @@ from ._factor import (
     with_rows as with_rows,
 )
 from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
+from ._imu import (
+    CombinedImuFactor as CombinedImuFactor,
+    ImuFactor as ImuFactor,
+    navigation_error as navigation_error,
+)
+from ._imu_preintegration import (
+    ImuParams as ImuParams,
+    preintegrate as preintegrate,
+    PreintegratedImuMeasurements as PreintegratedImuMeasurements,
+)
 from ._landmark import (
     BearingFactor as BearingFactor,
     BearingRangeFactor as BearingRangeFactor,
