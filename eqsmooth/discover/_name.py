@@ -27,6 +27,7 @@ from ._stats import (
     noncentral_chi2_sf,
     noncentrality_for_power,
 )
+from ._structure import structure
 from ._validate import fingerprint
 
 
@@ -178,22 +179,56 @@ def _definite_pair(info, a: int, b: int) -> bool:
 
 
 def _classify_rivals(
-    out, names, best_k, close, info, equivalence_corr, best, data
+    out, names, best_k, close, info, equivalence_corr, best, data, same
 ) -> None:
-    """Runner-ups within ln 20 of the named candidate.
+    """Runner-ups within ln 20 of the named candidate, and its structural
+    equivalents (`same`, whatever their evidence).
 
-    A rival is kept in a set only when the data cannot separate the two: the
-    expected gap (`_separation`, at the named coefficient) is below ln 20. It
-    then forms an equivalence set when the information correlates the two
-    beyond `equivalence_corr`, else an ambiguity; either way the step records
-    how many sequences of this length would separate them. A rival the data
-    could separate is recorded but does not make a set (its small observed
-    margin is then the adequacy test's business).
+    A structural equivalent changes the data exactly as the named candidate
+    does once the initial state is free (`eqsmooth.discover._structure`): no
+    data of this kind separate the two, only the prior on the first state,
+    so it always joins the equivalence set, whichever member that prior
+    favours on a given data set. Another rival is kept in a set only when
+    the data cannot separate the two: the expected gap (`_separation`, at
+    the named coefficient) is below ln 20. It then forms an equivalence set
+    when the information correlates the two beyond `equivalence_corr`, else
+    an ambiguity; either way the step records how many sequences of this
+    length would separate them. A rival the data could separate is recorded
+    but does not make a set (its small observed margin is then the adequacy
+    test's business).
     """
     B, T = data.num_sequences, data.length
     coefficient = float(best.z[best_k])
     equiv, amb, rivals = [names[best_k]], [names[best_k]], []
+    gains = {c["name"]: c["log_marginal_gain"] for c in out["steps"][-1]["candidates"]}
+    structural = [k for k in np.flatnonzero(same[best_k]) if k not in close]
+    for k in structural:
+        margin = gains.get(names[best_k], 0.0) - gains.get(names[k], math.nan)
+        rivals.append(
+            {
+                "name": names[k],
+                "structural": True,
+                "evidence_margin": None if math.isnan(margin) else float(margin),
+                "separable": False,
+                "sequences_to_separate": None,
+                "sequence_length": T,
+            }
+        )
+        equiv.append(names[k])
     for k in close:
+        if same[best_k, k]:
+            rivals.append(
+                {
+                    "name": names[k],
+                    "structural": True,
+                    "evidence_margin": float(gains[names[best_k]] - gains[names[k]]),
+                    "separable": False,
+                    "sequences_to_separate": None,
+                    "sequence_length": T,
+                }
+            )
+            equiv.append(names[k])
+            continue
         ibb, ikk, ibk = info[best_k, best_k], info[k, k], info[best_k, k]
         # Where the pair's block of the (efficient) information is not
         # positive semi-definite, its correlation can exceed 1 (−1.04 for two
@@ -231,6 +266,18 @@ def _classify_rivals(
         out["ambiguous"].append(amb)
 
 
+def _structure_or_none(model, ev, data, out) -> np.ndarray:
+    """`structure` about the evaluation `ev`'s MAP; no pairs (and a flag)
+    when the linearisation fails."""
+    K = len(model.candidates)
+    try:
+        same = structure(model, ev.z, data, ev.xhat)
+    except EVALUATION_ERRORS as e:
+        out["flags"].append(f"structural equivalence not decided: {e}")
+        return np.zeros((K, K), bool)
+    return same
+
+
 def _needed(out: dict, nm: str) -> str:
     """ " (about N sequences of length T would separate them)" for the set
     around the named `nm`, from its step's rivals."""
@@ -241,6 +288,11 @@ def _needed(out: dict, nm: str) -> str:
         sizes = [r["sequences_to_separate"] for r in kept]
         if not kept:
             return ""
+        if all(r.get("structural") for r in kept):
+            return (
+                " (with the first state free they change the data in the same way: "
+                "no amount of data of this kind separates them)"
+            )
         if any(r.get("information_indefinite") for r in kept):
             return (
                 " (the information is indefinite for some of them: no data size "
@@ -544,13 +596,22 @@ def name(
         return StepReport(out, NameState(ev0, ()))
     active: list[int] = []
     current = ev0
+    # Structural equivalents (decided once, about the nominal MAP, from the
+    # model and the inputs): computed at the first name.
+    same = None
     for _ in range(max_terms):
-        # A named family member takes its family out of the library.
+        # A named family member takes its family out of the library, and a
+        # named candidate its structural equivalents: beside it they could
+        # only move the first states towards their prior.
         taken = {_family(model, k) for k in active} - {None}
+        twins = set() if same is None else set(np.flatnonzero(same[active].any(0)))
         remaining = [
             k
             for k in range(len(names))
-            if k not in active and st.identifiable[k] and _family(model, k) not in taken
+            if k not in active
+            and k not in twins
+            and st.identifiable[k]
+            and _family(model, k) not in taken
         ]
         if not remaining:
             break
@@ -558,6 +619,8 @@ def name(
         if chosen is None:
             break
         best_k, current, close = chosen
+        if same is None:
+            same = _structure_or_none(model, ev0, data, out)
         _classify_rivals(
             out,
             names,
@@ -567,6 +630,7 @@ def name(
             equivalence_corr,
             current,
             data,
+            same,
         )
         active.append(best_k)
         out["named"].append(names[best_k])
