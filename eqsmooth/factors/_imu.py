@@ -29,7 +29,7 @@ GTSAM's column with the two 3-blocks of a pose swapped.
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from .._precision import matmul as mm
 from ..lie import SE3, SO3
@@ -186,7 +186,7 @@ class ImuFactor(AbstractFactor):
         velocity_j: Var,
         bias_i: Var,
         pim: PreintegratedImuMeasurements,
-        gravity: Float[Array, "3"] | ImuParams,
+        gravity: Float[ArrayLike, "..."] | ImuParams,
         noise: AbstractNoiseModel | None = None,
     ):
         self.variables = (pose_i, velocity_i, pose_j, velocity_j, bias_i)
@@ -201,12 +201,13 @@ class ImuFactor(AbstractFactor):
 
     def residual(
         self,
-        pose_i: SE3,
-        velocity_i: Float[Array, "3"],
-        pose_j: SE3,
-        velocity_j: Float[Array, "3"],
-        bias_i: Float[Array, "6"],
+        pose_i: PyTree,
+        velocity_i: PyTree,
+        pose_j: PyTree,
+        velocity_j: PyTree,
+        bias_i: PyTree,
     ) -> Float[Array, "9"]:
+        # (States are checked by `_check_states`, which names the variable.)
         _check_states("ImuFactor", pose_i, velocity_i, pose_j, velocity_j, bias_i)
         return navigation_error(
             self.pim, self.gravity, pose_i, velocity_i, pose_j, velocity_j, bias_i
@@ -243,7 +244,7 @@ class CombinedImuFactor(AbstractFactor):
         bias_i: Var,
         bias_j: Var,
         pim: PreintegratedImuMeasurements,
-        gravity: Float[Array, "3"] | ImuParams,
+        gravity: Float[ArrayLike, "..."] | ImuParams,
         noise: AbstractNoiseModel | None = None,
     ):
         self.variables = (pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j)
@@ -260,12 +261,12 @@ class CombinedImuFactor(AbstractFactor):
 
     def residual(
         self,
-        pose_i: SE3,
-        velocity_i: Float[Array, "3"],
-        pose_j: SE3,
-        velocity_j: Float[Array, "3"],
-        bias_i: Float[Array, "6"],
-        bias_j: Float[Array, "6"],
+        pose_i: PyTree,
+        velocity_i: PyTree,
+        pose_j: PyTree,
+        velocity_j: PyTree,
+        bias_i: PyTree,
+        bias_j: PyTree,
     ) -> Float[Array, "15"]:
         _check_states(
             "CombinedImuFactor", pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j

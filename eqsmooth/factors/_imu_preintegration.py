@@ -97,12 +97,12 @@ class ImuParams(eqx.Module):
 
     def __init__(
         self,
-        gravity: Float[ArrayLike, "3"],
-        accelerometer_covariance: Float[ArrayLike, "3 3"],
-        gyroscope_covariance: Float[ArrayLike, "3 3"],
-        integration_covariance: Float[ArrayLike, "3 3"] | None = None,
-        bias_acc_covariance: Float[ArrayLike, "3 3"] | None = None,
-        bias_omega_covariance: Float[ArrayLike, "3 3"] | None = None,
+        gravity: Float[ArrayLike, "..."],
+        accelerometer_covariance: Float[ArrayLike, "..."],
+        gyroscope_covariance: Float[ArrayLike, "..."],
+        integration_covariance: Float[ArrayLike, "..."] | None = None,
+        bias_acc_covariance: Float[ArrayLike, "..."] | None = None,
+        bias_omega_covariance: Float[ArrayLike, "..."] | None = None,
     ):
         self.gravity = _as_vector3("gravity", gravity)
         dtype = self.gravity.dtype
@@ -150,12 +150,12 @@ class ImuParams(eqx.Module):
     @classmethod
     def from_sigmas(
         cls,
-        gravity: Float[ArrayLike, "3"],
-        accelerometer_sigma: Float[ArrayLike, "*s"],
-        gyroscope_sigma: Float[ArrayLike, "*s"],
-        integration_sigma: Float[ArrayLike, "*s"] = 0.0,
-        bias_acc_sigma: Float[ArrayLike, "*s"] = 0.0,
-        bias_omega_sigma: Float[ArrayLike, "*s"] = 0.0,
+        gravity: Float[ArrayLike, "..."],
+        accelerometer_sigma: Float[ArrayLike, "..."],
+        gyroscope_sigma: Float[ArrayLike, "..."],
+        integration_sigma: Float[ArrayLike, "..."] = 0.0,
+        bias_acc_sigma: Float[ArrayLike, "..."] = 0.0,
+        bias_omega_sigma: Float[ArrayLike, "..."] = 0.0,
     ) -> "ImuParams":
         """Diagonal densities from standard deviations (scalars or per axis,
         shape `(3,)`): `Σ = diag(σ²)`. Differentiable in every σ, which is
@@ -390,11 +390,11 @@ def _one_interval(params, acc, gyro, dt, mask, bias_hat):
 
 def preintegrate(
     params: ImuParams,
-    accelerometer: Float[ArrayLike, "*batch k 3"],
-    gyroscope: Float[ArrayLike, "*batch k 3"],
-    dt: Float[ArrayLike, "*#batch #k"],
-    bias_hat: Float[ArrayLike, "*#batch 6"] | None = None,
-    mask: Bool[ArrayLike, "*#batch #k"] | None = None,
+    accelerometer: Float[ArrayLike, "..."],
+    gyroscope: Float[ArrayLike, "..."],
+    dt: Float[ArrayLike, "..."],
+    bias_hat: Float[ArrayLike, "..."] | None = None,
+    mask: Bool[ArrayLike, "..."] | None = None,
 ) -> PreintegratedImuMeasurements:
     """Preintegrate IMU samples between keyframes (a `lax.scan` over samples,
     vectorised over any leading batch axes, e.g. one per keyframe interval).
