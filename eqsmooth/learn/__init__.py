@@ -5,6 +5,12 @@ from ..manifold import (
     manifold_errors as manifold_errors,
     manifold_mse as manifold_mse,
 )
+from ._calibration import (
+    chi2_quantile as chi2_quantile,
+    gaussian_calibration as gaussian_calibration,
+    GaussianCalibration as GaussianCalibration,
+    nees_band as nees_band,
+)
 from ._checkpoint import (
     atomic_write as atomic_write,
     CheckpointError as CheckpointError,

@@ -24,17 +24,14 @@ correlated in time, so the band is nominal). The frame band:
 figure.
 """
 
-import math
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
+from .._uncertainty import fold_summary as fold_summary, LEVELS, sequence_scores
 from . import report
 
 
-# Coverage levels of the calibration curve (0.68 for the "1σ" region).
-LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.68, 0.7, 0.8, 0.9, 0.95)
 FIRST_SCORED_FRAME = 1
 
 # Probabilistic rows with committed heads (no fixed-lag heads are committed).
@@ -69,56 +66,13 @@ PAIRS = (
 def gaussian_scores(pred, cov, truth) -> dict:
     """Per-sequence scores of positions `pred (N, T, 2)` with covariances
     `cov (N, T, 2, 2)` against `truth (N, T, 2)`, frames from
-    `FIRST_SCORED_FRAME` on. A sequence with a covariance that is not finite
-    and positive definite on some frame is `valid = False` (its scores NaN)."""
+    `FIRST_SCORED_FRAME` on ([`eqsmooth.learn.gaussian_calibration`][] per
+    frame, `experiments._uncertainty.sequence_scores` per sequence). A
+    sequence with a covariance that is not finite and positive definite on
+    some frame is `valid = False` (its scores NaN)."""
     s = slice(FIRST_SCORED_FRAME, None)
     e = np.asarray(truth, np.float64)[:, s] - np.asarray(pred, np.float64)[:, s]
-    c = np.asarray(cov, np.float64)[:, s]
-    c = 0.5 * (c + np.swapaxes(c, -1, -2))
-    a, b, d = c[..., 0, 0], c[..., 0, 1], c[..., 1, 1]
-    det = a * d - b * b
-    ok = np.isfinite(det) & (a > 0) & (det > 0)
-    valid = ok.all(axis=1)
-    det = np.where(ok, det, 1.0)
-    nees = (
-        d * e[..., 0] ** 2 - 2 * b * e[..., 0] * e[..., 1] + a * e[..., 1] ** 2
-    ) / det
-    nll = 0.5 * nees + 0.5 * np.log(det) + math.log(2 * math.pi)
-    nees = np.where(valid[:, None], nees, np.nan)
-    nll = np.where(valid[:, None], nll, np.nan)
-    t = nees.shape[1]
-    lo, hi = stats.chi2.ppf([0.025, 0.975], 2 * t) / t
-    flo, fhi = stats.chi2.ppf([0.025, 0.975], 2)
-    mean_nees = nees.mean(axis=1)
-    return dict(
-        valid=valid,
-        frames=t,
-        nll=nll.mean(axis=1),
-        nees=mean_nees,
-        nees_in_band=(mean_nees >= lo) & (mean_nees <= hi),
-        frames_in_band=((nees >= flo) & (nees <= fhi)).mean(axis=1),
-        covered={q: (nees <= -2 * math.log(1 - q)).mean(axis=1) for q in LEVELS},
-        nll_frames=nll,
-    )
-
-
-def fold_summary(scores: dict) -> dict:
-    """One fold's pooled numbers from `gaussian_scores` (valid sequences)."""
-    v = scores["valid"]
-    nll_frames = scores["nll_frames"][v]
-    t = scores["frames"]
-    return dict(
-        sequences=int(v.size),
-        invalid_sequences=int((~v).sum()),
-        nll=float(scores["nll"][v].mean()),
-        nll_median_frame=float(np.median(nll_frames)) if v.any() else math.nan,
-        nees=float(scores["nees"][v].mean()),
-        nees_median_sequence=float(np.median(scores["nees"][v])),
-        sequences_in_band=float(scores["nees_in_band"][v].mean()),
-        frames_in_band=float(scores["frames_in_band"][v].mean()),
-        coverage={str(q): float(scores["covered"][q][v].mean()) for q in LEVELS},
-        scored_frames_per_sequence=t,
-    )
+    return sequence_scores(e, np.asarray(cov, np.float64)[:, s], LEVELS)
 
 
 def _rows(folds: list[dict], section: str) -> dict[str, list[dict]]:
@@ -210,7 +164,9 @@ def summarise(out: Path, folds: list[dict]) -> dict:
             "mean over sequences of each sequence's mean NEES",
             sequences_in_band="fraction of sequences whose mean NEES over its "
             "T'=19 scored frames lies in [χ²_{2T'}(0.025), χ²_{2T'}(0.975)]/T' = "
-            "[1.36, 2.78] (95% for a consistent estimator with independent frame "
+            "[1.20, 2.99] (eqsmooth.learn.nees_band(2, 19); before 2026-11-29 "
+            "this text said [1.36, 2.78], which was wrong: the scores always used "
+            "[1.20, 2.99]) (95% for a consistent estimator with independent frame "
             "errors; smoother errors are correlated in time, so nominal)",
             frames_in_band="fraction of frames with χ²₂(0.025) ≤ NEES ≤ "
             "χ²₂(0.975) (0.95 for a consistent estimator)",

@@ -31,6 +31,7 @@ budgeted at 90 minutes.
 
     python -m experiments.kitti_vo --quick --out /tmp/kitti_quick
     python -m experiments.kitti_vo --folds 0 1 --out results/kitti
+    python -m experiments.kitti_vo --uncertainty --folds 0 --out results/kitti
     python -m experiments.kitti_vo --variant reliability --folds 0 \
         --out results/kitti_variant   # the pre-declared data variant
 """
@@ -42,7 +43,12 @@ from pathlib import Path
 import jax
 
 from experiments._cli import experiment_parser
-from experiments.kitti_vo import data as D, experiment as E, report
+from experiments.kitti_vo import (
+    data as D,
+    experiment as E,
+    report,
+    uncertainty as U,
+)
 
 
 def parse_args(argv=None):
@@ -78,6 +84,15 @@ def parse_args(argv=None):
         "kitti-results markers), e.g. docs/tutorial/visual-odometry.md",
     )
     p.add_argument(
+        "--uncertainty",
+        action="store_true",
+        help="issue 58: load each fold's committed sensor, train the rows with "
+        "a covariance again (and the bi-LSTM variance row), check their test "
+        "scores against fold_K.json, save the heads to heads/foldK/ and write "
+        "uncertainty_fold_K.json (a fold whose file is complete is skipped), "
+        "then pool the finished folds into uncertainty.json",
+    )
+    p.add_argument(
         "--report-only",
         action="store_true",
         help="run nothing: rebuild summary.md/json (and --docs) from the fold "
@@ -110,6 +125,13 @@ def parse_args(argv=None):
 
 def main(argv=None):
     cfg, folds, args = parse_args(argv)
+    if args.uncertainty:
+        for fold in [] if args.report_only else folds:
+            U.run_fold(cfg, fold, args.out)
+            gc.collect()
+            jax.clear_caches()
+        U.summarise(args.out)
+        return
     for fold in [] if args.report_only else folds:
         state = E.run_fold(cfg, fold, args.out)
         if not args.no_figures:

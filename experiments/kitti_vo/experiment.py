@@ -559,32 +559,44 @@ def _sensor_summary(train_w, valid_w, test_w) -> tuple[np.ndarray, dict]:
     return sigmas, summary
 
 
+def train_method(
+    cfg, key, method, sigmas, train_w, valid_w, work, model=None, loss_pair=None
+):
+    """Stage 3 for one method: train it (resumable, checkpoints under `work`)
+    from `build_model(method, sigmas, method_key(key, method))` with
+    `losses(method, cfg)` (or the given `model` and `(train, validation)`
+    `loss_pair`: a row outside `METHODS`); return the `eqs.learn.train`
+    result and the training seconds."""
+    if model is None:
+        model = build_model(method, sigmas, method_key(key, method))
+    train_loss, valid_loss = loss_pair or losses(method, cfg)
+    steps = cfg.lstm_steps if method == "lstm" else cfg.steps
+    t1 = time.perf_counter()
+    valid = None
+    if cfg.validate:
+        valid = eqs.learn.Validation(valid_w, valid_loss, every=cfg.eval_every)
+    res = _train_stage(
+        work / method,
+        model,
+        train_loss,
+        train_w,
+        valid,
+        lr=cfg.lr,
+        steps=steps,
+        warmup=50,
+        checkpoint_every=100,
+        batch_size=min(cfg.batch, train_w["z"].shape[0]),
+        seed=cfg.model_seed,
+        on_nonfinite="skip",
+    )
+    return res, time.perf_counter() - t1
+
+
 def _train_and_score(cfg, key, sigmas, train_w, valid_w, test_w, work, result, save):
     """Stages 3 and 4: train each method (resumable) and score it once."""
     models = {}
     for method in cfg.methods:
-        model = build_model(method, sigmas, method_key(key, method))
-        train_loss, valid_loss = losses(method, cfg)
-        steps = cfg.lstm_steps if method == "lstm" else cfg.steps
-        t1 = time.perf_counter()
-        valid = None
-        if cfg.validate:
-            valid = eqs.learn.Validation(valid_w, valid_loss, every=cfg.eval_every)
-        res = _train_stage(
-            work / method,
-            model,
-            train_loss,
-            train_w,
-            valid,
-            lr=cfg.lr,
-            steps=steps,
-            warmup=50,
-            checkpoint_every=100,
-            batch_size=min(cfg.batch, train_w["z"].shape[0]),
-            seed=cfg.model_seed,
-            on_nonfinite="skip",
-        )
-        train_s = time.perf_counter() - t1
+        res, train_s = train_method(cfg, key, method, sigmas, train_w, valid_w, work)
         models[method] = res.best_model
         old = result["rows"].get(method)
         if old is not None and "trans_m_per_m_whole" in old:
@@ -655,17 +667,81 @@ def _score_derived(models: dict, test_w: dict, result: dict, save) -> None:
         save()
 
 
+def prepare_fold(
+    cfg: Config, fold: int, out: Path, timings: dict, save=None, train_sensor=True
+) -> dict:
+    """Stages 1 and 2 of fold `fold`: load its trajectories, pretrain the
+    sensor (or load `out/sensor_foldK.eqx`; with `train_sensor=False` a
+    missing sensor raises `FileNotFoundError`), cache its outputs under
+    `out/work/fold_K/cache` and cut the windows. Adds to `timings`; calls
+    `save()` once the sensor is ready. Returns the windows (`train`, `valid`,
+    `test`), the sensor's training-window RMSE `sigmas` (the noise heads'
+    start), `sensor_summary`, the scored `test_trajs` and the `caches`."""
+    spec = D.fold_spec(fold)
+    work = out / "work" / f"fold_{fold}"
+    work.mkdir(parents=True, exist_ok=True)
+    train_seqs = train_sequences(cfg, spec)
+    key = jax.random.key(cfg.model_seed + 1000 * fold)
+    sensor_path = out / f"sensor_fold{fold}.eqx"
+    if not train_sensor and not sensor_path.exists():
+        raise FileNotFoundError(
+            f"fold {fold}: no sensor at {sensor_path} (this mode loads the "
+            "committed sensor and never trains one)"
+        )
+    t0 = time.perf_counter()
+    print(
+        f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
+    )
+    train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
+    valid_trajs = load_trajectories(cfg, spec.valid)
+    test_trajs = load_trajectories(cfg, spec.test)
+    timings["load_s"] = timings.get("load_s", 0.0) + time.perf_counter() - t0
+    if cfg.real_data_dir is None:
+        r = test_trajs[0]
+        frames = np.arange(min(200, r.num_frames))
+        t1 = time.perf_counter()
+        r.images(frames)
+        timings["render_ms_per_frame"] = (time.perf_counter() - t1) / frames.size * 1e3
+
+    sensor = _pretrain_sensor(
+        cfg, key, train_trajs, valid_trajs, sensor_path, work, timings
+    )
+    if save is not None:
+        save()
+
+    t1 = time.perf_counter()
+    roles = (("train", train_trajs), ("valid", valid_trajs), ("test", test_trajs))
+    caches = _sensor_caches(sensor, roles, work / "cache")
+    timings["cache_s"] = timings.get("cache_s", 0.0) + time.perf_counter() - t1
+    train_w = _windows_of(caches, train_trajs, cfg.window, cfg.window_stride, "train")
+    valid_w = _windows_of(caches, valid_trajs, cfg.window, cfg.window, "valid")
+    scored = test_trajs[: cfg.eval_copies] if cfg.eval_copies else test_trajs
+    test_w = _windows_of(caches, scored, cfg.eval_window, None, "test")
+    sigmas, summary = _sensor_summary(train_w, valid_w, test_w)
+    print(
+        f"windows: {train_w['z'].shape[0]} train, {valid_w['z'].shape[0]} valid, "
+        f"{test_w['z'].shape[0]} test; sensor RMSE (v, ω) {sigmas}"
+    )
+    return {
+        "train": train_w,
+        "valid": valid_w,
+        "test": test_w,
+        "sigmas": sigmas,
+        "sensor_summary": summary,
+        "test_trajs": scored,
+        "caches": caches,
+    }
+
+
 def run_fold(cfg: Config, fold: int, out: Path) -> dict:
     """Run (or resume) every stage of fold `fold`; write `fold_K.json` under
     `out` after each; return the result, the models and the test data."""
-    spec = D.fold_spec(fold)
     out.mkdir(parents=True, exist_ok=True)
     work = out / "work" / f"fold_{fold}"
     work.mkdir(parents=True, exist_ok=True)
     result_path = out / f"fold_{fold}.json"
     result = _fold_record(cfg, fold, result_path)
     timings = result["timings"]
-    train_seqs = train_sequences(cfg, spec)
     key = jax.random.key(cfg.model_seed + 1000 * fold)
 
     t0 = time.perf_counter()
@@ -683,39 +759,10 @@ def run_fold(cfg: Config, fold: int, out: Path) -> dict:
         timings["total_s"] = sum(r["wall_s"] for r in result["runs"])
         _write_json(result_path, result)
 
-    print(
-        f"fold {fold}: test {spec.test:02d}, valid {spec.valid:02d}, train {train_seqs}"
-    )
-    train_trajs = [t for s in train_seqs for t in load_trajectories(cfg, s)]
-    valid_trajs = load_trajectories(cfg, spec.valid)
-    test_trajs = load_trajectories(cfg, spec.test)
-    timings["load_s"] = timings.get("load_s", 0.0) + time.perf_counter() - t0
-    if cfg.real_data_dir is None:
-        r = test_trajs[0]
-        frames = np.arange(min(200, r.num_frames))
-        t1 = time.perf_counter()
-        r.images(frames)
-        timings["render_ms_per_frame"] = (time.perf_counter() - t1) / frames.size * 1e3
-
-    sensor_path = out / f"sensor_fold{fold}.eqx"
-    sensor = _pretrain_sensor(
-        cfg, key, train_trajs, valid_trajs, sensor_path, work, timings
-    )
-    save()
-
-    t1 = time.perf_counter()
-    roles = (("train", train_trajs), ("valid", valid_trajs), ("test", test_trajs))
-    caches = _sensor_caches(sensor, roles, work / "cache")
-    timings["cache_s"] = timings.get("cache_s", 0.0) + time.perf_counter() - t1
-    train_w = _windows_of(caches, train_trajs, cfg.window, cfg.window_stride, "train")
-    valid_w = _windows_of(caches, valid_trajs, cfg.window, cfg.window, "valid")
-    scored = test_trajs[: cfg.eval_copies] if cfg.eval_copies else test_trajs
-    test_w = _windows_of(caches, scored, cfg.eval_window, None, "test")
-    sigmas, result["sensor"] = _sensor_summary(train_w, valid_w, test_w)
-    print(
-        f"windows: {train_w['z'].shape[0]} train, {valid_w['z'].shape[0]} valid, "
-        f"{test_w['z'].shape[0]} test; sensor RMSE (v, ω) {sigmas}"
-    )
+    data = prepare_fold(cfg, fold, out, timings, save)
+    train_w, valid_w, test_w = data["train"], data["valid"], data["test"]
+    sigmas, result["sensor"] = data["sigmas"], data["sensor_summary"]
+    scored, caches = data["test_trajs"], data["caches"]
 
     # Dead reckoning from the sensor: a reference row, no training (scored
     # again, whole, where an earlier run lacks the whole-window metric).

@@ -392,7 +392,9 @@ class LstmOdometry(eqx.Module):
         )
         self.hidden = hidden
 
-    def velocities(self, window: dict) -> Array:
+    def hidden_states(self, window: dict) -> Array:
+        """The head's input at every step, `(T, hidden)` (`(T, 2 hidden)`
+        when bidirectional)."""
         dtype = self.inp.weight.dtype
         scale = jnp.asarray(VELOCITY_SCALE, dtype)
         zn = (window["z"] - jnp.asarray(VELOCITY_MEAN, dtype)) / scale
@@ -410,6 +412,13 @@ class LstmOdometry(eqx.Module):
         hs = run(self.cell, x)
         if self.backward is not None:
             hs = jnp.concatenate([hs, run(self.backward, x[::-1])[::-1]], -1)
+        return hs
+
+    def velocities(self, window: dict, hs: Array | None = None) -> Array:
+        """The velocities `(T, 2)` (from the hidden states `hs`, if given)."""
+        if hs is None:
+            hs = self.hidden_states(window)
+        scale = jnp.asarray(VELOCITY_SCALE, self.inp.weight.dtype)
         # Residual on the sensor's velocities: starts as the sensor itself.
         return window["z"] + scale * jax.vmap(self.head)(hs)
 
@@ -422,5 +431,89 @@ def lstm_loss(model: LstmOdometry, batch: dict):
         est = model(w)
         truth = truth_state(w)
         return eqs.manifold_mse(truth, est, position_weights(truth))
+
+    return jnp.mean(jax.vmap(one)(batch))
+
+
+def planar_pose(state: VehicleState) -> Array:
+    """`(x, y, θ)` of each pose, `(..., 3)`."""
+    p = state.pose.unit_complex_xy
+    return jnp.stack([p[..., 2], p[..., 3], jnp.arctan2(p[..., 1], p[..., 0])], -1)
+
+
+def wrap_angle(a: Array) -> Array:
+    return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def planar_error(truth: Array, est: Array) -> Array:
+    """`truth − est` of planar poses `(..., 3)`, the heading wrapped to (−π, π]."""
+    e = truth - est
+    return jnp.concatenate([e[..., :2], wrap_angle(e[..., 2:])], -1)
+
+
+class LstmVarianceOdometry(eqx.Module):
+    """The bidirectional LSTM with a Gaussian variance head (issue 58).
+
+    The mean is `LstmOdometry(bidirectional=True)` itself (the velocities
+    `u_t` integrated from the true first pose). The head reads the LSTM's
+    hidden states (gradient stopped, so the variance loss leaves the mean's
+    network alone) and gives the log σ of each velocity `u_t` on top of the
+    sensor's own log σ (starting there: its last layer starts at zero).
+    The planar pose `(x, y, θ)_t` is a function of `u_0..u_{t−1}`; its
+    covariance is that of independent velocity errors pushed through the
+    integration to first order, `J_t diag(σ²) J_tᵀ` with `J_t = ∂(x, y,
+    θ)_t/∂u` (forward-mode autodiff), plus a learned random walk `t·diag(q²)`
+    (which keeps it positive definite).
+    """
+
+    lstm: LstmOdometry
+    sigma_head: eqx.nn.Linear
+    log_walk_sigma: Float[Array, " 3"]
+
+    def __init__(self, mean_key: PRNGKeyArray, head_key: PRNGKeyArray, hidden=64):
+        self.lstm = LstmOdometry(mean_key, hidden, bidirectional=True)
+        head = eqx.nn.Linear(2 * hidden, 2, key=head_key)
+        self.sigma_head = eqx.tree_at(
+            lambda h: (h.weight, h.bias),
+            head,
+            (jnp.zeros_like(head.weight), jnp.zeros_like(head.bias)),
+        )
+        self.log_walk_sigma = jnp.log(jnp.array([0.01, 0.01, 0.001], jnp.float32))
+
+    def __call__(self, window: dict) -> VehicleState:
+        return self.lstm(window)
+
+    def planar_and_covariance(self, window: dict) -> tuple[Array, Array]:
+        """Planar poses `(T, 3)` and their covariances `(T, 3, 3)`."""
+        hs = self.lstm.hidden_states(window)
+        u = self.lstm.velocities(window, hs)
+        log_sigma = window["log_sigma"] + jax.vmap(self.sigma_head)(
+            jax.lax.stop_gradient(hs)
+        )
+
+        def planar(v):
+            return planar_pose(dead_reckoning({**window, "z": v}))
+
+        jac = jax.jacfwd(planar)(jax.lax.stop_gradient(u))  # (T, 3, T, 2)
+        var = jnp.exp(2 * log_sigma)
+        cov = jnp.einsum("iasb,sb,icsb->iac", jac, var, jac)
+        steps = jnp.arange(u.shape[0], dtype=u.dtype)
+        walk = steps[:, None] * jnp.exp(2 * self.log_walk_sigma)
+        cov = cov + jax.vmap(jnp.diag)(walk)
+        return planar(u), cov
+
+
+def lstm_variance_loss(model: LstmVarianceOdometry, batch: dict):
+    """The bi-LSTM's loss (position MSE, which trains the mean) plus the mean
+    Gaussian NLL of the true planar poses of frames 1.. (frame 0 is given),
+    which trains only the variance head and the random walk."""
+
+    def one(w):
+        truth = truth_state(w)
+        mse = eqs.manifold_mse(truth, model(w), position_weights(truth))
+        est, cov = model.planar_and_covariance(w)
+        err = jax.lax.stop_gradient(planar_error(planar_pose(truth), est))
+        nll = L.gaussian_calibration(err[1:], cov[1:]).nll
+        return mse + jnp.mean(nll)
 
     return jnp.mean(jax.vmap(one)(batch))
