@@ -32,6 +32,7 @@ budgeted at 90 minutes.
     python -m experiments.kitti_vo --quick --out /tmp/kitti_quick
     python -m experiments.kitti_vo --folds 0 1 --out results/kitti
     python -m experiments.kitti_vo --uncertainty --folds 0 --out results/kitti
+    python -m experiments.kitti_vo --uncertainty --report-only  # pool them
     python -m experiments.kitti_vo --variant reliability --folds 0 \
         --out results/kitti_variant   # the pre-declared data variant
 """
@@ -89,8 +90,9 @@ def parse_args(argv=None):
         help="issue 58: load each fold's committed sensor, train the rows with "
         "a covariance again (and the bi-LSTM variance row), check their test "
         "scores against fold_K.json, save the heads to heads/foldK/ and write "
-        "uncertainty_fold_K.json (a fold whose file is complete is skipped), "
-        "then pool the finished folds into uncertainty.json",
+        "uncertainty_fold_K.json (a fold whose file is complete is skipped); "
+        "with --report-only: pool the finished folds into uncertainty.json and "
+        "fig_calibration.png",
     )
     p.add_argument(
         "--report-only",
@@ -126,11 +128,15 @@ def parse_args(argv=None):
 def main(argv=None):
     cfg, folds, args = parse_args(argv)
     if args.uncertainty:
-        for fold in [] if args.report_only else folds:
+        if args.report_only:
+            record = U.summarise(args.out)
+            if record is not None:
+                print(U.markdown(record))
+            return
+        for fold in folds:
             U.run_fold(cfg, fold, args.out)
             gc.collect()
             jax.clear_caches()
-        U.summarise(args.out)
         return
     for fold in [] if args.report_only else folds:
         state = E.run_fold(cfg, fold, args.out)
