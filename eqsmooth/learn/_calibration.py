@@ -53,9 +53,11 @@ class GaussianCalibration(eqx.Module):
             raise ValueError(
                 f"GaussianCalibration.coverage: level must be in (0, 1), got {level}"
             )
+        dtype = self.cdf.dtype
         inside = jnp.where(self.valid, self.cdf <= level, False)
-        count = jnp.sum(self.valid, axis=axis)
-        return jnp.sum(inside, axis=axis) / jnp.where(count > 0, count, jnp.nan)
+        count = jnp.sum(self.valid, axis=axis).astype(dtype)
+        hits = jnp.sum(inside, axis=axis).astype(dtype)
+        return hits / jnp.where(count > 0, count, jnp.asarray(jnp.nan, dtype))
 
 
 def gaussian_calibration(
