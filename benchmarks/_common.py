@@ -51,12 +51,10 @@ def cli_command() -> str:
 
 def _proc_field(path: str, key: str) -> str | None:
     try:
-        for line in Path(path).read_text().splitlines():
-            if line.startswith(key):
-                return line.split(":", 1)[1].strip()
+        lines = Path(path).read_text().splitlines()
     except OSError:
-        pass
-    return None
+        return None
+    return next((x.split(":", 1)[1].strip() for x in lines if x.startswith(key)), None)
 
 
 def machine() -> dict:
@@ -69,7 +67,8 @@ def machine() -> dict:
     # Thread settings and load change timings by large factors on a shared
     # 2-core machine (an oversubscribed OpenBLAS made a 400 x 400 Cholesky
     # 10-100x slower), so they are part of the record.
-    env_keys = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "XLA_FLAGS")
+    env_keys = "OPENBLAS_NUM_THREADS OMP_NUM_THREADS XLA_FLAGS GLIBC_TUNABLES".split()
+    lib_git = git("rev-parse", "--short", "HEAD", where=lib_dir) if lib_dir else None
     return {
         "cores": os.cpu_count(),
         "memory": f"{int(mem.split()[0]) / 2**20:.1f} GiB" if mem else None,
@@ -80,13 +79,9 @@ def machine() -> dict:
         "devices": sorted({d.device_kind for d in jax.devices()}),
         "git": git("rev-parse", "--short", "HEAD") or "unknown",
         "eqsmooth": str(lib_dir),
-        "eqsmooth_git": git("rev-parse", "--short", "HEAD", where=lib_dir)
-        if lib_dir
-        else "not imported",
+        "eqsmooth_git": lib_git or "not imported",
         "command": cli_command(),
-        "env": {
-            k: os.environ[k] for k in env_keys + ("GLIBC_TUNABLES",) if k in os.environ
-        },
+        "env": {k: os.environ[k] for k in env_keys if k in os.environ},
         "load_average": os.getloadavg(),
     }
 
@@ -189,9 +184,7 @@ def print_and_save(records, columns, path=None, extra=None) -> None:
 
 
 def write_json(path, records, extra=None):
-    payload = {"machine": machine(), "records": records}
-    if extra:
-        payload.update(extra)
+    payload = {"machine": machine(), "records": records, **(extra or {})}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -222,19 +215,15 @@ def loaded_blas() -> list[str]:
     CHOLMOD's supernodal factorisation spends its time in the system BLAS that
     SuiteSparse was linked against, so the report says which one was used.
     """
-    found = set()
     try:
-        lines = Path("/proc/self/maps").read_text().splitlines()
+        maps = Path("/proc/self/maps").read_text().splitlines()
     except OSError:
         return []
-    for line in lines:
-        path = line.split()[-1]
-        name = Path(path).name
-        if "scipy_openblas" in name or ".libs/" in path:
-            continue  # the wheels' private copies, not what CHOLMOD calls
-        if name.startswith(("libblas.so", "libopenblas", "libmkl_rt", "libblis")):
-            found.add(str(Path(path).resolve()))
-    return sorted(found)
+    blas = ("libblas.so", "libopenblas", "libmkl_rt", "libblis")
+    # Not the wheels' private copies (scipy_openblas, */.libs/): CHOLMOD calls none.
+    paths = {x.split()[-1] for x in maps}
+    paths = {p for p in paths if Path(p).name.startswith(blas) and ".libs/" not in p}
+    return sorted({str(Path(p).resolve()) for p in paths if "scipy_openblas" not in p})
 
 
 def disk_step(x):
@@ -267,8 +256,6 @@ def pose2_problem():
     factors and a loop closure 4 -> 1. Returns `(graph, values)`."""
     import eqsmooth as eqs
 
-    poses = se2
-
     def diag(*sigmas):
         return eqs.DiagonalNoise.from_sigmas(jnp.array(sigmas))
 
@@ -277,7 +264,7 @@ def pose2_problem():
     odo += [[2.05, 0, h - 0.03], [2.1, 0.1, h + 0.05]]
     init = [[0.4, 0.1, 0.15], [2.3, 0.1, -0.2], [4.1, 0.2, h]]
     init += [[4.0, 2.1, np.pi], [2.1, 2.2, -h]]
-    prior = eqs.PriorFactor(eqs.Var("x", [0]), poses([[0.0] * 3]), diag(0.3, 0.3, 0.1))
+    prior = eqs.PriorFactor(eqs.Var("x", [0]), se2([[0.0] * 3]), diag(0.3, 0.3, 0.1))
     a, b = eqs.Var("x", [0, 1, 2, 3, 4]), eqs.Var("x", [1, 2, 3, 4, 1])
-    odometry = eqs.BetweenFactor(a, b, poses(odo), diag(0.2, 0.2, 0.1))
-    return eqs.FactorGraph([prior, odometry]), {"x": poses(init)}
+    odometry = eqs.BetweenFactor(a, b, se2(odo), diag(0.2, 0.2, 0.1))
+    return eqs.FactorGraph([prior, odometry]), {"x": se2(init)}
