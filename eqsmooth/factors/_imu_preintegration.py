@@ -22,6 +22,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._precision import matmul as mm
 from ..lie import SO3
 from ..lie._so3 import skew
+from ..lie._utils import coef_c
 from ._noise import is_concrete
 
 
@@ -296,20 +297,40 @@ def _symmetric(c: Array) -> Array:
 
 def _step(x, acc, omega, dt):
     """One sample of GTSAM's tangent-space recursion (bias already removed):
-    the new `(θ, Δp, Δv)` and its Jacobians `A = ∂/∂x`, `B = ∂/∂acc`,
-    `C = ∂/∂ω`."""
+    the new `(θ, Δp, Δv)` and its Jacobians `A = ∂/∂x` (as its three nonzero
+    off-identity blocks), `B = ∂/∂acc`, `C = ∂/∂ω`."""
     theta, pos, vel = x[:3], x[3:6], x[6:]
-    rot = SO3.exp(theta)
-    r = rot.as_matrix()
-    jr_inv_of = lambda t: mm(SO3.right_jacobian_inv(t), omega * dt)
-    # θ' = θ + Jr⁻¹(θ) ω dt (integrating dθ/dt = Jr⁻¹(θ) ω); its derivative in θ
-    # by forward mode: three JVPs of a 3-vector, the exact derivative.
-    d_theta, inv_h = jax.linearize(jr_inv_of, theta)
-    inv_h = jax.vmap(inv_h, in_axes=1, out_axes=1)(jnp.eye(3, dtype=x.dtype))
+    r = SO3.exp(theta).as_matrix()
+    u = omega * dt
+    # θ' = θ + Jr⁻¹(θ) u, integrating dθ/dt = Jr⁻¹(θ) ω, with
+    # Jr⁻¹(θ) = I + ½[θ]× + c(|θ|²)[θ]×², so (differentiating θ×(θ×u) =
+    # θ(θ·u) − u|θ|²) its derivative in θ is
+    # −½[u]× + c ((θ·u) I + θuᵀ − 2uθᵀ) + 2c' (θ×(θ×u)) θᵀ.
+    t = jnp.sum(theta * theta)
+    c, dc = jax.jvp(coef_c, (t,), (jnp.ones_like(t),))
+    sk_theta = skew(theta)
+    txu = mm(sk_theta, u)
+    ttu = mm(sk_theta, txu)
+    jr_inv = jnp.eye(3, dtype=x.dtype) + 0.5 * sk_theta + c * mm(sk_theta, sk_theta)
+    tu = jnp.sum(theta * u)
+    inv_h = (
+        -0.5 * skew(u)
+        + c
+        * (
+            tu * jnp.eye(3, dtype=x.dtype)
+            + jnp.outer(theta, u)
+            - 2.0 * jnp.outer(u, theta)
+        )
+        + 2.0 * dc * jnp.outer(ttu, theta)
+    )
     a_nav = mm(r, acc)
     dt22 = 0.5 * dt * dt
     new = jnp.concatenate(
-        [theta + d_theta, pos + vel * dt + a_nav * dt22, vel + a_nav * dt]
+        [
+            theta + u + 0.5 * txu + c * ttu,
+            pos + vel * dt + a_nav * dt22,
+            vel + a_nav * dt,
+        ]
     )
     # ∂(Exp(θ) a)/∂θ = −R [a]× Jr(θ).
     a_nav_h_theta = -mm(mm(r, skew(acc)), SO3.right_jacobian(theta))
@@ -323,15 +344,18 @@ def _step(x, acc, omega, dt):
         ]
     )
     big_b = jnp.concatenate([zero, r * dt22, r * dt], axis=0)
-    big_c = jnp.concatenate([SO3.right_jacobian_inv(theta) * dt, zero, zero], axis=0)
+    big_c = jnp.concatenate([jr_inv * dt, zero, zero], axis=0)
     return new, big_a, big_b, big_c
 
 
 def _one_interval(params, acc, gyro, dt, mask, bias_hat):
     dtype = acc.dtype
+    zero3 = jnp.zeros((3, 3), dtype)
+    # The integration noise enters the position block only.
+    select_pos = jnp.concatenate([zero3, jnp.eye(3, dtype=dtype), zero3], axis=0)
 
     def body(carry, sample):
-        x, h_acc, h_omega, cov, cov15, total = carry
+        x, h_bias, cov, cov15, total = carry
         a_m, w_m, h, keep = sample
         # A skipped (padding) sample integrates nothing; its dt is replaced
         # by 1 so that Σ/dt stays finite on the branch that is thrown away.
@@ -339,27 +363,31 @@ def _one_interval(params, acc, gyro, dt, mask, bias_hat):
         new, big_a, big_b, big_c = _step(
             x, a_m - bias_hat[:3], w_m - bias_hat[3:], h_safe
         )
-        # Bias enters with a minus sign: acc = a_m − b_acc, ω = w_m − b_ω.
-        new_h_acc = mm(big_a, h_acc) - big_b
-        new_h_omega = mm(big_a, h_omega) - big_c
-        noise9 = mm(mm(big_b, params.accelerometer_covariance / h_safe), big_b.T) + mm(
-            mm(big_c, params.gyroscope_covariance / h_safe), big_c.T
+        # G = [B C] = ∂x'/∂(acc, ω); the bias enters with a minus sign
+        # (acc = a_m − b_acc, ω = w_m − b_ω): H' = A H − G.
+        g = jnp.concatenate([big_b, big_c], axis=1)
+        new_h_bias = mm(big_a, h_bias) - g
+        white = jax.scipy.linalg.block_diag(
+            params.accelerometer_covariance / h_safe,
+            params.gyroscope_covariance / h_safe,
         )
-        noise9 = noise9.at[3:6, 3:6].add(params.integration_covariance * h_safe)
+        noise9 = mm(mm(g, white), g.T) + mm(
+            mm(select_pos, params.integration_covariance * h_safe), select_pos.T
+        )
         new_cov = mm(mm(big_a, cov), big_a.T) + noise9
-        # Combined: the bias random walk is a state too, F = [[A, B, C], [0, I]].
-        f = jnp.zeros((15, 15), dtype)
-        f = f.at[:9, :9].set(big_a).at[:9, 9:12].set(big_b).at[:9, 12:].set(big_c)
-        f = f.at[9:, 9:].set(jnp.eye(6, dtype=dtype))
-        new_cov15 = mm(mm(f, cov15), f.T)
-        new_cov15 = new_cov15.at[:9, :9].add(noise9)
-        new_cov15 = new_cov15.at[9:12, 9:12].add(params.bias_acc_covariance * h_safe)
-        new_cov15 = new_cov15.at[12:, 12:].add(params.bias_omega_covariance * h_safe)
+        # Combined: the bias random walk is a state too, F = [[A, G], [0, I]].
+        p11, p12, p22 = cov15[:9, :9], cov15[:9, 9:], cov15[9:, 9:]
+        q12 = mm(big_a, p12) + mm(g, p22)
+        q11 = mm(mm(big_a, p11), big_a.T) + mm(mm(g, p12.T), big_a.T)
+        q11 = q11 + mm(q12, g.T) + noise9
+        walk = jax.scipy.linalg.block_diag(
+            params.bias_acc_covariance * h_safe, params.bias_omega_covariance * h_safe
+        )
+        new_cov15 = jnp.block([[q11, q12], [q12.T, p22 + walk]])
         pick = lambda a, b: jnp.where(keep, a, b)
         out = (
             pick(new, x),
-            pick(new_h_acc, h_acc),
-            pick(new_h_omega, h_omega),
+            pick(new_h_bias, h_bias),
             pick(new_cov, cov),
             pick(new_cov15, cov15),
             total + jnp.where(keep, h, 0.0),
@@ -368,20 +396,17 @@ def _one_interval(params, acc, gyro, dt, mask, bias_hat):
 
     init = (
         jnp.zeros(9, dtype),
-        jnp.zeros((9, 3), dtype),
-        jnp.zeros((9, 3), dtype),
+        jnp.zeros((9, 6), dtype),
         jnp.zeros((9, 9), dtype),
         jnp.zeros((15, 15), dtype),
         jnp.zeros((), dtype),
     )
-    (x, h_acc, h_omega, cov, cov15, total), _ = jax.lax.scan(
-        body, init, (acc, gyro, dt, mask)
-    )
+    (x, h_bias, cov, cov15, total), _ = jax.lax.scan(body, init, (acc, gyro, dt, mask))
     return PreintegratedImuMeasurements(
         delta_t=total,
         preintegrated=x,
-        H_bias_acc=h_acc,
-        H_bias_omega=h_omega,
+        H_bias_acc=h_bias[:, :3],
+        H_bias_omega=h_bias[:, 3:],
         covariance=cov,
         combined_covariance=cov15,
         bias_hat=bias_hat,
