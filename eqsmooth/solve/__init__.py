@@ -1,5 +1,9 @@
 """Linearisation, linear solvers and nonlinear least-squares solvers."""
 
+from ._incremental import (
+    IncrementalSmoother as IncrementalSmoother,
+    IncrementalState as IncrementalState,
+)
 from ._linear._block_tridiagonal import (
     block_tridiagonal_log_det as block_tridiagonal_log_det,
     BlockCyclicReduction as BlockCyclicReduction,

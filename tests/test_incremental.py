@@ -1,0 +1,140 @@
+"""eqsmooth.solve.IncrementalSmoother: a growing SE(2) pose graph with loop
+closures, updated one pose at a time, answers the batch solve of the graph so
+far after every update, compiles nothing while its buffers hold, grows them
+by doubling, and refuses what it cannot add."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import compiled_programs
+
+import eqsmooth as eqs
+
+
+NOISE = eqs.DiagonalNoise.from_sigmas(jnp.array([0.1, 0.1, 0.05]))
+N = 11  # poses: buffers of 8 grow to 16 on the way
+SMOOTHER = eqs.solve.IncrementalSmoother()
+
+
+def _truth():
+    ang = np.linspace(0, 1.5 * np.pi, N)
+    return eqs.SE2.from_xy_theta(
+        jnp.asarray(np.cos(ang)), jnp.asarray(np.sin(ang)), jnp.asarray(ang + np.pi / 2)
+    )
+
+
+def _between(truth, rng, i, j):
+    d = truth[np.array([i])].inverse() @ truth[np.array([j])]
+    d = d @ eqs.SE2.exp(jnp.asarray(0.05 * rng.normal(size=(1, 3))))
+    return eqs.BetweenFactor(eqs.Var("pose", [i]), eqs.Var("pose", [j]), d, NOISE)
+
+
+def _replay():
+    """`(first graph, its values, [(new factors, new values)] per pose)`:
+    odometry each step, a closure to the pose four back at poses 6 and 9."""
+    rng = np.random.default_rng(0)
+    truth = _truth()
+    prior = eqs.PriorFactor(eqs.Var("pose", [0]), truth[np.array([0])], NOISE)
+    first = [prior, _between(truth, rng, 0, 1)]
+    steps = []
+    for j in range(2, N):
+        new = [_between(truth, rng, j - 1, j)]
+        if j % 3 == 0 and j >= 4:
+            new.append(_between(truth, rng, j - 4, j))
+        guess = truth[np.array([j])] @ eqs.SE2.exp(jnp.asarray([[0.1, -0.1, 0.05]]))
+        steps.append((new, {"pose": guess}))
+    return first, {"pose": truth[np.array([0, 1])]}, steps
+
+
+def _batch(factors, values):
+    sol = eqs.least_squares(eqs.FactorGraph(factors), values, eqs.LevenbergMarquardt())
+    return np.asarray(sol.value["pose"].unit_complex_xy), float(sol.stats["final_cost"])
+
+
+def test_every_update_answers_the_batch_solve_and_compiles_only_new_patterns():
+    first, values, steps = _replay()
+    state = SMOOTHER.init(eqs.FactorGraph(first), values)
+    factors, seen = list(first), set()
+    for j, (new, new_values) in enumerate(steps, start=2):
+        pattern = (len(new), state.capacity)
+        with compiled_programs() as names:
+            state = SMOOTHER.update(state, new, new_values)
+            jax.block_until_ready(state.values)
+        grown = state.capacity != pattern[1]
+        if pattern in seen and not grown:
+            assert names == [], (j, names)  # same kinds, rows and buffers
+        seen.add(pattern)
+        factors += new
+        est = state.estimate()["pose"]
+        assert est.unit_complex_xy.shape == (j + 1, 4)
+        if j in (4, 9, N - 1):  # after closures, across the growth, at the end
+            real = {"pose": eqs.SE2(jnp.asarray(est.unit_complex_xy))}
+            ref, cost = _batch(factors, real)
+            np.testing.assert_allclose(est.unit_complex_xy, ref, atol=1e-7)
+            graph_cost = float(eqs.FactorGraph(factors).cost(real))
+            np.testing.assert_allclose(graph_cost, cost, rtol=1e-9, atol=1e-12)
+            # The padded graph's cost is the real graph's (padding costs 0).
+            np.testing.assert_allclose(
+                float(state.graph.cost(state.values)), cost, rtol=1e-9, atol=1e-12
+            )
+    assert state.capacity == ((8, 16), (("pose", 16),))
+    assert state.num_rows == (1, N - 1 + 2)
+    assert state.result == eqs.solve.RESULTS.successful
+
+
+@pytest.mark.slow  # compiles the implicit adjoint of two buffer sizes (~50 s)
+def test_the_estimate_is_differentiable_through_updates():
+    # d(final estimate)/d(closure measurement) through init and five updates,
+    # against float64 central differences in the measurement's tangent.
+    first, values, steps = _replay()
+    (odo, closure), guess = steps[4]
+    assert len(steps[4][0]) == 2
+
+    def final(u):
+        moved = eqx.tree_at(
+            lambda f: f.measurement, closure, closure.measurement @ eqs.SE2.exp(u)
+        )
+        state = SMOOTHER.init(eqs.FactorGraph(first), values)
+        for new, new_values in steps[:4]:
+            state = SMOOTHER.update(state, new, new_values)
+        state = SMOOTHER.update(state, [odo, moved], guess)
+        return state.values["pose"][np.arange(7)].log().sum()
+
+    u0 = jnp.zeros((1, 3))
+    grad = jax.grad(final)(u0)
+    eps = 1e-6
+    fd = np.zeros(3)
+    for k in range(3):
+        e = jnp.zeros((1, 3)).at[0, k].set(eps)
+        fd[k] = (final(u0 + e) - final(u0 - e)) / (2 * eps)
+    np.testing.assert_allclose(np.asarray(grad)[0], fd, rtol=1e-5, atol=1e-7)
+    assert np.abs(fd).max() > 1e-3  # the closure moves the estimate
+
+
+def test_updates_refuse_what_they_cannot_add():
+    first, values, steps = _replay()
+    state = SMOOTHER.init(eqs.FactorGraph(first), values)
+    new, guess = steps[0]
+    cases = [
+        (
+            [
+                eqs.PriorFactor(
+                    eqs.Var("pose", [2]),
+                    guess["pose"],
+                    eqs.IsotropicNoise.from_sigma(1.0),
+                )
+            ],
+            guess,
+            "of no kind init's graph has",
+        ),
+        (new, None, "refers to index 2, but the group has 2 variables after this"),
+        (new, {"landmark": guess["pose"]}, "new_values has group 'landmark'"),
+    ]
+    for factors, vals, message in cases:
+        with pytest.raises((ValueError, TypeError), match=message):
+            SMOOTHER.update(state, factors, vals)
+    # (the jaxtyping hook or the method's own check names the parameter)
+    with pytest.raises(TypeError, match="state"):
+        SMOOTHER.update(values, new, guess)
