@@ -2,6 +2,7 @@
 the same up to the initial state, decided from the model and the inputs."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ._model import _compiled, apply_z, ChainModel, Sequences
@@ -52,10 +53,12 @@ def mean_path_gram(
     candidates whose projected columns are parallel change the data in the
     same way: only the prior on the first state can tell them apart.
     """
-    (A, C), (H, D) = _blocks(model, np.asarray(z), data, np.asarray(xhat))
+    z = np.asarray(z, dtype=float)
+    (A, C), (H, D) = _blocks(model, jnp.asarray(z), data, jnp.asarray(xhat))
     A, C, H, D = (np.asarray(a) for a in (A, C, H, D))
     B, T, n, K = C.shape
-    r = np.asarray(apply_z(model, np.asarray(z)).measurement_std)
+    # The measurement noise of `apply_z(model, z)` (z[K + 1] its log scale).
+    r = np.asarray(model.measurement_std) * np.exp(z[K + 1])
     # Columns: the K coefficients, then the n initial-state directions.
     dx = np.zeros((B, n, K + n))
     dx[:, :, K:] = np.eye(n)
