@@ -17,6 +17,9 @@ report as it goes:
   against where it does.
 - `continuous`: effects inside a continuous-time (`Integrator`) model, the
   rate library against the discrete-time one.
+- `equivalence`: a non-identifiable pair (a constant force and a sensor
+  bias with a spring) is reported as the pair, with and without `name`'s
+  structural test.
 
     python -m experiments.discovery_validation              # the list
     python -m experiments.discovery_validation.oscillator --quick

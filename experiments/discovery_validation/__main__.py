@@ -7,6 +7,7 @@ STUDIES = {
     "nonsmooth": "effects outside every library must not get a confident name",
     "localise": "where find(..., localise=True) says an effect acts",
     "continuous": "effects inside a continuous-time model",
+    "equivalence": "a non-identifiable pair is always reported as the pair",
 }
 
 if __name__ == "__main__":
