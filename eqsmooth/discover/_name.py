@@ -477,6 +477,12 @@ def name(
     `ln 20` log-units makes the step "ambiguous"; when the two candidates'
     observed-information correlation exceeds `equivalence_corr` the
     data cannot tell them apart and they are reported as an equivalence set.
+    Candidates that are *structurally* equivalent to the named one (their
+    effects on the mean measurement path, linearised about the nominal MAP
+    with each sequence's initial state free, are parallel: a constant force
+    and a sensor bias with a spring) are always in its equivalence set,
+    however far the prior on the first state puts their evidences apart, and
+    leave the library once it is named.
     If the innovation diagnostics of the final model stay significant, the
     verdict includes "unnamed residual structure": with no name, something
     the library does not contain; with names, the names are reported as
