@@ -953,6 +953,45 @@ def test_indefinite_information_claims_no_data_size():
     assert "no amount of data" in _verdict(out, leftover=False)
 
 
+def test_a_structural_equivalent_joins_the_set_whatever_its_evidence():
+    """A rival structurally equivalent to the named candidate (`same`) is put
+    in its equivalence set even when it trails by more than ln 20 (so it is
+    not among the close runner-ups) and the information would call the two
+    separable; the verdict says no data of this kind separate them."""
+    import types
+
+    from eqsmooth.discover._name import _classify_rivals, _verdict
+
+    gains = [{"name": "a", "log_marginal_gain": 30.0}]
+    gains += [
+        {"name": "b", "log_marginal_gain": 25.0},
+        {"name": "c", "log_marginal_gain": 10.0},
+    ]
+    out = {
+        "named": ["a"],
+        "steps": [{"best": "a", "candidates": gains}],
+        "flags": [],
+        "equivalence_sets": [],
+        "ambiguous": [],
+        "tentative": False,
+    }
+    best = types.SimpleNamespace(z=np.array([1.0, 0.0, 0.0]))
+    data = types.SimpleNamespace(num_sequences=24, length=40)
+    info = 100.0 * np.eye(3)  # a, b and c uncorrelated and well informed
+    same = np.zeros((3, 3), bool)
+    same[0, 1] = same[1, 0] = True
+    _classify_rivals(out, ["a", "b", "c"], 0, [], info, 0.95, best, data, same)
+    assert out["equivalence_sets"] == [["a", "b"]] and out["ambiguous"] == []
+    (rival,) = out["steps"][0]["rivals"]
+    assert rival["structural"] and not rival["separable"]
+    assert rival["name"] == "b" and np.isclose(rival["evidence_margin"], 5.0)
+    assert _verdict(out, leftover=False) == (
+        "not identifiable from this data: {a ≡ b} (with the first state free "
+        "they change the data in the same way: no amount of data of this kind "
+        "separates them)"
+    )
+
+
 def test_tail_probabilities_match_scipy():
     """The discover tests' chi-square and normal tails (plain Python, no
     compiled special functions) against SciPy, far into the tails."""

@@ -179,7 +179,7 @@ def _definite_pair(info, a: int, b: int) -> bool:
 
 
 def _classify_rivals(
-    out, names, best_k, close, info, equivalence_corr, best, data, same
+    out, names, best_k, close, info, equivalence_corr, best, data, same=None
 ) -> None:
     """Runner-ups within ln 20 of the named candidate, and its structural
     equivalents (`same`, whatever their evidence).
@@ -200,15 +200,20 @@ def _classify_rivals(
     B, T = data.num_sequences, data.length
     coefficient = float(best.z[best_k])
     equiv, amb, rivals = [names[best_k]], [names[best_k]], []
-    gains = {c["name"]: c["log_marginal_gain"] for c in out["steps"][-1]["candidates"]}
-    structural = [k for k in np.flatnonzero(same[best_k]) if k not in close]
-    for k in structural:
-        margin = gains.get(names[best_k], 0.0) - gains.get(names[k], math.nan)
+    step = out["steps"][-1]
+    gains = {c["name"]: c["log_marginal_gain"] for c in step.get("candidates", [])}
+    if same is None:  # no structural pairs
+        same = np.zeros((len(names), len(names)), bool)
+    for k in np.flatnonzero(same[best_k]):
+        # The evidence margin between the two (what the first-state prior
+        # made of it; None for a candidate not fitted at this step).
+        both = names[best_k] in gains and names[k] in gains
+        margin = gains[names[best_k]] - gains[names[k]] if both else None
         rivals.append(
             {
                 "name": names[k],
                 "structural": True,
-                "evidence_margin": None if math.isnan(margin) else float(margin),
+                "evidence_margin": margin,
                 "separable": False,
                 "sequences_to_separate": None,
                 "sequence_length": T,
@@ -217,18 +222,7 @@ def _classify_rivals(
         equiv.append(names[k])
     for k in close:
         if same[best_k, k]:
-            rivals.append(
-                {
-                    "name": names[k],
-                    "structural": True,
-                    "evidence_margin": float(gains[names[best_k]] - gains[names[k]]),
-                    "separable": False,
-                    "sequences_to_separate": None,
-                    "sequence_length": T,
-                }
-            )
-            equiv.append(names[k])
-            continue
+            continue  # recorded above
         ibb, ikk, ibk = info[best_k, best_k], info[k, k], info[best_k, k]
         # Where the pair's block of the (efficient) information is not
         # positive semi-definite, its correlation can exceed 1 (−1.04 for two
@@ -259,7 +253,7 @@ def _classify_rivals(
             equiv.append(names[k])
         else:
             amb.append(names[k])
-    out["steps"][-1]["rivals"] = rivals
+    step["rivals"] = rivals
     if len(equiv) > 1:
         out["equivalence_sets"].append(equiv)
     if len(amb) > 1:
