@@ -269,6 +269,11 @@ def _structure_or_none(model, ev, data, out) -> np.ndarray:
     except EVALUATION_ERRORS as e:
         out["flags"].append(f"structural equivalence not decided: {e}")
         return np.zeros((K, K), bool)
+    # Members of one family are one effect (the profile reports them).
+    family = [_family(model, k) for k in range(K)]
+    for i, j in zip(*np.nonzero(same)):
+        if family[i] is not None and family[i] == family[j]:
+            same[i, j] = False
     return same
 
 
