@@ -37,6 +37,9 @@ nearly all of it compilation; the two trajectories agreed to 7e-9 m and
 
 import argparse
 import json
+import os
+import platform
+import sys
 import time
 from pathlib import Path
 
@@ -285,6 +288,13 @@ def main(argv=None):
     rot = np.asarray(sol.value["x"].rotation().as_matrix())
     err = lambda p: float(np.sqrt(np.mean(np.sum((p - gps_xyz) ** 2, axis=1))))
     summary = {
+        "command": "python " + " ".join(["examples/kitti_imu_gps.py", *sys.argv[1:]]),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "processor": platform.processor() or platform.machine(),
+            "jax": jax.__version__,
+            "date": time.strftime("%Y-%m-%d", time.gmtime()),
+        },
         "keyframes": int(gps_xyz.shape[0]),
         "imu_samples": int(mask.sum()),
         "gps_factors": int(len(gps_ids) + 1),

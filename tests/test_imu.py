@@ -749,3 +749,44 @@ def _factors_with_gravity(pim, gravity):
         pim,
         gravity,
     )
+
+
+# ------------------------------------------------------------------ the example
+
+
+@pytest.mark.slow
+def test_kitti_example_quick_matches_gtsam(tmp_path):
+    """`python examples/kitti_imu_gps.py --quick`: GTSAM's IMU + GPS example
+    as one batch solve, and GTSAM's solve of the same graph in the same run,
+    agree. Slow: a whole run in a child process (about 2 minutes on 2 shared
+    cores, nearly all compilation)."""
+    _gtsam()
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from helpers import child_env
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "kitti.json"
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(root / "examples" / "kitti_imu_gps.py"),
+            "--quick",
+            "--json",
+            str(out),
+        ],
+        env=child_env(),
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    summary = json.loads(out.read_text())
+    assert summary["keyframes"] == 60
+    assert summary["difference"]["max_position_m"] < 1e-6
+    assert summary["difference"]["max_rotation_rad"] < 1e-6
+    assert summary["eqsmooth"]["rmse_to_all_gps_m"] < 5.0
