@@ -1,36 +1,24 @@
 """Time of one `find` → `name` → `add` call of the discrepancy workflow.
 
-Each case runs in a fresh process (`--child`), so the first call includes
-every compilation; the later calls reuse them. Cases:
+Each case runs in a fresh process: its first call includes every compilation,
+later calls (each on new data) reuse them. Cases (B = 24 × T = 40, 10
+candidates, viscous damping): `oscillator` (`experiments/discovery_validation/
+oscillator.py`, SNR 0.4) and `pendulum` (`continuous.py` there, SNR 1). Per
+case: the first call, its XLA compilations (count, time, the five longest
+programs) and tracing and lowering time, and the median later call.
+`--flags fast`: `eqsmooth.set_xla_cpu_flags(fast_compile=True)` first.
+`--cache DIR`: each case twice with `eqsmooth.enable_compilation_cache(DIR)`
+(fast flags only with `--flags fast`), DIR emptied first ("cold cache"), then
+in a new process reading it ("warm cache"). `--eqsmooth PATH`: time another
+checkout (before/after in one command).
 
-- `oscillator`: the 1-D oscillator of
-  `experiments/discovery_validation/oscillator.py` (10 candidates) with
-  viscous damping at SNR 0.4, B = 24 × T = 40.
-- `pendulum`: the continuous-time pendulum of `continuous.py` there (an
-  `Integrator` model, 10 candidates inside the vector field) with
-  viscous damping at SNR 1, B = 24 × T = 40.
-
-Reported per case: the first call (with compilation), the median of the
-later calls (each on a new data set), the number of XLA compilations and
-their total time in the first call. `--flags fast` starts each child with
-`eqsmooth.set_xla_cpu_flags(fast_compile=True)`, the documented set-up.
-`--cache DIR` turns on JAX's persistent compilation cache in DIR
-(`eqsmooth.enable_compilation_cache`): run twice, the second run's first
-call reads what the first run compiled. `--eqsmooth PATH` times another
-checkout (e.g. a worktree of an earlier commit, for a before/after run in
-one command).
-
-    python -m benchmarks.discover_speed \\
-        --json benchmarks/results/discover_speed.json
-    rm -rf /tmp/dc_cache; for run in cold warm; do \\
-        python -m benchmarks.discover_speed --cases oscillator --flags fast \\
-        --repeats 1 --cache /tmp/dc_cache --label "cache $run" \\
-        --json benchmarks/results/discover_speed.json; done
-    # the same with EQX_ON_ERROR=nan set, to a new folder (no host callbacks)
+    python -m benchmarks.discover_speed --cases oscillator --flags default \\
+        --repeats 3 --cache /tmp/dc_cache --json benchmarks/results/discover_speed.json
 """
 
 import argparse
 import json
+import shutil
 import statistics
 import time
 from pathlib import Path
@@ -40,8 +28,7 @@ CASES = ("oscillator", "pendulum")
 
 
 def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
-    # Before JAX starts: the flags and the cache are set up first.
-    import eqsmooth
+    import eqsmooth  # the flags and the cache are set before JAX starts
 
     if cache:
         eqsmooth.enable_compilation_cache(cache, fast_compile=flags == "fast")
@@ -50,12 +37,15 @@ def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from ._common import compile_log, git
-
-    compiles = compile_log()
+    events = []  # (event, program, seconds): tracing, lowering, compiling
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda e, s, **kw: events.append((e.split("/")[-1], kw.get("fun_name"), s))
+    )
     import numpy as np
 
     import eqsmooth.discover as dc
+
+    from ._common import git
 
     if case == "oscillator":
         from experiments.discovery_validation import oscillator as d1
@@ -76,27 +66,33 @@ def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
             rng = np.random.default_rng([2026, 37, 99, seed])
             return d3.simulate(rng, "viscous damping", coef)[0]
 
-    times, names, first = [], [], None
+    times, names, rec = [], [], {"case": case, "flags": flags, "cache": cache}
     for seed in range(repeats + 1):
         d = data(seed)
         t0 = time.perf_counter()
         found = dc.find(model, d)
         named = dc.name(found, d)
         dc.add(found, named, d)
-        dt = time.perf_counter() - t0
+        times.append(time.perf_counter() - t0)
         names.append(list(named["named"]))
-        if first is None:
-            first = {"s": dt, "n": len(compiles), "c": sum(c[1] for c in compiles)}
-        else:
-            times.append(dt)
+        if seed == 0:  # the first call: where its time went
+            total = {e: sum(s for e2, _, s in events if e2 == e) for e, _, _ in events}
+            compiles = [(n, s) for e, n, s in events if e == "backend_compile_duration"]
+            programs = {}
+            for n, s in compiles:
+                programs[n] = programs.get(n, 0.0) + s
+            rec["first_call_compiles"] = len(compiles)
+            rec["first_call_compile_s"] = total.get("backend_compile_duration", 0.0)
+            rec["first_call_trace_s"] = total.get("jaxpr_trace_duration", 0.0)
+            rec["first_call_lower_s"] = total.get("jaxpr_to_mlir_module_duration", 0.0)
+            top = sorted(programs.items(), key=lambda kv: -kv[1])[:5]
+            rec["first_call_top_programs"] = {k: round(v, 2) for k, v in top}
     where = Path(eqsmooth.__file__).resolve().parent
     status = git("status", "--porcelain", "--untracked-files=no", where=where)
-    rec = {"case": case, "flags": flags, "cache": cache, "eqsmooth": str(where)}
+    rec |= {"eqsmooth": str(where), "eqsmooth_dirty": bool(status)}
     rec["eqsmooth_git"] = git("rev-parse", "--short", "HEAD", where=where)
-    rec |= {"eqsmooth_dirty": bool(status), "first_call_s": first["s"]}
-    rec |= {"first_call_compiles": first["n"], "first_call_compile_s": first["c"]}
-    rec |= {"later_calls_s": times, "later_median_s": statistics.median(times)}
-    return rec | {"named": names}
+    rec |= {"first_call_s": times[0], "later_calls_s": times[1:]}
+    return rec | {"later_median_s": statistics.median(times[1:]), "named": names}
 
 
 def main(argv=None):
@@ -108,12 +104,7 @@ def main(argv=None):
     )
     parser.add_argument("--eqsmooth", default=None, help="checkout to time")
     parser.add_argument("--label", default="this checkout")
-    parser.add_argument(
-        "--cache",
-        default=None,
-        help="run each child with eqsmooth.enable_compilation_cache(CACHE); "
-        "an empty folder measures a cold cache, a second run the warm one",
-    )
+    parser.add_argument("--cache", default=None, help="cold, then warm, cache here")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
@@ -125,22 +116,30 @@ def main(argv=None):
 
     path = Path(args.json) if args.json else None
     records = json.loads(path.read_text())["records"] if path and path.exists() else []
+    runs = ["cold cache", "warm cache"] if args.cache else [None]
     for case in args.cases:
         for flags in args.flags:
-            child_args = ["--child", f"{case}:{flags}", "--repeats", str(args.repeats)]
-            child_args += ["--cache", args.cache] if args.cache else []
-            rec = run_child("discover_speed", child_args, args.eqsmooth)
-            rec |= {"label": args.label, "command": cli_command()}
-            records.append(rec)
-            print(
-                f"{args.label} {case} {flags}: first {rec['first_call_s']:.1f} s "
-                f"({rec['first_call_compiles']} compiles, "
-                f"{rec['first_call_compile_s']:.1f} s), later median "
-                f"{rec['later_median_s']:.2f} s",
-                flush=True,
-            )
-            if path:  # saved after every case: a stopped run keeps its cases
-                write_json(path, records, {"info": {"machine": machine()}})
+            for run in runs:
+                child_args = [
+                    "--child",
+                    f"{case}:{flags}",
+                    "--repeats",
+                    str(args.repeats),
+                ]
+                if run:
+                    if run == "cold cache":
+                        shutil.rmtree(args.cache, ignore_errors=True)
+                    child_args += ["--cache", args.cache]
+                rec = run_child("discover_speed", child_args, args.eqsmooth)
+                label = f"{args.label}, {run}" if run else args.label
+                rec |= {"label": label, "command": cli_command()}
+                rec["load_average"] = machine()["load_average"]
+                records.append(rec)
+                keys = ("first_call_s", "first_call_compiles", "first_call_compile_s")
+                keys += ("first_call_trace_s", "later_median_s")
+                print(label, case, flags, {k: rec[k] for k in keys}, flush=True)
+                if path:  # saved after every case: a stopped run keeps its cases
+                    write_json(path, records, {"info": {"machine": machine()}})
 
 
 if __name__ == "__main__":

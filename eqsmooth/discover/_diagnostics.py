@@ -9,7 +9,7 @@ from ._model import (
     ChainModel,
     diagnostic_innovations,
     Sequences,
-    simulate,
+    trajectory_checks,
 )
 from ._stats import (
     chi2_two_sided,
@@ -141,12 +141,9 @@ def innovations_significant(innov: dict, alpha: float) -> bool:
 
 def _residuals(model: ChainModel, data: Sequences, xhat: np.ndarray):
     """Whitened smoother residuals: transitions `(B, T-1, n)`, measurements."""
-    import jax
-
-    x, u, y = xhat, np.asarray(data.inputs), np.asarray(data.measurements)
-    trans = jax.vmap(jax.vmap(model.transition))(x[:, :-1], u[:, :-1])
-    obs = jax.vmap(jax.vmap(model.observe))(x, u)
-    rt = (x[:, 1:] - np.asarray(trans)) / np.asarray(model.process_sigma)
+    x, y = xhat, np.asarray(data.measurements)
+    _, trans, obs = trajectory_checks(model, x, data.inputs)
+    rt = (x[:, 1:] - np.asarray(trans)[:, :-1]) / np.asarray(model.process_sigma)
     rm = (y - np.asarray(obs)) / np.asarray(model.measurement_std)
     return rt, rm
 
@@ -253,7 +250,7 @@ def residual_summary(model, data, xhat) -> list[dict]:
 
 def open_loop(model: ChainModel, data: Sequences, xhat: np.ndarray) -> dict:
     """Noise-free simulation from the smoothed first states versus the data."""
-    _, ys = simulate(model, xhat[:, 0], data.inputs)
+    ys, _, _ = trajectory_checks(model, xhat, data.inputs)
     err = np.asarray(data.measurements) - np.asarray(ys)
     rms_t = np.sqrt(np.mean(err * err, axis=(0, 2)))
     T = rms_t.shape[0]

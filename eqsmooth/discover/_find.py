@@ -1,6 +1,7 @@
 """Find: is something missing from the model, and how large would each
 candidate need to be to be seen?"""
 
+import jax
 import numpy as np
 
 from ._adequacy import adequacy_test
@@ -101,12 +102,10 @@ def find(
     K = len(model.candidates)
     if K == 0:
         raise ValueError("find: the model has no candidate effects to test")
-    check_features(
-        model.candidates,
-        data.x0_mean[0],
-        data.inputs[0, 0],
-        data.measurements.shape[-1],
-    )
+    # Sliced in NumPy: an eager JAX slice compiles a program on a first call.
+    x0 = jax.device_put(np.asarray(data.x0_mean)[0])
+    u0 = jax.device_put(np.asarray(data.inputs)[0, 0])
+    check_features(model.candidates, x0, u0, data.measurements.shape[-1])
     model = model.with_coefficients(np.zeros(K))
     nuis = _nuisance(model, fit_noise)
     # What a failed find hands on (the settings and the nominal model).

@@ -1,11 +1,11 @@
 """Fitting by Laplace marginal likelihood, score tests, derivatives."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._model import (
-    apply_z,
     batch_log_marginal,
     batch_scores,
     ChainModel,
@@ -41,8 +41,9 @@ def feature_scales(model: ChainModel, data: Sequences, xhat: np.ndarray) -> np.n
     `x < 0`) raises a `ValueError` naming the candidate and the first such
     state: its score would be NaN, and the test of every candidate with it.
     """
-    x = jnp.asarray(xhat).reshape(-1, xhat.shape[-1])
-    u = data.inputs.reshape(-1, data.inputs.shape[-1])
+    # NumPy reshapes: eager ones on JAX arrays compile a program each.
+    x = np.asarray(xhat).reshape(-1, xhat.shape[-1])
+    u = np.asarray(data.inputs).reshape(-1, data.inputs.shape[-1])
     out = []
     for c, f in zip(model.candidates, feature_values(model, x, u)):
         bad = ~np.isfinite(f.reshape(f.shape[0], -1)).all(axis=1)
@@ -388,5 +389,15 @@ def null_z(model: ChainModel) -> np.ndarray:
 
 
 def fitted_model(model: ChainModel, z: np.ndarray) -> ChainModel:
-    """The model with coefficients and noise scales of `z` applied."""
-    return apply_z(model, jnp.asarray(z))
+    """The model with coefficients and noise scales of `z` applied.
+
+    `apply_z` in NumPy: applied eagerly to JAX arrays, its operations
+    compiled a program each on a first call."""
+    z, K = np.asarray(z, dtype=float), len(model.candidates)
+    sigmas = (model.process_sigma, model.measurement_sigma, model.prior_sigma)
+    scaled = [np.asarray(s) * np.exp(z[K + i]) for i, s in enumerate(sigmas)]
+    return eqx.tree_at(
+        lambda m: (m.coefficients, m.process_sigma, m.measurement_sigma, m.prior_sigma),
+        model,
+        tuple(jax.device_put(a) for a in [z[:K], *scaled]),
+    )

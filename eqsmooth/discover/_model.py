@@ -407,13 +407,11 @@ def _zero_offsets(B: int, T: int, m: int, n: int, dtype: str) -> Offsets:
     # eager `jnp.zeros` per call cost about a fifth of a `name` call's time.
     # (Arrays are immutable, so one set serves every call; built eagerly
     # even under a trace, so no tracer is cached.)
+    # NumPy zeros put on the device: `jnp.zeros` (or `jnp.asarray`) would
+    # compile a program per shape on a first call.
+    shapes = ((B, T - 1, n), (B, T - 1, n, n), (B, T, m), (B, T, m, n))
     with jax.ensure_compile_time_eval():
-        return Offsets(
-            jnp.zeros((B, T - 1, n), dtype),
-            jnp.zeros((B, T - 1, n, n), dtype),
-            jnp.zeros((B, T, m), dtype),
-            jnp.zeros((B, T, m, n), dtype),
-        )
+        return Offsets(*(jax.device_put(np.zeros(s, dtype)) for s in shapes))
 
 
 def _graph(model, measurements, inputs, x0_mean, offsets=None, x_ref=None):
@@ -693,6 +691,20 @@ def simulate(
         return xs, ys
 
     return jax.vmap(one)(x0, inputs)
+
+
+@_compiled
+def trajectory_checks(
+    model: ChainModel, xhat: Float[Array, "B T n"], inputs: Float[Array, "B T k"]
+):
+    """What `find` checks about the smoothed states `xhat`, in one program:
+    the noise-free open-loop measurements from `xhat[:, 0]` `(B, T, m)`, and
+    every state's one-step means `f(x̂_t, u_t)` `(B, T, n)` and `h(x̂_t, u_t)`
+    `(B, T, m)`. (Evaluated eagerly, the model's functions compiled a small
+    program per operation on a first call: about twenty.)"""
+    _, ys = simulate.__wrapped__(model, xhat[:, 0], inputs)
+    step = jax.vmap(jax.vmap(model.transition))(xhat, inputs)
+    return ys, step, jax.vmap(jax.vmap(model.observe))(xhat, inputs)
 
 
 @_compiled
