@@ -132,6 +132,7 @@ def main(argv=None):
             record = U.summarise(args.out)
             if record is not None:
                 print(U.markdown(record))
+                report.write_summary(args.out)  # summary.md's section
             return
         for fold in folds:
             U.run_fold(cfg, fold, args.out)

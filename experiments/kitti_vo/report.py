@@ -201,8 +201,28 @@ def write_summary(out: Path) -> str:
     if declared is not None:
         lines += ["", *declared_lines(declared)]
     text = "\n".join(lines) + "\n"
-    (Path(out) / "summary.md").write_text(text)
+    (Path(out) / "summary.md").write_text(text + uncertainty_section(out))
     return text
+
+
+def uncertainty_section(out: Path) -> str:
+    """summary.md's section on the covariances (issue 58), from
+    `uncertainty.json` under `out` (empty when there is none). Not part of
+    the table that `update_docs` copies: the tutorial has its own section."""
+    path = Path(out) / "uncertainty.json"
+    if not path.exists():
+        return ""
+    from . import uncertainty as U
+
+    record = json.loads(path.read_text())
+    return (
+        "\n## Uncertainty: NLL, NEES and coverage of the covariances (issue 58)\n\n"
+        "The rows with a covariance trained again from the committed sensors "
+        "(`python -m experiments.kitti_vo --uncertainty`; pooled by "
+        "`--uncertainty --report-only`); definitions in "
+        "`uncertainty.json`, per-fold files `uncertainty_fold_K.json`, figure "
+        "`fig_calibration.png`.\n\n" + U.markdown(record)
+    )
 
 
 def best_step_lines(results: list[dict]) -> list[str]:

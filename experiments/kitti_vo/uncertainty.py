@@ -165,15 +165,8 @@ def truth_planar(windows: dict) -> np.ndarray:
 def score(est, cov, truth) -> dict:
     """`{marginal: fold summary}` over frames `FIRST_SCORED_FRAME..`."""
     s = slice(FIRST_SCORED_FRAME, None)
-    err = np.asarray(
-        M.planar_error(jnp.asarray(truth[:, s], jnp.float32), jnp.asarray(est[:, s])),
-        np.float64,
-    )
-    # The wrapped heading error in float64 (the float32 one above only
-    # decides the wrap).
-    e64 = truth[:, s].astype(np.float64) - est[:, s].astype(np.float64)
-    err[..., :2] = e64[..., :2]
-    err[..., 2] = np.mod(e64[..., 2] + np.pi, 2 * np.pi) - np.pi
+    err = np.asarray(truth, np.float64)[:, s] - np.asarray(est, np.float64)[:, s]
+    err[..., 2] = np.mod(err[..., 2] + np.pi, 2 * np.pi) - np.pi
     out = {}
     for name, idx in MARGINALS.items():
         i = np.asarray(idx)
