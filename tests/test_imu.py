@@ -269,6 +269,29 @@ def test_bias_correction_matches_gtsam_predict():
     assert np.abs(r_hat).max() > 1e-3
 
 
+@eqx.filter_jit
+def _predict(pim, pose_i, vel_i, bias_i):
+    pose_j, vel_j = pim.predict(pose_i, vel_i, bias_i, jnp.asarray(GRAVITY))
+    return pose_j.as_matrix(), vel_j
+
+
+def test_predict_matches_gtsam():
+    gtsam = _gtsam()
+    import eqsmooth as eqs
+
+    acc, gyro, dt, bias_hat, states = _data()
+    poses_i = eqs.SE3.exp(jnp.asarray(states["pose_i"]))
+    pose_j, vel_j = _predict(
+        _ours(), poses_i, jnp.asarray(states["vel_i"]), jnp.asarray(states["bias_i"])
+    )
+    for row, (pim, _) in enumerate(_gtsam_pims(acc, gyro, dt, bias_hat)):
+        b = states["bias_i"][row]
+        nav = gtsam.NavState(_pose3(gtsam, poses_i[row]), states["vel_i"][row])
+        want = pim.predict(nav, gtsam.imuBias.ConstantBias(b[:3], b[3:]))
+        np.testing.assert_allclose(pose_j[row], want.pose().matrix(), atol=1e-12)
+        np.testing.assert_allclose(vel_j[row], want.velocity(), atol=1e-12)
+
+
 @pytest.mark.parametrize("combined", [False, True], ids=["imu", "combined"])
 def test_factor_residual_and_jacobians_match_gtsam(combined):
     gtsam = _gtsam()

@@ -62,16 +62,12 @@ def navigation_error(
 
     **Returns:** the residual, `(9,)`.
     """
-    x = pim.bias_corrected(bias_i)
-    dt = pim.delta_t
-    rot_i, rot_j = pose_i.rotation(), pose_j.rotation()
-    r_i = rot_i.as_matrix()
-    p_hat = pose_i.translation() + velocity_i * dt + 0.5 * gravity * dt * dt
-    p_hat = p_hat + mm(r_i, x[3:6])
-    v_hat = velocity_i + gravity * dt + mm(r_i, x[6:9])
-    omega = (rot_j.inverse() @ (rot_i @ SO3.exp(x[:3]))).log()
+    pose_hat, v_hat = pim.predict(pose_i, velocity_i, bias_i, gravity)
+    rot_j = pose_j.rotation()
+    omega = (rot_j.inverse() @ pose_hat.rotation()).log()
     jl_inv = SO3.right_jacobian_inv(-omega)  # Jl(ω)⁻¹ = Jr(−ω)⁻¹
     r_jt = rot_j.inverse()
+    p_hat = pose_hat.translation()
     return jnp.concatenate(
         [
             omega,

@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._precision import matmul as mm
-from ..lie import SO3
+from ..lie import SE3, SO3
 from ..lie._so3 import skew
 from ..lie._utils import coef_c
 from ._noise import is_concrete
@@ -254,6 +254,39 @@ class PreintegratedImuMeasurements(eqx.Module):
             + mm(self.H_bias_acc, d[..., :3, None])[..., 0]
             + mm(self.H_bias_omega, d[..., 3:, None])[..., 0]
         )
+
+    def predict(
+        self,
+        pose_i: SE3,
+        velocity_i: Float[Array, "*batch 3"],
+        bias_i: Float[Array, "*batch 6"],
+        gravity: Float[Array, "3"],
+    ) -> tuple[SE3, Float[Array, "*batch 3"]]:
+        """The state at `j` predicted from the state at `i` and the bias
+        (GTSAM's `predict(NavState(pose_i, velocity_i), bias_i)`):
+        `R_j = R_i Exp(θ)`, `p_j = p_i + v_i Δt + ½ g Δt² + R_i Δp`,
+        `v_j = v_i + g Δt + R_i Δv`, with `(θ, Δp, Δv)` corrected for `bias_i`.
+        Useful to initialise the states of a new keyframe.
+
+        **Arguments:**
+
+        - `pose_i`: an [`eqsmooth.lie.SE3`][] (body to navigation) of the
+            batch shape of `self`.
+        - `velocity_i`: navigation-frame velocities, `(*batch, 3)`.
+        - `bias_i`: `(b_acc, b_omega)`, `(*batch, 6)`.
+        - `gravity`: the navigation-frame gravity, `(3,)`.
+
+        **Returns:** `(pose_j, velocity_j)`.
+        """
+        x = self.bias_corrected(bias_i)
+        dt = self.delta_t[..., None]
+        g = jnp.broadcast_to(gravity, x[..., :3].shape)
+        rot_i = pose_i.rotation()
+        p = pose_i.translation() + velocity_i * dt + 0.5 * g * dt * dt
+        p = p + rot_i.apply(x[..., 3:6])
+        v = velocity_i + g * dt + rot_i.apply(x[..., 6:9])
+        rot_j = rot_i @ SO3.exp(x[..., :3])
+        return SE3.from_rotation_and_translation(rot_j, p), v
 
     def _chart_jacobian(self) -> Float[Array, "*batch 9 9"]:
         # From additive (θ, Δp, Δv) perturbations to the NavState chart of the
