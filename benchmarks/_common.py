@@ -177,8 +177,7 @@ def cli(doc: str) -> argparse.ArgumentParser:
 
 def print_and_save(records, columns, path=None, extra=None) -> None:
     """Print `records` as a table; write them to `path` (JSON) if given."""
-    print()
-    print(markdown_table(records, columns))
+    print("\n" + markdown_table(records, columns))
     if path:
         write_json(path, records, extra)
 
@@ -201,10 +200,8 @@ def write_text(path, text: str) -> None:
 def markdown_table(rows: list[dict], columns: list[str]) -> str:
     out = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for r in rows:
-        cells = []
-        for c in columns:
-            v = r.get(c, "")
-            cells.append(f"{v:.4g}" if isinstance(v, float) else str(v))
+        cells = (r.get(c, "") for c in columns)
+        cells = [f"{v:.4g}" if isinstance(v, float) else str(v) for v in cells]
         out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out)
 

@@ -135,6 +135,10 @@ def bench_one(name, pg, args, solver, solver_name, gtsam):
     rec["result"] = str(sol.result).split("<", 1)[-1].rstrip(">") or "successful"
     if gtsam:
         rec.update(gtsam_record(gtsam, name, pg, args, rec))
+        # The first step whose cost is GTSAM's final cost or lower (-1: none).
+        hist = np.asarray(sol.stats["cost_history"])[: rec["num_steps"] + 1]
+        ok = np.flatnonzero(hist <= rec["reference"] * (1 + 1e-6))
+        rec["steps_to_reference"] = int(ok[0]) if len(ok) else -1
     return rec
 
 
