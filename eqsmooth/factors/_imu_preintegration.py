@@ -390,9 +390,12 @@ def _one_interval(params, acc, gyro, dt, mask, bias_hat):
     def body(carry, sample):
         x, h_bias, cov, cov15, total = carry
         a_m, w_m, h, keep = sample
-        # A skipped (padding) sample integrates nothing; its dt is replaced
-        # by 1 so that Σ/dt stays finite on the branch that is thrown away.
+        # A skipped (padding) sample integrates nothing. Its data are
+        # replaced (dt by 1, the samples by 0) so that the branch thrown away
+        # stays finite: a NaN there would still make gradients NaN (0 · NaN).
         h_safe = jnp.where(keep, h, 1.0)
+        a_m = jnp.where(keep, a_m, 0.0)
+        w_m = jnp.where(keep, w_m, 0.0)
         new, big_a, big_b, big_c = _step(
             x, a_m - bias_hat[:3], w_m - bias_hat[3:], h_safe
         )
@@ -561,6 +564,18 @@ def _preintegrate_checked(params, accelerometer, gyroscope, dt, bias_hat, mask):
                 f"is not masked out; dt{list(where)} = {np.asarray(dt)[where]} "
                 f"({bad.shape[0]} bad samples)"
             )
+    for name, x in (("accelerometer", acc), ("gyroscope", gyro)):
+        if is_concrete(x) and is_concrete(mask):
+            bad = np.argwhere(
+                np.asarray(mask) & ~np.all(np.isfinite(np.asarray(x)), axis=-1)
+            )
+            if bad.size:
+                where = [int(i) for i in bad[0]]
+                raise ValueError(
+                    f"preintegrate: {name}{where} = {np.asarray(x)[tuple(where)]} is "
+                    f"not finite ({bad.shape[0]} such samples); mask out missing "
+                    "samples instead"
+                )
     return _preintegrate_jit(params, acc, gyro, dt, bias, mask)
 
 
@@ -572,6 +587,13 @@ def _preintegrate_jit(params, acc, gyro, dt, bias, mask):
         ~ok,
         "preintegrate: dt must be positive and finite for every sample that is not "
         "masked out (checked under jit)",
+    )
+    finite = jnp.all(jnp.isfinite(acc) & jnp.isfinite(gyro), axis=-1)
+    acc = eqx.error_if(
+        acc,
+        ~jnp.all(jnp.where(mask, finite, True)),
+        "preintegrate: a sample that is not masked out is not finite (checked under "
+        "jit); mask out missing samples instead",
     )
     batch = acc.shape[:-2]
     k = acc.shape[-2]
