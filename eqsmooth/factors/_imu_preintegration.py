@@ -202,7 +202,7 @@ class PreintegratedImuMeasurements(eqx.Module):
 
     Made by [`eqsmooth.factors.preintegrate`][]; the counterpart of GTSAM's
     `PreintegratedImuMeasurements` and `PreintegratedCombinedMeasurements`
-    (both summaries are kept: the combined covariance costs little).
+    (both summaries: the combined covariance is propagated alongside).
     With a leading axis of length `n` it is the data of `n` IMU factor rows.
 
     **Fields** (`*batch` is the batch shape, e.g. `(n,)`):
