@@ -36,3 +36,44 @@ def test_workflow_helpers_compile_no_eager_operations():
     for field in ("coefficients", "process_sigma", "measurement_sigma", "prior_sigma"):
         a, b = getattr(fitted, field), getattr(reference, field)
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-14)
+
+
+def test_every_find_program_can_be_cached():
+    """JAX's persistent cache stores no program with a host callback (an
+    `eqx.error_if` under `jit`): the diagnostic filter's initial-belief check
+    kept it out, and a process with a warm cache compiled it again (about a
+    fifth of such a first call)."""
+    import jax
+    from test_discover import _simulate
+
+    from eqsmooth.discover import _model as M
+
+    data, model = _simulate(0), _model()
+    x = data.initial_states
+    for fn, args in (
+        (M.diagnostic_innovations, (model, data, x)),
+        (M.trajectory_checks, (model, x, data.inputs)),
+    ):
+        text = str(jax.make_jaxpr(fn.__wrapped__)(*args))
+        assert "callback" not in text, fn.__name__
+
+
+def test_ekf_checks_a_traced_initial_belief_only_when_asked_to_throw():
+    import equinox as eqx
+    import jax
+    import pytest
+    from test_hostile_io import _ekf_factors
+
+    import eqsmooth as eqs
+
+    tr, me = _ekf_factors()
+
+    def run(cov, throw):
+        return eqs.ekf(tr, me, jnp.zeros(2), cov, throw=throw).mean
+
+    bad = jnp.array([[1.0, 2.0], [2.0, 1.0]])  # symmetric, not definite
+    with pytest.raises(eqx.EquinoxRuntimeError, match="initial belief"):
+        eqx.filter_jit(run)(bad, True)
+    assert "callback" not in str(jax.make_jaxpr(run, static_argnums=1)(bad, False))
+    with pytest.raises(ValueError, match="positive definite"):
+        run(bad, False)  # concrete: checked either way

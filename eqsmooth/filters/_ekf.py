@@ -130,8 +130,11 @@ def ekf(
         on vector-space states. Off by default: the textbook EKF.
     - `throw`: raise an `EquinoxRuntimeError` (through `eqx.error_if`) if a
         covariance or the log-likelihood is not finite, e.g. a singular
-        transition Jacobian `B`; with `throw=False` non-finite values are
-        returned as they are.
+        transition Jacobian `B`, or if a traced initial belief is invalid;
+        with `throw=False` non-finite values are returned as they are, and
+        the compiled program holds no host callback (JAX's persistent cache
+        stores only programs without one). A concrete invalid initial belief
+        raises `ValueError` either way.
 
     **Returns:** an [`eqsmooth.filters.EKFSolution`][].
 
@@ -152,7 +155,7 @@ def ekf(
     d = tangent_dim(initial_mean)
     initial_covariance = checked_covariance("ekf", initial_covariance, d)
     initial_mean, initial_covariance = _check_initial_belief(
-        initial_mean, initial_covariance
+        initial_mean, initial_covariance, throw
     )
     return _ekf(
         transition,
@@ -165,10 +168,14 @@ def ekf(
     )
 
 
-def _check_initial_belief(mean: PyTree, cov: Array) -> tuple[PyTree, Array]:
+def _check_initial_belief(
+    mean: PyTree, cov: Array, throw: bool
+) -> tuple[PyTree, Array]:
     """Validate the initial belief: a finite mean and a finite, symmetric,
     positive-definite covariance. Concrete values raise `ValueError` naming
-    the fault; traced ones get an `eqx.error_if`."""
+    the fault; traced ones get an `eqx.error_if` when `throw` (a host
+    callback, which also keeps JAX's persistent cache from storing the
+    program: without `throw` they pass as they are)."""
     if not jnp.issubdtype(cov.dtype, jnp.floating):
         raise TypeError(
             f"ekf: initial_covariance must be a floating-point array, got {cov.dtype}"
@@ -200,6 +207,8 @@ def _check_initial_belief(mean: PyTree, cov: Array) -> tuple[PyTree, Array]:
                 "ekf: initial_covariance is not positive definite (smallest "
                 f"eigenvalue {eig.min():.3g})"
             )
+        return mean, cov
+    if not throw:
         return mean, cov
     finite = jnp.all(jnp.isfinite(cov))
     for leaf in leaves:
