@@ -24,6 +24,7 @@ from ..factors import (
     FactorGraph,
     MaskedNoise,
     per_row_fields,
+    PriorFactor,
     Var,
     with_rows,
 )
@@ -49,6 +50,10 @@ class IncrementalState(eqx.Module):
     - `result`: the [`eqsmooth.solve.RESULTS`][] code of the last solve.
     - `num_rows`: the real rows of each factor stack (static, on the host).
     - `num_variables`: `{group: real variables}` as sorted pairs (static).
+    - `row_leaves`: per factor stack, which of its array leaves are per-row.
+    - `templates`: one row of each of init's stacks and one variable of each
+        group, on the host: what an update writes to a buffer that gets
+        nothing new (masked), so that every update runs one program.
     """
 
     graph: FactorGraph
@@ -57,6 +62,7 @@ class IncrementalState(eqx.Module):
     num_rows: tuple[int, ...] = eqx.field(static=True)
     num_variables: tuple[tuple[str, int], ...] = eqx.field(static=True)
     row_leaves: tuple[tuple[bool, ...], ...] = eqx.field(static=True)
+    templates: tuple = ()
 
     @property
     def capacity(self) -> tuple[tuple[int, ...], tuple[tuple[str, int], ...]]:
@@ -116,6 +122,7 @@ class IncrementalSmoother(eqx.Module):
     max_steps: int = eqx.field(static=True, default=100)
     throw: bool = eqx.field(static=True, default=True)
     bucket: Callable[[int], int] = eqx.field(static=True, default=power_of_two)
+    rows_per_update: int = eqx.field(static=True, default=4)
 
     def init(self, graph: FactorGraph, values: Values) -> IncrementalState:
         """Put `graph` (static indices) and its initial `values` into
@@ -134,17 +141,25 @@ class IncrementalSmoother(eqx.Module):
         flags = tuple(
             _row_leaves(padded.graph.factors[k], graph.factors[k]) for k in range(n)
         )
-        _, values, result = _step(
-            self, padded.graph, padded.values, (), {}, None, (), flags
+        templates = (
+            tuple(_first_row(f) for f in graph.factors),
+            {
+                g: jax.tree_util.tree_map(lambda a: np.asarray(a)[:1], v)
+                for g, v in values.items()
+            },
         )
-        return IncrementalState(
+        state = IncrementalState(
             padded.graph,
-            values,
-            result,
+            padded.values,
+            RESULTS.successful,
             tuple(f.num_rows for f in graph.factors),
             padded.counts,
             flags,
+            templates,
         )
+        # The update's own program (every buffer gets a masked block), so
+        # that the first update compiles nothing new.
+        return self._advance(state, {}, {})
 
     def update(
         self,
@@ -186,8 +201,7 @@ class IncrementalSmoother(eqx.Module):
         added = {g: group_count(g, v) for g, v in new_values.items()}
         grown = {g: counts[g] + added.get(g, 0) for g in counts}
         kinds = [_kind(f) for f in state.graph.factors[: len(state.num_rows)]]
-        targets, dynamic = [], []
-        rows = list(state.num_rows)
+        by_stack: dict[int, list[AbstractFactor]] = {}
         for j, f in enumerate(new_factors):
             if not isinstance(f, AbstractFactor):
                 raise TypeError(
@@ -214,22 +228,46 @@ class IncrementalSmoother(eqx.Module):
                         "variables after this update (give new variables in "
                         "new_values)"
                     )
-            s = kinds.index(_kind(f))
-            targets.append((s, rows[s]))
-            rows[s] += f.num_rows
-            dynamic.append(_dynamic(f))
-        state = self._grown(state, rows, grown)
-        offsets = jnp.asarray(
-            np.array([r for _, r in targets] + [counts[g] for g in sorted(counts)])
-        )
+            by_stack.setdefault(kinds.index(_kind(f)), []).append(f)
+        return self._advance(state, by_stack, new_values)
+
+    def _advance(self, state, by_stack, new_values) -> IncrementalState:
+        """Write each stack's new rows and each group's new variables as one
+        block padded to a bucket (at least `rows_per_update`; a masked
+        template block where nothing is new), built on the host, and solve:
+        the compiled update depends on the blocks' sizes only."""
+        counts = dict(state.num_variables)
+        templates, value_templates = state.templates
+        rows, ends = list(state.num_rows), list(state.num_rows)
+        blocks, offsets = [], []
+        for s_ in range(len(rows)):
+            fs = by_stack.get(s_)
+            k = sum(f.num_rows for f in fs) if fs else 0
+            size = self._block(k)
+            block, active = _block(fs or [templates[s_]], size)
+            blocks.append((block, active if fs else jnp.zeros_like(active)))
+            offsets.append(rows[s_])
+            rows[s_] += k
+            ends[s_] = offsets[-1] + size
+        value_blocks, value_ends, grown = {}, {}, {}
+        for g in sorted(counts):
+            m = group_count(g, new_values[g]) if g in new_values else 0
+            size = self._block(m)
+            value_blocks[g] = _value_block(
+                new_values.get(g, value_templates[g]), m, size
+            )
+            value_ends[g] = counts[g] + size
+            grown[g] = counts[g] + m
+            offsets.append(counts[g])
+        state = self._grown(state, ends, value_ends, [*rows, *grown.values()])
         graph, values, result = _step(
             self,
             state.graph,
             state.values,
-            tuple(dynamic),
-            new_values,
-            offsets,
-            tuple(s for s, _ in targets),
+            tuple(blocks),
+            value_blocks,
+            jax.device_put(np.asarray(offsets, np.int32)),
+            tuple(range(len(rows))),
             state.row_leaves,
         )
         return IncrementalState(
@@ -239,38 +277,47 @@ class IncrementalSmoother(eqx.Module):
             tuple(rows),
             tuple(sorted(grown.items())),
             state.row_leaves,
+            state.templates,
         )
 
-    def _grown(self, state, rows, grown) -> IncrementalState:
-        """`state` with every buffer that `rows`/`grown` overflow doubled."""
+    def _block(self, k: int) -> int:
+        return max(self.rows_per_update, 1 << max(0, (k - 1).bit_length()))
+
+    def _grown(self, state, rows, grown, real) -> IncrementalState:
+        """`state` with every buffer that `rows`/`grown` overflow doubled;
+        when one grows, so does every buffer more than half full (they tend
+        to fill together), so that a growth costs one compile, not one per
+        buffer. Built on the host (numpy), so growing compiles nothing but
+        the next update's program."""
         (stacks, groups), n = state.capacity, len(state.num_rows)
-        groups = dict(groups)
+        needed = [*rows, *(grown[g] for g in sorted(dict(groups)))]
+        have = [*stacks, *(c for _, c in groups)]
+        if all(a <= c for a, c in zip(needed, have)):
+            return state
+        sizes = [
+            _doubled(c, a) if a > c else (2 * c if 2 * r > c else c)
+            for a, c, r in zip(needed, have, real)
+        ]
         factors = list(state.graph.factors)
         values = dict(state.values)
-        changed = False
         for s in range(n):
-            size = _doubled(stacks[s], rows[s])
-            if size != stacks[s]:
-                factors[s] = _take(factors[s], stacks[s], state.num_rows[s], size)
-                changed = True
-        for k, name in enumerate(sorted(groups)):
-            size = _doubled(groups[name], grown[name])
-            if size == groups[name]:
+            if sizes[s] != have[s]:
+                factors[s] = _host_grown(factors[s], state.row_leaves[s], sizes[s])
+        for k, name in enumerate(sorted(values)):
+            size, c = sizes[n + k], have[n + k]
+            if size == c:
                 continue
-            changed = True
-            index = _index(groups[name], size)
             values[name] = jax.tree_util.tree_map(
-                lambda a: take_leading(a, index), values[name]
+                lambda a: _rows_of([np.asarray(a)], size), values[name]
             )
-            prior = factors[n + k]
-            active = jnp.concatenate(
-                [prior.noise.active, jnp.ones(size - groups[name], bool)]
+            active = np.concatenate(
+                [np.asarray(factors[n + k].noise.active), np.ones(size - c, bool)]
             )
-            factors[n + k] = type(prior)(
-                Var(name, np.arange(size)), values[name], _PaddingNoise(active)
+            factors[n + k] = PriorFactor(
+                Var(name, np.arange(size)),
+                values[name],
+                _PaddingNoise(jax.device_put(active)),
             )
-        if not changed:
-            return state
         return IncrementalState(
             FactorGraph(factors),
             values,
@@ -278,7 +325,28 @@ class IncrementalSmoother(eqx.Module):
             state.num_rows,
             state.num_variables,
             state.row_leaves,
+            state.templates,
         )
+
+
+def _host_grown(f: AbstractFactor, per_row: tuple[bool, ...], size: int):
+    """Buffer stack `f` grown to `size` rows on the host: per-row leaves
+    padded with copies of row 0, except the row mask (the one boolean per-row
+    leaf), padded with False."""
+    arrays, rest = eqx.partition(f, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    out = []
+    for a, r in zip(leaves, per_row):
+        if r:
+            a = np.asarray(a)
+            fill = (
+                np.zeros((size - a.shape[0], *a.shape[1:]), bool)
+                if a.dtype == np.bool_
+                else np.broadcast_to(a[:1], (size - a.shape[0], *a.shape[1:]))
+            )
+            a = jax.device_put(np.concatenate([a, fill]))
+        out.append(a)
+    return eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
 
 
 def _kind(f: AbstractFactor) -> tuple:
@@ -346,10 +414,8 @@ def _row_leaves(buffer: AbstractFactor, original: AbstractFactor) -> tuple[bool,
 # One compiled program per update: write the new rows and variables into the
 # buffers, then solve the whole graph from the last estimate.
 @eqx.filter_jit
-def _step(smoother, graph, values, new_factors, new_values, offsets, targets, flags):
-    graph, values = _write(
-        graph, values, new_factors, new_values, offsets, targets, flags
-    )
+def _step(smoother, graph, values, blocks, value_blocks, offsets, targets, flags):
+    graph, values = _write(graph, values, blocks, value_blocks, offsets, targets, flags)
     sol = least_squares(
         graph,
         values,
@@ -360,15 +426,17 @@ def _step(smoother, graph, values, new_factors, new_values, offsets, targets, fl
     return graph, sol.value, sol.result
 
 
-def _write(graph, values, new_factors, new_values, offsets, targets, row_leaves):
-    """The grown graph and values: each new stack's rows written into its
-    target buffer at the offset, new variables at the end of their group
-    (and released from the padding prior)."""
+def _write(graph, values, blocks, value_blocks, offsets, targets, row_leaves):
+    """The grown graph and values: each block of new rows written into its
+    target stack at its offset (its padding rows masked), each group's new
+    variables at the end of the group (the real ones released from the
+    padding prior)."""
     factors = list(graph.factors)
     n = len(row_leaves)
-    for j, (f, s) in enumerate(zip(new_factors, targets)):
+    for j, ((f, active), s) in enumerate(zip(blocks, targets)):
         k = f.num_rows
         padded = _take(f, k, k, k)  # the buffer's form: masked noise
+        padded = eqx.tree_at(lambda p: p.noise, padded, padded.noise.mask_rows(active))
         buf = factors[s]
         arrays, rest = eqx.partition(buf, eqx.is_array)
         leaves, treedef = jax.tree_util.tree_flatten(arrays)
@@ -377,9 +445,9 @@ def _write(graph, values, new_factors, new_values, offsets, targets, row_leaves)
         )
         if new_def != treedef:
             raise TypeError(
-                f"IncrementalSmoother.update: new_factors[{j}] "
-                f"({type(f).__name__}) differs in structure from init's stack "
-                f"{s} (fields or noise parameters of another form)"
+                f"IncrementalSmoother.update: the new {type(f).__name__} rows differ "
+                f"in structure from init's stack {s} (fields or noise parameters "
+                "of another form)"
             )
         out = []
         for leaf, new, per_row in zip(leaves, new_leaves, row_leaves[s]):
@@ -389,13 +457,12 @@ def _write(graph, values, new_factors, new_values, offsets, targets, row_leaves)
             out.append(leaf)
         factors[s] = eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
     values = dict(values)
-    base = len(new_factors)
+    base = len(blocks)
     for k, name in enumerate(sorted(values)):
-        if name not in new_values:
+        if name not in value_blocks:
             continue
         start = offsets[base + k]
-        new = new_values[name]
-        m = group_count(name, new)
+        new, real = value_blocks[name]
         values[name] = jax.tree_util.tree_map(
             lambda a, b: jax.lax.dynamic_update_slice_in_dim(
                 a, jnp.asarray(b, a.dtype), start, 0
@@ -404,10 +471,112 @@ def _write(graph, values, new_factors, new_values, offsets, targets, row_leaves)
             new,
         )
         prior = factors[n + k]
+        held = jax.lax.dynamic_slice_in_dim(prior.noise.active, start, real.shape[0])
         active = jax.lax.dynamic_update_slice_in_dim(
-            prior.noise.active, jnp.zeros(m, bool), start, 0
+            prior.noise.active, held & ~real, start, 0
         )
         factors[n + k] = eqx.tree_at(
             lambda p: (p.noise, p.value), prior, (_PaddingNoise(active), values[name])
         )
     return FactorGraph(factors), values
+
+
+def _is_traced(leaves) -> bool:
+    return any(isinstance(a, jax.core.Tracer) for a in leaves)
+
+
+def _rows_of(arrays: list, size: int):
+    """Arrays with a leading row axis, concatenated and padded to `size` rows
+    with copies of the first: on the host (numpy, then one transfer: no
+    compile) unless traced (a caller's `grad` or `jit`)."""
+    if _is_traced(arrays):
+        a = jnp.concatenate([jnp.asarray(x) for x in arrays])
+        fill = jnp.broadcast_to(a[:1], (size - a.shape[0], *a.shape[1:]))
+        return jnp.concatenate([a, fill])
+    a = np.concatenate([np.asarray(x) for x in arrays])
+    fill = np.broadcast_to(a[:1], (size - a.shape[0], *a.shape[1:]))
+    return jax.device_put(np.concatenate([a, fill]))
+
+
+_NOISE_ROWS: dict = {}
+
+
+def _noise_row_leaves(noise, k: int) -> tuple[bool, ...]:
+    """Which array leaves of a stack's noise have one entry per row (their
+    length changes when the rows are taken one more time)."""
+    leaves, treedef = jax.tree_util.tree_flatten(eqx.filter(noise, eqx.is_array))
+    key = (treedef, k, tuple((a.shape, a.dtype) for a in leaves))
+    if key not in _NOISE_ROWS:
+        more = jax.eval_shape(lambda n: n.take_rows(np.zeros(k + 1, np.int64)), noise)
+        shapes = [
+            a.shape
+            for a in jax.tree_util.tree_leaves(
+                eqx.filter(more, lambda x: isinstance(x, jax.ShapeDtypeStruct))
+            )
+        ]
+        _NOISE_ROWS[key] = tuple(a.shape != b for a, b in zip(leaves, shapes))
+    return _NOISE_ROWS[key]
+
+
+def _block(fs: list[AbstractFactor], size: int):
+    """The rows of the stacks `fs` (one kind) as one stack of `size` rows with
+    dynamic indices, padded with copies of the first row, and the `(size,)`
+    mask of the real rows."""
+    first = fs[0]
+    k = sum(f.num_rows for f in fs)
+    fields = {
+        name: jax.tree_util.tree_map(
+            lambda *a: _rows_of(list(a), size), *(per_row_fields(f)[name] for f in fs)
+        )
+        for name in per_row_fields(first)
+    }
+    block = with_rows(first, fields)
+    variables = tuple(
+        Var.dynamic(v.group, _rows_of([f.variables[i].ids for f in fs], size))
+        for i, v in enumerate(first.variables)
+    )
+    object.__setattr__(block, "variables", variables)
+    arrays, rest = eqx.partition(first.noise, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    per_row = _noise_row_leaves(first.noise, first.num_rows)
+    per_factor = [
+        jax.tree_util.tree_leaves(eqx.filter(f.noise, eqx.is_array)) for f in fs
+    ]
+    out = [
+        _rows_of([p[i] for p in per_factor], size) if per_row[i] else leaves[i]
+        for i in range(len(leaves))
+    ]
+    noise = eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
+    object.__setattr__(block, "noise", noise)
+    return block, jax.device_put(np.arange(size) < k)
+
+
+def _first_row(f: AbstractFactor) -> AbstractFactor:
+    """Row 0 of a stack, built on the host (no compile)."""
+    first = with_rows(
+        f,
+        {
+            k: jax.tree_util.tree_map(lambda a: jax.device_put(np.asarray(a)[:1]), v)
+            for k, v in per_row_fields(f).items()
+        },
+    )
+    object.__setattr__(
+        first, "variables", tuple(Var(v.group, v.ids[:1]) for v in f.variables)
+    )
+    arrays, rest = eqx.partition(f.noise, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    per_row = _noise_row_leaves(f.noise, f.num_rows)
+    leaves = [
+        jax.device_put(np.asarray(a)[:1]) if r else a for a, r in zip(leaves, per_row)
+    ]
+    object.__setattr__(
+        first, "noise", eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), rest)
+    )
+    return first
+
+
+def _value_block(group: PyTree, m: int, size: int):
+    """New variables padded to `size` with copies of the first, and the mask
+    of the real ones."""
+    padded = jax.tree_util.tree_map(lambda a: _rows_of([a], size), group)
+    return padded, jax.device_put(np.arange(size) < m)
