@@ -520,3 +520,180 @@ def test_real_data_dir_runs_end_to_end(tmp_path):
         row = result["rows"][method]
         assert np.isfinite(row["trans_m_per_m"]), method
         assert np.isfinite(row["rot_deg_per_m"]), method
+
+
+@pytest.mark.slow
+def test_uncertainty_covariances_and_scores():
+    """Issue 58: the KITTI estimators' planar covariances (smoother Laplace
+    marginal, EKF filtered covariance, bi-LSTM variance head) and their
+    scores. Slow (three estimators and a gradient compiled: about 50 s on
+    2 cores); the frame and wrap rules below run by default."""
+    import jax
+
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        _check_uncertainty_covariances_and_scores()
+
+
+def _check_uncertainty_covariances_and_scores():
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from experiments.kitti_vo import models as M, uncertainty as U
+
+    w = _tiny_windows(B=2, T=6)
+    sig = np.array([1.0, 0.1])
+    key = jax.random.key(0)
+    for method in ("smoother_hetero_e2e", "ekf_const", U.LSTM_VARIANCE):
+        model = U.build_model(method, sig, key)
+        est, cov, ok = U.estimate_with_covariance(method, model, w, batch=2)
+        assert est.shape == (2, 6, 3) and cov.shape == (2, 6, 3, 3) and ok.all()
+        eig = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        assert np.all(eig[:, 1:] > 0), method  # frame 0 is the given start
+        # The position covariance grows along the window (dead reckoning
+        # between velocity readings).
+        assert np.trace(cov[0, -1, :2, :2]) > np.trace(cov[0, 1, :2, :2]), method
+        s = U.score(est, cov, U.truth_planar(w))
+        assert set(s) == {"position", "heading"}
+        assert s["position"]["scored_frames_per_sequence"] == 5
+        assert np.isfinite(s["position"]["nll"]) and np.isfinite(s["heading"]["nees"])
+    # The variance head leaves the mean alone: the loss's gradient on the
+    # LSTM is the bi-LSTM's own (position MSE), and it trains the head.
+    model = U.build_model(U.LSTM_VARIANCE, sig, key)
+    model = eqx.tree_at(
+        lambda m: m.sigma_head.bias, model, jnp.array([0.3, -0.2], jnp.float32)
+    )
+    batch = jax.tree_util.tree_map(jnp.asarray, w)
+    g = eqx.filter_grad(M.lstm_variance_loss)(model, batch)
+    g_mean = eqx.filter_grad(M.lstm_loss)(model.lstm, batch)
+    for a, b in zip(
+        jax.tree_util.tree_leaves(g.lstm), jax.tree_util.tree_leaves(g_mean)
+    ):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-7)
+    assert np.any(np.asarray(g.sigma_head.bias) != 0)
+    assert np.all(np.isfinite(np.asarray(g.log_walk_sigma)))
+    # The variance row's mean network starts where lstm_bi's does.
+    from experiments.kitti_vo import experiment as E
+
+    bi = E.build_model("lstm_bi", None, E.method_key(key, "lstm_bi"))
+    assert bool(eqx.tree_equal(model.lstm, bi))
+
+
+def test_uncertainty_window_frame_and_heading_wrap():
+    import jax.numpy as jnp
+
+    from experiments.kitti_vo import uncertainty as U
+
+    # The tangent's position block is rotated into the window frame.
+    est = jnp.array([[0.0, 0.0, np.pi / 2]])
+    pose_cov = jnp.diag(jnp.array([4.0, 1.0, 0.5]))[None]
+    np.testing.assert_allclose(
+        np.asarray(U._to_window_frame(est, pose_cov))[0],
+        np.diag([1.0, 4.0, 0.5]),
+        atol=1e-6,
+    )
+    # Heading errors are wrapped: -π + 0.01 is 0.02 rad past π - 0.01.
+    truth = np.zeros((1, 2, 3))
+    truth[0, 1] = [1.0, 0.0, np.pi - 0.01]
+    guess = truth.copy()
+    guess[0, 1, 2] = -np.pi + 0.01
+    cov = np.broadcast_to(np.eye(3) * 1e-4, (1, 2, 3, 3))
+    np.testing.assert_allclose(U.score(guess, cov, truth)["heading"]["nees"], 4.0)
+
+
+def test_uncertainty_reproduction_record():
+    from experiments.kitti_vo import uncertainty as U
+
+    now = {"trans_m_per_m": 0.21, "rot_deg_per_m": 0.17}
+    committed = {
+        "rows": {
+            "ekf_hetero": {"trans_m_per_m": 0.20, "rot_deg_per_m": 0.17},
+            "smoother_hetero_e2e": {
+                "trans_m_per_m": 0.25,
+                "rot_deg_per_m": 0.18,
+                "whole_window_from": {
+                    "trans_m_per_m": 0.2105,
+                    "rot_deg_per_m": 0.17,
+                    "git": "abc",
+                    "best_step": 100,
+                },
+            },
+        }
+    }
+    r = U.reproduction("ekf_hetero", now, committed)
+    np.testing.assert_allclose(r["difference"]["trans_m_per_m"], 0.01)
+    r = U.reproduction("smoother_hetero_e2e", now, committed)
+    np.testing.assert_allclose(r["difference_retrain"]["trans_m_per_m"], -0.0005)
+    assert U.reproduction(U.LSTM_VARIANCE, now, committed)["committed"] is None
+
+
+@pytest.mark.slow
+def test_uncertainty_mode_quick_run(tmp_path, monkeypatch):
+    """`--uncertainty` (`uncertainty.run_fold`) on the quick configuration
+    with a stand-in sensor, tiny windows in place of the rendered fold (the
+    rendering and the sensor cache are `experiment.prepare_fold`'s, run by
+    the quick experiment) and two steps: rows, heads, the check against
+    `fold_K.json`, resume (a finished fold is skipped) and the pooled
+    uncertainty.json with its figure. Slow (two estimators compiled for
+    training and scoring)."""
+    import dataclasses
+    import json
+
+    import equinox as eqx
+    import jax
+
+    pytest.importorskip("matplotlib", reason="the summary draws a figure")
+    from experiments.kitti_vo import experiment as E, models as M, uncertainty as U
+
+    cfg = dataclasses.replace(
+        E.quick_config(), methods=("ekf_const",), steps=2, eval_every=1
+    )
+    with pytest.raises(FileNotFoundError, match="no sensor"):
+        U.run_fold(cfg, 3, tmp_path)
+    eqx.tree_serialise_leaves(
+        tmp_path / "sensor_fold3.eqx", M.VelocitySensor(jax.random.key(0))
+    )
+    windows = _tiny_windows(B=4, T=8)
+
+    def prepare(cfg, fold, out, timings, save=None, train_sensor=True):
+        assert not train_sensor and (out / f"sensor_fold{fold}.eqx").exists()
+        timings["load_s"] = 0.0
+        return {
+            "train": windows,
+            "valid": windows,
+            "test": windows,
+            "sigmas": np.array([1.0, 0.1]),
+        }
+
+    monkeypatch.setattr(E, "prepare_fold", prepare)
+    committed = {"rows": {"ekf_const": {"trans_m_per_m": 1.0, "rot_deg_per_m": 1.0}}}
+    (tmp_path / "fold_3.json").write_text(json.dumps(committed))
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        rec = U.run_fold(cfg, 3, tmp_path)
+        assert set(rec["rows"]) == {"ekf_const", U.LSTM_VARIANCE}
+        for m, row in rec["rows"].items():
+            assert (tmp_path / row["head"]).exists(), m
+            assert row["head_bytes"] < 1_000_000
+            assert row["windows_with_covariance"] == 4
+            assert np.isfinite(row["position"]["nll"]), m
+            assert set(row["position"]["coverage"]) == {str(q) for q in U.LEVELS}
+        ekf = rec["rows"]["ekf_const"]["test_scores"]
+        assert ekf["difference"]["trans_m_per_m"] == pytest.approx(
+            ekf["now"]["trans_m_per_m"] - 1.0
+        )
+        assert U.run_fold(cfg, 3, tmp_path) is None  # finished: skipped
+        # A lost row is scored again from its saved head, not trained.
+        nll = rec["rows"]["ekf_const"]["position"]["nll"]
+        del rec["rows"]["ekf_const"]
+        (tmp_path / "uncertainty_fold_3.json").write_text(json.dumps(rec))
+        again = U.run_fold(cfg, 3, tmp_path)
+        assert again["rows"]["ekf_const"]["train_s"] is None
+        np.testing.assert_allclose(
+            again["rows"]["ekf_const"]["position"]["nll"], nll, rtol=1e-6
+        )
+    summary = U.summarise(tmp_path)
+    assert summary["folds"] == [3]
+    assert set(summary["position"]["rows"]) == {"ekf_const", U.LSTM_VARIANCE}
+    assert (tmp_path / "uncertainty.json").exists()
+    assert (tmp_path / "fig_calibration.png").stat().st_size > 10_000
+    assert "Finished folds: [3]" in U.markdown(summary)
