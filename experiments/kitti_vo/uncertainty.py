@@ -417,6 +417,33 @@ def calibration_figure(files: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _reproduction_table(files: list[dict], out: Path) -> dict:
+    """Per method and fold: the retrained row's final-step m/m and deg/m
+    minus the committed `fold_K.json` row's (for `lstm_bi_var`, minus the
+    committed `lstm_bi` row's: the same mean network and recipe, plus the
+    variance head and its loss)."""
+    table: dict = {}
+    for f in files:
+        fold_path = out / f"fold_{f['fold']}.json"
+        committed = json.loads(fold_path.read_text()) if fold_path.exists() else {}
+        for m, row in f["rows"].items():
+            now = row["test_scores"]["now"]
+            ref = committed.get("rows", {}).get("lstm_bi" if m == LSTM_VARIANCE else m)
+            if ref is None:
+                continue
+            entry = table.setdefault(
+                m, {"compared_with": "lstm_bi" if m == LSTM_VARIANCE else m}
+            )
+            entry[str(f["fold"])] = {
+                k: now[k] - ref[k] for k in ("trans_m_per_m", "rot_deg_per_m")
+            }
+            entry[str(f["fold"])]["committed_trans_m_per_m"] = ref["trans_m_per_m"]
+    for entry in table.values():
+        diffs = [v["trans_m_per_m"] for k, v in entry.items() if k != "compared_with"]
+        entry["max_abs_trans_difference"] = float(np.max(np.abs(diffs)))
+    return table
+
+
 def finished_folds(out: Path) -> list[dict]:
     """The `uncertainty_fold_K.json` under `out` that hold every row they
     were run for (`methods`), by fold."""
@@ -494,6 +521,7 @@ def summarise(out: Path) -> dict | None:
     for marginal in MARGINALS:
         table = _table(files, marginal)
         record[marginal] = dict(rows=table, paired=_paired(table, marginal, len(files)))
+    record["reproduction"] = _reproduction_table(files, out)
     record["per_fold"] = {
         str(f["fold"]): {
             m: {k: r[k] for k in (*MARGINALS, "test_scores", "train_s", "best_step")}
@@ -544,5 +572,21 @@ def markdown(record: dict) -> str:
                     f"| `{k}` | {ms(p['nll'])} | {p['nll']['a_lower_folds']}/{n} | "
                     f"{ms(p['coverage_0.95'])} |"
                 )
+        parts.append("\n".join(lines))
+    rep = record.get("reproduction", {})
+    if rep:
+        lines = [
+            "Retrained rows against the committed `fold_K.json` (final-step m/m, "
+            "largest |difference| over the finished folds; `lstm_bi_var` against "
+            "the committed `lstm_bi`, whose mean network and recipe it shares):",
+            "",
+            "| row | compared with | max \\|Δ m/m\\| |",
+            "|---|---|---|",
+        ]
+        for m, e in rep.items():
+            lines.append(
+                f"| `{m}` | `{e['compared_with']}` | "
+                f"{e['max_abs_trans_difference']:.2g} |"
+            )
         parts.append("\n".join(lines))
     return "\n\n".join(parts) + "\n"
