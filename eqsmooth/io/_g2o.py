@@ -365,7 +365,7 @@ def _kind(path, found, se3_information) -> tuple[str, list[str], list[str], str]
 
 
 def _merged(found, tags) -> _Lines:
-    """The lines of several tags, tag after tag (the order of `_parsed`)."""
+    """The lines of several tags, tag after tag."""
     out = _Lines()
     for tag in tags:
         out.linenos += found[tag].linenos
