@@ -347,7 +347,7 @@ def test_constant_force_and_sensor_bias_are_always_reported_as_the_pair(seed):
     assert rival["structural"] and not rival["separable"]
     # The structural test finds that pair and no other in the library.
     ev = found.state.evaluation
-    same = structure(found.state.model, ev.z, data, ev.xhat)
+    same = structure(found.state.model, ev.z, data, ev.xhat, found.state.scales)
     names = found.state.model.names
     got = {frozenset((names[i], names[j])) for i, j in zip(*np.nonzero(same))}
     assert got == {frozenset(pair)}

@@ -260,12 +260,12 @@ def _classify_rivals(
         out["ambiguous"].append(amb)
 
 
-def _structure_or_none(model, ev, data, out) -> np.ndarray:
+def _structure_or_none(model, ev, data, scales, out) -> np.ndarray:
     """`structure` about the evaluation `ev`'s MAP; no pairs (and a flag)
     when the linearisation fails."""
     K = len(model.candidates)
     try:
-        same = structure(model, ev.z, data, ev.xhat)
+        same = structure(model, ev.z, data, ev.xhat, scales)
     except EVALUATION_ERRORS as e:
         out["flags"].append(f"structural equivalence not decided: {e}")
         return np.zeros((K, K), bool)
@@ -625,7 +625,7 @@ def name(
             break
         best_k, current, close = chosen
         if same is None:
-            same = _structure_or_none(model, ev0, data, out)
+            same = _structure_or_none(model, ev0, data, st.scales, out)
         _classify_rivals(
             out,
             names,
