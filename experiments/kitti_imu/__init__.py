@@ -1,0 +1,1 @@
+"""The KITTI IMU + GPS noise-learning protocol (docs/tutorial/imu.md)."""
