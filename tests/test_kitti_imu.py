@@ -79,9 +79,10 @@ def test_segments_of_the_drive():
 
 @pytest.mark.slow
 def test_quick_run(tmp_path):
-    """The quick configuration end to end (about 4 minutes on 2 shared cores,
-    nearly all compilation): a fold file with both rows scored, the learned
-    sigmas moved by training, and the summary refuses quick files."""
+    """The quick configuration end to end (61 s on 2 shared cores with a warm
+    compilation cache, about 4 minutes cold, nearly all compilation): a fold
+    file with both rows scored, the learned sigmas moved by training, and the
+    summary refuses quick files."""
     pytest.importorskip("gtsam", reason="the KITTI files come from the gtsam wheel")
     from experiments.kitti_imu.__main__ import main
 
@@ -94,7 +95,7 @@ def test_quick_run(tmp_path):
         assert r["withheld_fixes"] == 8 and r["valid_covariances"] == 8
         assert np.isfinite([r["rms_horizontal_m"], r["nll"]]).all()
         assert r["max_horizontal_m"] >= r["rms_horizontal_m"] > 0
-    assert rows["metadata"]["sigmas"]["accelerometer"] == 0.01
+    assert np.isclose(rows["metadata"]["sigmas"]["accelerometer"], 0.01)
     steps = [h["step"] for h in out["training"]["history"]]
     assert max(steps) == 2
     if out["training"]["best_step"] > 0:

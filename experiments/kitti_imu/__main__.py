@@ -14,10 +14,13 @@ the GPS noise. Each fold writes `fold_<f>.json`; `--summary` pools the
 committed fold files into `summary.json` and `summary.md` (paired
 differences against the metadata row).
 
-Runtime on 2 shared CPU cores (load average about 10): `--quick` (one fold
-of 16-keyframe segments, 2 training steps) about 4-5 minutes, nearly all of
-it compilation; a declared fold about 5 minutes, most of it compilation
-(the folds run in one process, so later folds reuse compiled programs).
+Runtime on 2 CPU cores shared with other jobs (load average 5-10): the five
+declared folds in one process took 134-287 s each, 16 minutes in all
+(`seconds` in each `fold_<f>.json`), much of it compilation (later folds
+reuse the compiled programs); `--quick` (one fold of 16-keyframe segments,
+2 training steps; not the protocol) 61 s in `tests/test_kitti_imu.py`
+with JAX's compilation cache warm, about 4 minutes cold, nearly all
+compilation.
 
     python -m experiments.kitti_imu --quick --out /tmp/kitti_imu_quick
     python -m experiments.kitti_imu --folds 0 1 2 3 4

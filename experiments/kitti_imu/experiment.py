@@ -145,7 +145,7 @@ def score(noise: ImuNoise, seg: dict, cfg: Config) -> dict:
     p = x.translation()
     e = seg["gps"] - p
     cal = eql.gaussian_calibration(
-        e[withheld], world[withheld] + GPS_VARIANCE * jnp.eye(3)
+        e[withheld], world[withheld] + GPS_VARIANCE * jnp.eye(3)[None]
     )
     h = np.linalg.norm(np.asarray(e[withheld, :2]), axis=-1)
     return {
