@@ -13,6 +13,7 @@ import pathlib
 import re
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -63,6 +64,11 @@ def test_online_page_runs():
     state = ns["state"]
     assert int(state.t) == T - 1 and int(state.window_start) == T - 10
     assert np.isfinite(np.asarray(ns["x_now"].parameters())).all()
+    # The growing graph (noiseless odometry and closures, the prior at the
+    # truth): every pose, at the truth.
+    grown = eqs.SE2(jnp.asarray(ns["estimate"].unit_complex_xy))
+    assert grown.unit_complex_xy.shape == (T, 4)
+    assert float(jnp.abs(eqs.local(grown, ns["poses"], batch_ndim=1)).max()) < 1e-6
 
 
 def test_gtsam_page_online_blocks_run():
