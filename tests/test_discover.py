@@ -996,7 +996,7 @@ def test_tail_probabilities_match_scipy():
     """The discover tests' chi-square and normal tails (plain Python, no
     compiled special functions) against SciPy, far into the tails."""
     stats = pytest.importorskip("scipy.stats")
-    from eqsmooth.discover._stats import (
+    from eqsmooth._stats import (
         chi2_sf,
         chi2_two_sided,
         normal_quantile,
@@ -1029,7 +1029,7 @@ def test_tail_probabilities_match_scipy():
 def test_noncentral_tail_and_detectable_noncentrality_match_scipy():
     """The shape check's power calculation (plain Python) against SciPy."""
     stats = pytest.importorskip("scipy.stats")
-    from eqsmooth.discover._stats import (
+    from eqsmooth._stats import (
         chi2_quantile,
         detectable_noncentrality,
         noncentral_chi2_sf,
@@ -1065,12 +1065,12 @@ def test_shape_check_marks_a_term_too_weak_to_check():
     to the "partial" verdict."""
     from types import SimpleNamespace
 
-    from eqsmooth.discover._name import _shape_check, _verdict
-    from eqsmooth.discover._stats import (
+    from eqsmooth._stats import (
         chi2_quantile,
         detectable_noncentrality,
         noncentral_chi2_sf,
     )
+    from eqsmooth.discover._name import _shape_check, _verdict
 
     data = SimpleNamespace(num_sequences=24, length=40)
     blocks = [{"df": 5}, {"df": 4}, {"df": 5}]

@@ -2,6 +2,9 @@
 
 import numpy as np
 
+from .._stats import (
+    normal_quantile,
+)
 from ._fit import (
     fit,
     fitted_model,
@@ -11,9 +14,6 @@ from ._model import (
     Sequences,
 )
 from ._report import FindState, NameState, StepReport
-from ._stats import (
-    normal_quantile,
-)
 from ._validate import fingerprint
 
 

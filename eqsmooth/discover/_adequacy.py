@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._stats import normal_quantile
 from ._fit import Evaluation, EVALUATION_ERRORS, feature_values
 from ._model import batch_scores, ChainModel, Offsets, Sequences
 from ._score import score_test
-from ._stats import normal_quantile
 
 
 # Knots of the hat functions: quantiles of the variable over the smoothed

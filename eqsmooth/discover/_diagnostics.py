@@ -4,17 +4,17 @@ summaries and open-loop errors."""
 
 import numpy as np
 
+from .._stats import (
+    chi2_two_sided,
+    ljung_box,
+    normal_two_sided,
+)
 from ._fit import describe_error, EVALUATION_ERRORS
 from ._model import (
     ChainModel,
     diagnostic_innovations,
     Sequences,
     trajectory_checks,
-)
-from ._stats import (
-    chi2_two_sided,
-    ljung_box,
-    normal_two_sided,
 )
 
 

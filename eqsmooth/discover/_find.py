@@ -4,6 +4,11 @@ candidate need to be to be seen?"""
 import jax
 import numpy as np
 
+from .._stats import (
+    efficient_information,
+    normal_quantile,
+    normal_two_sided,
+)
 from ._adequacy import adequacy_test
 from ._candidates import check_features
 from ._diagnostics import (
@@ -29,11 +34,6 @@ from ._model import (
 )
 from ._report import FindState, StepReport
 from ._score import score_test
-from ._stats import (
-    efficient_information,
-    normal_quantile,
-    normal_two_sided,
-)
 from ._validate import check_informative, check_inputs, check_level, fingerprint
 
 

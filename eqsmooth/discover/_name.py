@@ -6,6 +6,12 @@ import math
 import equinox as eqx
 import numpy as np
 
+from .._stats import (
+    chi2_quantile,
+    chi2_sf,
+    noncentral_chi2_sf,
+    noncentrality_for_power,
+)
 from ._adequacy import adequacy_test, describe_region
 from ._diagnostics import innovations_significant, safe_innovation_tests
 from ._find import find
@@ -21,12 +27,6 @@ from ._model import (
     Sequences,
 )
 from ._report import FindState, NameState, StepReport
-from ._stats import (
-    chi2_quantile,
-    chi2_sf,
-    noncentral_chi2_sf,
-    noncentrality_for_power,
-)
 from ._structure import structure
 from ._validate import fingerprint
 

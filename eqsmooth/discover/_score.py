@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from ._stats import (
+from .._stats import (
     chi2_sf,
     normal_two_sided,
 )

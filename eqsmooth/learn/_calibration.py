@@ -21,6 +21,8 @@ import jax.numpy as jnp
 import jax.scipy.special as jsp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._stats import chi2_quantile as _chi2_quantile
+
 
 class GaussianCalibration(eqx.Module):
     """Per-frame scores of Gaussian estimates, from
@@ -118,43 +120,6 @@ def gaussian_calibration(
     )
 
 
-def _gamma_cdf(a: float, x: float) -> float:
-    """The regularised lower incomplete gamma function `P(a, x)` in float64:
-    its power series below `x = a + 1`, else one minus the continued
-    fraction of the upper tail (modified Lentz), each to 1e-15."""
-    if x <= 0.0:
-        return 0.0
-    log_front = a * math.log(x) - x - math.lgamma(a)
-    if x < a + 1.0:
-        term = total = 1.0 / a
-        n = a
-        while abs(term) > 1e-16 * abs(total):
-            n += 1.0
-            term *= x / n
-            total += term
-        return min(1.0, total * math.exp(log_front))
-    tiny = 1e-300
-    b = x + 1.0 - a
-    c = 1.0 / tiny
-    d = 1.0 / b
-    h = d
-    i = 0
-    while True:
-        i += 1
-        an = -i * (i - a)
-        b += 2.0
-        d = an * d + b
-        d = tiny if abs(d) < tiny else d
-        c = b + an / c
-        c = tiny if abs(c) < tiny else c
-        d = 1.0 / d
-        step = d * c
-        h *= step
-        if abs(step - 1.0) < 1e-15 or i > 10_000:
-            break
-    return max(0.0, 1.0 - math.exp(log_front) * h)
-
-
 def chi2_quantile(probability: float, dof: int | float) -> float:
     """The `probability` quantile of χ²(`dof`) in float64 on the host (a
     static number, e.g. a coverage threshold), by bisection on its CDF."""
@@ -163,18 +128,7 @@ def chi2_quantile(probability: float, dof: int | float) -> float:
             "chi2_quantile: need 0 < probability < 1 and dof > 0, got "
             f"probability={probability}, dof={dof}"
         )
-    lo, hi = 0.0, max(1.0, dof)
-    while _gamma_cdf(0.5 * dof, 0.5 * hi) < probability:
-        lo, hi = hi, 2.0 * hi
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if _gamma_cdf(0.5 * dof, 0.5 * mid) < probability:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-13 * hi:
-            break
-    return 0.5 * (lo + hi)
+    return _chi2_quantile(probability, dof)
 
 
 def nees_band(dim: int, count: int, probability: float = 0.95) -> tuple[float, float]:

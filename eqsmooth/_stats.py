@@ -1,5 +1,6 @@
-"""Small statistics helpers (chi-square tails, whiteness, the information
-after nuisance parameters) without scipy.
+"""Small statistics helpers without scipy: chi-square tails and quantiles,
+whiteness, the information after nuisance parameters (used by the
+discovery workflow and by `eqsmooth.learn`'s calibration).
 
 Plain Python floats: these run once per test outside compiled code, where
 JAX's special functions would each compile a small program on first use
