@@ -367,9 +367,9 @@ def _index(n: int, size: int) -> np.ndarray:
     return np.concatenate([np.arange(n), np.zeros(size - n, np.int64)])
 
 
-def _take(f: AbstractFactor, n: int, real: int, size: int) -> AbstractFactor:
-    """Stack `f` (buffer of `n` rows, `real` of them used) grown to `size`
-    rows: new rows copy row 0 and are masked out."""
+def _take(f: AbstractFactor, n: int, size: int) -> AbstractFactor:
+    """Stack `f` (`n` rows) grown to `size` rows: new rows copy row 0 and
+    are masked out."""
     index = _index(n, size)
     new = with_rows(
         f,
@@ -385,20 +385,11 @@ def _take(f: AbstractFactor, n: int, real: int, size: int) -> AbstractFactor:
     return new
 
 
-def _dynamic(f: AbstractFactor) -> AbstractFactor:
-    """`f` with dynamic indices (a transfer of its ids, no compile)."""
-    new = with_rows(f, per_row_fields(f))
-    variables = tuple(Var.dynamic(v.group, v.ids) for v in f.variables)
-    object.__setattr__(new, "variables", variables)
-    object.__setattr__(new, "noise", f.noise)
-    return new
-
-
 def _row_leaves(buffer: AbstractFactor, original: AbstractFactor) -> tuple[bool, ...]:
     """Which array leaves of a buffer stack have one entry per row: those
     whose length changes when the stack is padded one row further."""
     n = buffer.num_rows
-    more = jax.eval_shape(lambda: _take(buffer, n, n, n + 1))
+    more = jax.eval_shape(lambda: _take(buffer, n, n + 1))
     a = jax.tree_util.tree_leaves(eqx.filter(buffer, eqx.is_array))
     b = jax.tree_util.tree_leaves(
         eqx.filter(more, lambda x: isinstance(x, jax.ShapeDtypeStruct))
@@ -435,7 +426,7 @@ def _write(graph, values, blocks, value_blocks, offsets, targets, row_leaves):
     n = len(row_leaves)
     for j, ((f, active), s) in enumerate(zip(blocks, targets)):
         k = f.num_rows
-        padded = _take(f, k, k, k)  # the buffer's form: masked noise
+        padded = _take(f, k, k)  # the buffer's form: masked noise
         padded = eqx.tree_at(lambda p: p.noise, padded, padded.noise.mask_rows(active))
         buf = factors[s]
         arrays, rest = eqx.partition(buf, eqx.is_array)
