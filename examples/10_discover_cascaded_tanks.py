@@ -30,6 +30,15 @@ Writes `report.json`; the story is in docs/tutorial/cascaded-tanks.md.
 
     python examples/10_discover_cascaded_tanks.py --quick --out results/tanks
 
+`--untouched` makes every choice on the estimation record alone: its first
+768 samples are the workflow's data, its last 256 choose how many of the
+named effects to keep, the chosen model is refitted on the whole record,
+and the validation record is simulated once, at the end
+(`untouched.json`):
+
+    python examples/10_discover_cascaded_tanks.py --untouched \
+        --out results/cascaded_tanks
+
 Data: `dataBenchmark.csv` of the benchmark, expected at
 `../shared/data/cascaded_tanks/` next to the repository (or pass `--data
 PATH`); it is distributed with the benchmark (www.nonlinearbenchmark.org).
@@ -481,15 +490,20 @@ def find_and_name(
     }
 
 
-def add_and_show(theta, d, model, named_candidates, grid) -> dict:
+def add_and_show(theta, u, y, model, named_candidates, grid, heldout=None) -> dict:
     """Step 4: add the named effects one at a time, in the order the workflow
-    named them, and refit every parameter by simulation error on the
-    estimation record (a profiled threshold becomes a fitted parameter,
-    started at each grid value of the family; the best estimation fit is
-    kept). The validation record is simulated after each stage, never used
-    to choose."""
-    u, y = d["u_est"], d["y_est"]
+    named them, and refit every parameter by simulation error on the record
+    `(u, y)` (a profiled threshold becomes a fitted parameter, started at
+    each grid value of the family; the best fit on `(u, y)` is kept). With
+    `heldout = (u, y)` that record is simulated after each stage (and
+    before the first) for the report; it is never used to choose here."""
     stages, extras = [], ()
+    score = (
+        (lambda th, ex: validation_rmse(th, *heldout, model, ex)["rmse"])
+        if (heldout is not None)
+        else (lambda th, ex: None)
+    )
+    before = score(theta, ())
     for cand in named_candidates:
         extras = extras + (cand,)
         starts = _starts(theta, cand, grid)
@@ -503,19 +517,19 @@ def add_and_show(theta, d, model, named_candidates, grid) -> dict:
             )
         refit = min(fits, key=lambda f: f["rmse"])
         theta = refit["theta"]
-        val = validation_rmse(theta, d["u_val"], d["y_val"], model, extras)
         stages.append(
             {
                 "added": cand.name,
                 "parameters": _describe(theta, extras),
                 "k": np.exp(theta[:3]).tolist(),
+                "theta": np.asarray(theta).tolist(),
                 "starts": len(starts),
                 "failed_starts": failed,
                 "estimation_rmse": refit["rmse"],
-                "validation_rmse": val["rmse"],
+                "validation_rmse": score(theta, extras),
             }
         )
-    return {"stages": stages, "theta": np.asarray(theta).tolist()}
+    return {"stages": stages, "theta": np.asarray(theta).tolist(), "before": before}
 
 
 def _starts(theta, cand, grid) -> list[np.ndarray]:
@@ -547,6 +561,82 @@ def _describe(theta, extras) -> list[dict]:
     return out
 
 
+SELECTION_SAMPLES = 256  # the estimation record's last 1024 s: the held-out part
+
+
+def untouched(d, model, quick: bool, noise_prior: float | None) -> dict:
+    """Every choice on the estimation record alone; the validation record
+    scored once, at the end.
+
+    The estimation record is split in time: its first `1024 −
+    SELECTION_SAMPLES` samples (six windows) are the workflow's data (the
+    nominal fit, find, name, the refits and their starts); its last
+    `SELECTION_SAMPLES` are held out to choose how many of the named
+    effects to keep (the number, in the order named, whose refit simulates
+    the held-out part best, scored as the validation record is: initial
+    levels fitted, everything else held). The chosen model is then refitted
+    on the whole estimation record, stage by stage as before, and only that
+    model is simulated on the validation record."""
+    u, y = d["u_est"], d["y_est"]
+    cut = len(u) - SELECTION_SAMPLES
+    fit_part, held = (u[:cut], y[:cut]), (u[cut:], y[cut:])
+    theta0 = np.array([np.log(0.05), np.log(0.05), np.log(0.05), y[0], y[0]])
+    nominal = fit_output_error(*fit_part, model, theta0)
+    if "failed" in nominal:
+        raise RuntimeError(f"the nominal fit failed: {nominal['failed']}")
+    wf = find_and_name(nominal["theta"], *fit_part, model, quick, noise_prior)
+    named = wf["named_candidates"]
+    grid = sorted({c.profiled.value for c in wf["library"] if c.profiled is not None})
+    first = add_and_show(nominal["theta"], *fit_part, model, named, grid, held)
+    selection = [first["before"]] + [st["validation_rmse"] for st in first["stages"]]
+    keep = int(np.argmin(selection))  # ties: the fewest effects
+    for k, rmse in enumerate(selection):
+        print(
+            f"held-out part, {k} effects: RMSE {rmse:.3f} V"
+            + ("  <- kept" if k == keep else "")
+        )
+    # The chosen model, refitted on the whole estimation record.
+    full = fit_output_error(u, y, model, theta0)
+    if "failed" in full:
+        raise RuntimeError(f"the nominal refit failed: {full['failed']}")
+    final = add_and_show(full["theta"], u, y, model, named[:keep], grid)
+    theta = np.asarray(final["theta"])
+    estimation_rmse = final["stages"][-1]["estimation_rmse"] if keep else full["rmse"]
+    # The one look at the validation record.
+    validation = validation_rmse(theta, d["u_val"], d["y_val"], model, named[:keep])
+    print(
+        f"untouched: {keep} effects ({', '.join(c.name for c in named[:keep])}); "
+        f"estimation RMSE {estimation_rmse:.3f} V, validation RMSE "
+        f"{validation['rmse']:.3f} V"
+    )
+    return {
+        "selection": "estimation record only",
+        "split": {
+            "fit_samples": [0, cut],
+            "selection_samples": [cut, len(u)],
+            "validation": "scored once, after every choice",
+        },
+        "named": [c.name for c in named],
+        "selection_rmse": {
+            "by_number_of_effects": selection,
+            "kept": keep,
+        },
+        "fit_part": {
+            "nominal_rmse": nominal["rmse"],
+            "stages": first["stages"],
+            "workflow": wf["report"],
+        },
+        "final": {
+            "effects": [c.name for c in named[:keep]],
+            "parameters": _describe(theta, named[:keep]),
+            "k": np.exp(theta[:3]).tolist(),
+            "estimation_rmse": estimation_rmse,
+            "failed_starts": [st["failed_starts"] for st in final["stages"]],
+        },
+        "validation_rmse": validation["rmse"],
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -559,6 +649,13 @@ def main() -> int:
         help="standard deviation of a normal prior on the log noise multipliers "
         "(ChainModel.noise_scale_prior); without one the measurement multiplier "
         "runs off towards 0 on these smooth readings. Pass 0 for none",
+    )
+    parser.add_argument(
+        "--untouched",
+        action="store_true",
+        help="choose everything on the estimation record alone (its last "
+        f"{SELECTION_SAMPLES} samples held out to choose the number of effects), "
+        "score the validation record once; writes untouched.json",
     )
     args = parser.parse_args()
     if not args.data.exists():
@@ -573,6 +670,21 @@ def main() -> int:
     ts, u, y = d["ts"], d["u_est"], d["y_est"]
 
     model = tank_model(ts)
+    noise_prior = args.noise_prior or None
+    if args.untouched:
+        record = untouched(d, model, args.quick, noise_prior)
+        record = {
+            "command": "python " + " ".join(sys.argv),
+            "seconds": time.perf_counter() - t_start,
+            "quick": args.quick,
+            "noise_prior": noise_prior,
+            **record,
+        }
+        args.out.mkdir(parents=True, exist_ok=True)
+        path = args.out / "untouched.json"
+        path.write_text(json.dumps(record, indent=1, default=str))
+        print(f"{record['seconds']:.0f} s; wrote {path}")
+        return 0
 
     # 1. The nominal model, fitted by simulation error on the estimation record.
     theta0 = np.array([np.log(0.05), np.log(0.05), np.log(0.05), y[0], y[0]])
@@ -587,10 +699,17 @@ def main() -> int:
         f"{val_before['rmse']:.3f} V"
     )
     # 2-3. Find and name; 4. add and show.
-    noise_prior = args.noise_prior or None
     wf = find_and_name(theta, u, y, model, args.quick, noise_prior)
     grid = [c.profiled.value for c in wf["library"] if c.profiled is not None]
-    after = add_and_show(theta, d, model, wf["named_candidates"], sorted(set(grid)))
+    after = add_and_show(
+        theta,
+        u,
+        y,
+        model,
+        wf["named_candidates"],
+        sorted(set(grid)),
+        heldout=(d["u_val"], d["y_val"]),
+    )
     for row in after["stages"]:
         dropped = len(row["failed_starts"])
         print(

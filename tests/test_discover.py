@@ -291,6 +291,34 @@ def test_hidden_effect_is_named(effect, coef, spring, expected):
             dc.name(found, data, shape_tolerance=0.0)
 
 
+def test_add_fits_chosen_candidates_with_the_named_ones():
+    """`add(..., also=...)` fits further candidates of the library (a
+    model's physical parameters) with the named ones; `named=None` fits them
+    alone. The viscous data: the named damping fitted as `also` alone is the
+    named fit; a spring correction fitted beside it is near zero (the
+    spring is right) and leaves the damping where it was."""
+    from hostile import raises
+
+    import eqsmooth.discover as dc
+
+    data, found, named, added = _simulated_run(1, "viscous", 0.1)
+    assert named["named"] == ["viscous damping"]
+    alone = dc.add(found, None, data, also=("viscous damping",))
+    (a,), (b,) = alone["coefficients"], added["coefficients"]
+    assert a["name"] == b["name"] and abs(a["value"] - b["value"]) < 1e-5, (a, b)
+    both = dc.add(found, named, data, also=("spring error", "viscous damping"))
+    names = [c["name"] for c in both["coefficients"]]
+    assert names == ["viscous damping", "spring error"]
+    damping, spring = both["coefficients"]
+    assert spring["interval"][0] < 0 < spring["interval"][1], spring
+    assert abs(damping["value"] - b["value"]) < 2 * b["std_error"], (damping, b)
+    assert damping["std_error"] >= b["std_error"] * (1 - 1e-6)
+    with raises(ValueError, "add: also names 'spring'", "candidates:"):
+        dc.add(found, named, data, also=("spring",))
+    with raises(TypeError, "add: also must be a sequence of candidate names"):
+        dc.add(found, named, data, also="spring error")
+
+
 def test_null_data_names_nothing():
     data = _simulate(2)
     found, named, added = _run(data)

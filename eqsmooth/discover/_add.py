@@ -1,5 +1,7 @@
 """Add: fit the named candidates' coefficients, with standard errors and intervals."""
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from .._stats import (
@@ -18,26 +20,52 @@ from ._validate import fingerprint
 
 
 def add(
-    found: StepReport, named: StepReport, data: Sequences, *, level: float = 0.95
+    found: StepReport,
+    named: StepReport | None,
+    data: Sequences,
+    *,
+    level: float = 0.95,
+    also: Sequence[str] = (),
 ) -> dict:
-    """Fit the named coefficients (and noise scales) and give confidence intervals.
+    """Fit the named candidates' coefficients (and noise scales) and give
+    confidence intervals.
 
     The coefficients maximise the Laplace marginal likelihood (not a plug-in
     regression on smoothed states, which is biased); the intervals come from
     the curvature of the log marginal likelihood (observed information,
     noise scales profiled out).
 
+    **Arguments:**
+
+    - `found`, `named`: the reports of [`eqsmooth.discover.find`][] and
+        [`eqsmooth.discover.name`][] on `data`. `named=None` fits the
+        candidates of `also` alone (e.g. a model's physical parameters
+        before any effect is added).
+    - `data`: the sequences `find` analysed.
+    - `level`: the confidence level of the intervals.
+    - `also`: names of further candidates of the library to fit with the
+        named ones, e.g. the corrections of physical parameters
+        (`"spring error"`, `"viscous damping"`, `"actuator gain"` in
+        [`eqsmooth.discover.mechanical_library`][]), whose estimates and
+        intervals then say how the physics moves when an effect is added.
+
     **Returns:** a dict with `model` (the fitted
     [`eqsmooth.discover.ChainModel`][]), `coefficients` (name, value,
-    standard error, interval, sign check), `noise_scales` and `flags` (a fit
-    that did not converge, an information matrix that is not positive
-    definite, a coefficient without a standard error).
+    standard error, interval, sign check; the named candidates first, then
+    those of `also` not named), `noise_scales` and `flags` (a fit that did
+    not converge, an information matrix that is not positive definite, a
+    coefficient without a standard error).
     """
-    st, named_state = found.state, named.state
+    st = found.state if isinstance(found, StepReport) else None
+    named_state = NameState(None, ()) if named is None else named.state
     if not (isinstance(st, FindState) and isinstance(named_state, NameState)):
         raise TypeError(
             "add: found and named must be the reports of eqsmooth.discover.find "
-            "and eqsmooth.discover.name, in that order"
+            "and eqsmooth.discover.name (or None), in that order"
+        )
+    if isinstance(also, str) or not all(isinstance(a, str) for a in also):
+        raise TypeError(
+            f"add: also must be a sequence of candidate names, got {also!r}"
         )
     if st.fingerprint != fingerprint(data):
         raise ValueError(
@@ -55,7 +83,14 @@ def add(
         }
     model, scales, nuis = st.model, st.scales, st.nuisance
     active = list(named_state.active)
-    start = named_state.evaluation
+    unknown = [a for a in also if a not in model.names]
+    if unknown:
+        raise ValueError(
+            f"add: also names {unknown[0]!r}, which is not a candidate of the "
+            f"model's library (candidates: {list(model.names)})"
+        )
+    active += [k for k in dict.fromkeys(map(model.index, also)) if k not in active]
+    start = st.evaluation if named_state.evaluation is None else named_state.evaluation
     free = np.concatenate([np.asarray(active, int), nuis])
     ev = fit(model, data, free, start.z, start.xhat, scales) if len(free) else start
     flags = [] if ev.converged else ["fit did not converge"]

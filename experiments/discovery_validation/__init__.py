@@ -20,6 +20,9 @@ report as it goes:
 - `equivalence`: a non-identifiable pair (a constant force and a sensor
   bias with a spring) is reported as the pair, with and without `name`'s
   structural test.
+- `physics`: the physical parameters (spring, damping, gain) fitted before
+  and after the named effect is added, beside a flexible residual model:
+  bias, interval width and coverage.
 
     python -m experiments.discovery_validation              # the list
     python -m experiments.discovery_validation.oscillator --quick

@@ -8,6 +8,7 @@ STUDIES = {
     "localise": "where find(..., localise=True) says an effect acts",
     "continuous": "effects inside a continuous-time model",
     "equivalence": "a non-identifiable pair is always reported as the pair",
+    "physics": "physical parameters before and after the named effect",
 }
 
 if __name__ == "__main__":
