@@ -234,6 +234,24 @@ def main(argv=None):
     coefs = calibrate(args.level)
     workflow_model, residual_model = models(args.basis)
     records = {}
+    info = {
+        "command": cli_command(),
+        "git": _git(),
+        "truth": TRUTH,
+        "nominal_spring": NOMINAL_SPRING,
+        "level": args.level,
+        "basis": args.basis,
+    }
+
+    def save() -> str:
+        info["seconds"] = time.perf_counter() - t0
+        if args.json:
+            write_json(args.json, records, {"info": info})
+        text = report(records, info)
+        if args.markdown:
+            write_text(args.markdown, text)
+        return text
+
     for e_i, effect in enumerate(args.effects):
         runs = []
         for s in range(args.seeds):
@@ -256,20 +274,8 @@ def main(argv=None):
             "summary": summarise(runs),
             "runs": runs,
         }
-    info = {
-        "command": cli_command(),
-        "git": _git(),
-        "seconds": time.perf_counter() - t0,
-        "truth": TRUTH,
-        "nominal_spring": NOMINAL_SPRING,
-        "level": args.level,
-        "basis": args.basis,
-    }
-    if args.json:
-        write_json(args.json, records, {"info": info})
-    text = report(records, info)
-    if args.markdown:
-        write_text(args.markdown, text)
+        save()  # after each effect, so an interrupted run keeps what it did
+    text = save()
     print(text)
 
 
