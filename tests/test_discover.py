@@ -319,6 +319,27 @@ def test_add_fits_chosen_candidates_with_the_named_ones():
         dc.add(found, named, data, also="spring error")
 
 
+def test_discover_says_whether_the_physics_moved():
+    """`discover(..., physics=...)`: the spring correction is fitted without
+    and with the named damping; the model's spring is right, so it holds
+    (the refit value is inside the interval of the fit without the named
+    effect), and the statement says so. The final fit holds both."""
+    import eqsmooth.discover as dc
+
+    data, found, named, added = _simulated_run(1, "viscous", 0.1)
+    report = dc.discover(_model(), data, physics=("spring error",))
+    spring = report["physics"]["spring error"]
+    assert spring["moved"] is False, spring
+    lo, hi = spring["before"]["interval"]
+    assert lo < spring["after"]["value"] < hi
+    assert spring["statement"].endswith(": held")
+    assert [c["name"] for c in report["add"]["coefficients"]] == [
+        "viscous damping",
+        "spring error",
+    ]
+    json.dumps(dc.to_json(report))
+
+
 def test_null_data_names_nothing():
     data = _simulate(2)
     found, named, added = _run(data)

@@ -1,6 +1,6 @@
 """Show: the held-out gap before and after, and the whole workflow in one call."""
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -106,6 +106,7 @@ def discover(
     horizon: int = 10,
     burn_in: int = 0,
     bootstrap_resamples: int = 0,
+    physics: Sequence[str] = (),
 ) -> dict:
     """Run find, name, add and (with held-out data) show; return one report.
 
@@ -122,9 +123,18 @@ def discover(
     - `bootstrap_resamples`: if positive, also run
         [`eqsmooth.discover.bootstrap`][] with this many resamples (each
         costs one find + name).
+    - `physics`: names of library candidates that correct the model's
+        physical parameters (e.g. `"spring error"`, `"viscous damping"`,
+        `"actuator gain"` of [`eqsmooth.discover.mechanical_library`][]).
+        They are fitted before any effect is added and again with the named
+        effects (`add(..., also=physics)`, whose fit is then the final
+        model), and the report's `physics` entry says, per parameter,
+        whether it moved: whether the refit value lies outside the 95%
+        interval of the fit without the named effects.
 
     **Returns:** a JSON-serialisable dict with `verdict`, `find`, `name`,
-    `add`, `show` (with held-out data) and `bootstrap` (when asked), plus
+    `add`, `show` (with held-out data), `bootstrap` (when asked) and
+    `physics` (when asked), plus
     the fitted model under the key `"model"` (remove it before serialising,
     or use [`eqsmooth.discover.to_json`][]).
     """
@@ -136,7 +146,7 @@ def discover(
         shape_tolerance=shape_tolerance,
         shape_power=shape_power,
     )
-    added = add(found, named, data)
+    added = add(found, named, data, also=physics)
     report = {
         "verdict": named["verdict"],
         "find": found,
@@ -152,12 +162,43 @@ def discover(
             num_resamples=bootstrap_resamples,
             max_terms=max_terms,
         )
+    if physics:
+        report["physics"] = physics_moved(
+            add(found, None, data, also=physics), added, physics
+        )
     if heldout is not None and not found.state.failed:
         before = fitted_model(found.state.model, found.state.evaluation.z)
         report["show"] = show(
             before, added["model"], heldout, horizon=horizon, burn_in=burn_in
         )
     return report
+
+
+def physics_moved(before: dict, after: dict, names: Sequence[str]) -> dict:
+    """Per physical-parameter correction: its fit without and with the named
+    effects (two [`eqsmooth.discover.add`][] results) and whether it moved
+    (the value with them outside the 95% interval without them)."""
+    out = {}
+    for nm in names:
+        b = next((c for c in before["coefficients"] if c["name"] == nm), None)
+        a = next((c for c in after["coefficients"] if c["name"] == nm), None)
+        if a is None or b is None:
+            out[nm] = {"moved": None, "statement": f"{nm}: no fit"}
+            continue
+        lo, hi = b["interval"]
+        finite = bool(np.isfinite(lo) and np.isfinite(hi))
+        moved = bool(not lo <= a["value"] <= hi) if finite else None
+        verdict = {True: "moved", False: "held", None: "unknown (no interval)"}
+        out[nm] = {
+            "before": {k: b[k] for k in ("value", "std_error", "interval")},
+            "after": {k: a[k] for k in ("value", "std_error", "interval")},
+            "moved": moved,
+            "statement": (
+                f"{nm}: {b['value']:.4g} [{lo:.4g}, {hi:.4g}] without the named "
+                f"effects, {a['value']:.4g} with them: {verdict[moved]}"
+            ),
+        }
+    return out
 
 
 def to_json(report: Mapping[str, Any]) -> dict:
