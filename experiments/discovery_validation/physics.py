@@ -35,8 +35,10 @@ interval on the coverage).
 """
 
 import argparse
+import json
 import math
 import time
+from pathlib import Path
 
 import jax
 
@@ -159,7 +161,7 @@ def _wilson(k: int, n: int) -> list[float]:
     p, z = k / n, 1.96
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return [centre - half, centre + half]
+    return [max(0.0, centre - half), min(1.0, centre + half)]
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -216,6 +218,16 @@ def report(records: dict, info: dict) -> str:
                 )
         lines.append("")
     return "\n".join(lines)
+
+
+def rerender(path: str, markdown: str | None = None) -> None:
+    """Recompute the summaries and the report of a saved run from its runs."""
+    payload = json.loads(Path(path).read_text())
+    for rec in payload["records"].values():
+        rec["summary"] = summarise(rec["runs"])
+    Path(path).write_text(json.dumps(payload, indent=1))
+    if markdown:
+        write_text(markdown, report(payload["records"], payload["info"]))
 
 
 def main(argv=None):
