@@ -36,7 +36,6 @@ interval on the coverage).
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 
@@ -51,7 +50,7 @@ import numpy as np  # noqa: E402
 import eqsmooth.discover as dc  # noqa: E402
 from benchmarks._common import cli_command, write_json, write_text  # noqa: E402
 
-from .oscillator import _effect_term, _git  # noqa: E402
+from .oscillator import _effect_term, _git, wilson  # noqa: E402
 from .systems import _dyn1, _inputs, _meas1, COULOMB_EPS, PRIOR1, Q1, R1  # noqa: E402
 
 
@@ -155,15 +154,6 @@ def one(data, workflow_model, residual_model, basis: int) -> dict:
     }
 
 
-def _wilson(k: int, n: int) -> list[float]:
-    if n == 0:
-        return [math.nan, math.nan]
-    p, z = k / n, 1.96
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return [max(0.0, centre - half), min(1.0, centre + half)]
-
-
 def summarise(runs: list[dict]) -> dict:
     out = {}
     for model in ("physics", "physics + named", "residual"):
@@ -180,7 +170,7 @@ def summarise(runs: list[dict]) -> dict:
                 "rmse": float(np.sqrt(np.mean((est - truth) ** 2))),
                 "mean_interval_width": float(np.mean(2 * 1.96 * se[ok])),
                 "coverage_95": covered / max(int(ok.sum()), 1),
-                "coverage_interval": _wilson(covered, int(ok.sum())),
+                "coverage_interval": list(wilson(covered, int(ok.sum()))),
                 "n": int(ok.sum()),
             }
         out[model] = rows
