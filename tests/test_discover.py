@@ -340,6 +340,41 @@ def test_discover_says_whether_the_physics_moved():
     json.dumps(dc.to_json(report))
 
 
+def test_propose_the_experiment_that_checks_a_weak_shape():
+    """`propose` on the tentative drag verdict: the shape of quadratic drag
+    is too weak to check at 24 sequences. Simulated from the fit, the
+    design like the data needs about as many sequences as `name` said, and
+    one releasing the oscillator at three times the velocity (drag grows as
+    v|v|) needs fewer, so it is proposed."""
+    from hostile import raises
+
+    import eqsmooth.discover as dc
+
+    data, found, named, _ = _simulated_run(1, "drag", 0.02)
+    (term,) = named["shape_check"]["terms"]
+    assert not term["checked"]
+    fast = np.zeros((B, 2))
+    fast[:, 1] = 3 * PRIOR[1] * np.where(np.arange(B) % 2, 1.0, -1.0)
+    designs = {
+        "as measured": dc.Sequences(np.zeros((B, T, 1)), np.zeros((B, 2))),
+        "released fast": dc.Sequences(np.zeros((B, T, 1)), fast),
+    }
+    out = dc.propose(found, named, data, designs)
+    assert out["open"] == [{"kind": "shape", "named": "quadratic drag"}]
+    same = out["designs"]["as measured"]["sequences_needed"]
+    assert 0.3 < same / term["sequences_needed"] < 3, (same, term)
+    assert out["proposal"] == "released fast", out
+    assert out["sequences"] < same / 2, out
+    assert out["statement"].startswith(f"measure about {out['sequences']} sequences")
+    with raises(ValueError, "propose: design 'x' has states of (3,)"):
+        dc.propose(
+            found,
+            named,
+            data,
+            {"x": dc.Sequences(np.zeros((B, T, 1)), np.zeros((B, 3)))},
+        )
+
+
 def test_null_data_names_nothing():
     data = _simulate(2)
     found, named, added = _run(data)

@@ -9,6 +9,7 @@ from ._candidates import (
     mechanical_library as mechanical_library,
     Profiled as Profiled,
 )
+from ._design import propose as propose
 from ._find import find as find
 from ._integrator import Integrator as Integrator
 from ._laplace import (
