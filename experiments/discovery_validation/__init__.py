@@ -23,6 +23,8 @@ report as it goes:
 - `physics`: the physical parameters (spring, damping, gain) fitted before
   and after the named effect is added, beside a flexible residual model:
   bias, interval width and coverage.
+- `design`: following `propose`'s experiment against the default
+  excitation: sequences to a confident correct name.
 
     python -m experiments.discovery_validation              # the list
     python -m experiments.discovery_validation.oscillator --quick

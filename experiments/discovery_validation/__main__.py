@@ -9,6 +9,7 @@ STUDIES = {
     "continuous": "effects inside a continuous-time model",
     "equivalence": "a non-identifiable pair is always reported as the pair",
     "physics": "physical parameters before and after the named effect",
+    "design": "following propose: sequences to a confident correct name",
 }
 
 if __name__ == "__main__":
