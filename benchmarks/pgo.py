@@ -14,7 +14,7 @@ after a warm-up call `first_s`; `compile_s = first_s - median_s`. Data:
 matrices repaired with `invalid_information="block_diagonal"`), else a
 synthetic 2-D graph. `--gtsam-files`: every pose graph in the gtsam wheel,
 `--solver default` (`LevenbergMarquardt()`) against GTSAM's default
-`LevenbergMarquardtParams()`.
+`LevenbergMarquardtParams()`. `--damping-update`: LM's rule for λ.
 
     python -m benchmarks.pgo --quick                # intel + smallGrid3D
     python -m benchmarks.pgo --json benchmarks/results/pgo.json \\
@@ -42,7 +42,6 @@ from eqsmooth.io import load_g2o, synthetic_pose_graph_2d, to_gtsam  # noqa: E40
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "g2o"
 FILES = "intel MIT CSAIL manhattan kitti_00 sphere2500 torus3D parking-garage cubicle"
 FILES = FILES.split()
-QUICK_FILES = ["intel", "smallGrid3D"]
 
 
 def timed(fn, repeats: int, budget_s: float):
@@ -125,8 +124,8 @@ def bench_one(name, pg, args, solver, solver_name, gtsam):
     config = dict(file=name, kind=pg.kind, num_poses=pg.num_poses)
     config |= dict(num_edges=pg.num_edges, solver=solver_name)
     config |= dict(initial_damping=solver.initial_damping, max_steps=args.max_steps)
-    config |= dict(dtype="float64", se3_information=pg.se3_information)
-    config["anchor_sqrt_information"] = 1e6
+    config |= dict(damping_update=solver.damping_update, dtype="float64")
+    config |= dict(se3_information=pg.se3_information, anchor_sqrt_information=1e6)
     rec = {"benchmark": "pgo", "config": config, "file": name, "median_s": median}
     rec |= {"first_s": first, "compile_s": max(first - median, 0.0), "repeats": n}
     rec["load_average"] = os.getloadavg()
@@ -179,8 +178,7 @@ def write_markdown(path, records, m: dict, solver_name: str, args):
         f"- git: {git}",
         "- times: median of `repeats` full solves after a warm-up call, seconds",
     ]
-    if m.get("blas"):
-        lines.append(f"- BLAS used by CHOLMOD: {', '.join(m['blas'])}")
+    lines += [f"- BLAS used by CHOLMOD: {', '.join(m['blas'])}"] * bool(m.get("blas"))
     lines += [
         "",
         table_of(records),
@@ -208,7 +206,8 @@ def make_solver(args):
     inner = f"{type(linear).__name__}()" if linear else ""
     if args.solver == "pcg":
         inner = f"PCG(preconditioner={type(pre).__name__}())"
-    return eqs.LevenbergMarquardt(linear), f"LevenbergMarquardt({inner})"
+    lm = eqs.LevenbergMarquardt(linear, damping_update=args.damping_update)
+    return lm, f"LevenbergMarquardt({inner}), {lm.damping_update!r} damping update"
 
 
 def load_problems(args) -> list:
@@ -223,7 +222,7 @@ def load_problems(args) -> list:
     problems = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # cubicle's repairs
-        for name in args.files or (QUICK_FILES if args.quick else FILES):
+        for name in args.files or (["intel", "smallGrid3D"] if args.quick else FILES):
             if not (path := DATA / f"{name}.g2o").exists():
                 print(f"note: {path} not found, skipped")
                 continue
@@ -241,14 +240,15 @@ def main(argv=None):
     parser.add_argument("--solver", choices=solvers)
     parser.add_argument("--gtsam-files", action="store_true", help="see above")
     parser.add_argument("--preconditioner", choices=["jacobi", "chain"])
+    parser.add_argument("--damping-update", choices=["nielsen", "fixed"])
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--budget-s", type=float, default=120.0, help="per file")
     parser.add_argument("--no-gtsam", action="store_true")
     args = parser.parse_args(argv)
-    if args.max_steps is None:
-        args.max_steps = 10 if args.quick else 100
+    args.max_steps = args.max_steps or (10 if args.quick else 100)
     args.solver = args.solver or ("default" if args.gtsam_files else "sparse")
+    args.damping_update = args.damping_update or eqs.LevenbergMarquardt.damping_update
     gtsam = None if args.no_gtsam else common.optional("gtsam", " (pip install gtsam)")
     solver, solver_name = make_solver(args)
     problems = load_problems(args)

@@ -143,12 +143,14 @@ class DampedDescent(AbstractDescent):
     `D = clip(diag(JᵀJ), min_diagonal, max_diagonal)` (Marquardt scaling with
     a floor, so the damped system is positive definite even where `JᵀJ` is
     singular). A step is accepted when the gain ratio (actual / predicted
-    cost decrease) exceeds `min_gain`; λ then shrinks smoothly (Nielsen's
-    rule), otherwise it grows by a factor that doubles on every consecutive
-    rejection. A non-finite trial point or a failed linear solve counts as a
-    rejection. The solve ends when λ exceeds `max_damping`
-    (`RESULTS.linear_solve_failed`) or when the predicted decrease is at the
-    level of rounding in the cost (convergence).
+    cost decrease) exceeds `min_gain`; λ then moves by the `damping_update`
+    rule: `"nielsen"` multiplies it by `max(1/3, 1 − (2ρ − 1)³)` for gain
+    ratio ρ and by a factor that doubles on every consecutive rejection,
+    `"fixed"` divides it by `damping_factor` on every accepted step and
+    multiplies it by `damping_factor` on every rejection. A non-finite trial
+    point or a failed linear solve counts as a rejection. The solve ends when
+    λ exceeds `max_damping` (`RESULTS.linear_solve_failed`) or when the
+    predicted decrease is at the level of rounding in the cost (convergence).
 
     **Arguments:** as [`eqsmooth.solve.LevenbergMarquardt`][].
     """
@@ -158,6 +160,8 @@ class DampedDescent(AbstractDescent):
     max_diagonal: float = eqx.field(static=True, default=1e32)
     max_damping: float = eqx.field(static=True, default=1e16)
     min_gain: float = eqx.field(static=True, default=1e-3)
+    damping_update: str = eqx.field(static=True, default="nielsen")
+    damping_factor: float = eqx.field(static=True, default=10.0)
 
     def __check_init__(self):
         check_damping("DampedDescent", self)
@@ -176,11 +180,19 @@ class DampedDescent(AbstractDescent):
         accept = (
             state.solved & finite & (predicted > 0) & (gain > self.min_gain) & ~first
         )
-        # Nielsen's damping update.
-        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
-        new_lam = jnp.where(accept, lam * shrink, lam * state.nu)
+        if self.damping_update == "nielsen":
+            # Nielsen (1999): λ shrinks smoothly with the gain ratio (and grows
+            # when it is below 1/2); on rejections it grows by ν, which doubles.
+            shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            new_lam = jnp.where(accept, lam * shrink, lam * state.nu)
+            new_nu = jnp.where(accept, 2.0, 2.0 * state.nu)
+        else:
+            # A fixed factor down on every accepted step and up on every
+            # rejection, whatever the gain ratio (GTSAM's default).
+            factor = self.damping_factor
+            new_lam = jnp.where(accept, lam / factor, lam * factor)
+            new_nu = state.nu
         new_lam = jnp.maximum(new_lam, jnp.finfo(lam.dtype).tiny)
-        new_nu = jnp.where(accept, 2.0, 2.0 * state.nu)
         # Nothing left to gain: the model's predicted decrease is at the level
         # of floating-point noise in the cost (or not positive), so no
         # accepted step can be told apart from rounding. This is convergence.
@@ -207,6 +219,9 @@ class DampedDescent(AbstractDescent):
         return True
 
 
+DAMPING_UPDATES = ("nielsen", "fixed")
+
+
 def check_damping(owner: str, d) -> None:
     """A `ValueError` naming `owner` for a damping parameter out of range."""
     checks = (
@@ -215,6 +230,8 @@ def check_damping(owner: str, d) -> None:
         ("max_diagonal", d.max_diagonal >= d.min_diagonal, ">= min_diagonal"),
         ("max_damping", d.max_damping > d.initial_damping, "> initial_damping"),
         ("min_gain", 0 <= d.min_gain < 1, "in [0, 1)"),
+        ("damping_update", d.damping_update in DAMPING_UPDATES, "'nielsen' or 'fixed'"),
+        ("damping_factor", 1 < d.damping_factor < math.inf, "> 1 and finite"),
     )
     for field, ok, need in checks:
         if not ok:  # NaN fails every comparison, so it lands here too
