@@ -138,31 +138,22 @@ def _gtsam_jacobian(factor, values, pose_columns):
     return np.concatenate(blocks, axis=1)
 
 
-def _factors(pim):
+def _pair(pim, gravity, combined=False, first=range(N), second=range(N, 2 * N)):
+    """An ImuFactor (or CombinedImuFactor) stack from keyframes `first` to
+    `second` (variables x, v, b)."""
     import eqsmooth as eqs
 
     V = eqs.Var
-    first, second = range(N), range(N, 2 * N)
-    imu = eqs.ImuFactor(
-        V("x", first),
-        V("v", first),
-        V("x", second),
-        V("v", second),
-        V("b", first),
-        pim,
-        _params(),
-    )
-    combined = eqs.CombinedImuFactor(
-        V("x", first),
-        V("v", first),
-        V("x", second),
-        V("v", second),
-        V("b", first),
-        V("b", second),
-        pim,
-        _params(),
-    )
-    return imu, combined
+    states = (V("x", first), V("v", first), V("x", second), V("v", second))
+    if combined:
+        return eqs.CombinedImuFactor(
+            *states, V("b", first), V("b", second), pim, gravity
+        )
+    return eqs.ImuFactor(*states, V("b", first), pim, gravity)
+
+
+def _factors(pim):
+    return _pair(pim, _params()), _pair(pim, _params(), combined=True)
 
 
 @eqx.filter_jit
@@ -441,27 +432,7 @@ def _nll(sigmas, bias_i, acc, gyro, dt):
     _, _, _, bias_hat, states = _data()
     params = eqs.ImuParams.from_sigmas(jnp.asarray(GRAVITY), *sigmas)
     pim = eqs.preintegrate(params, acc, gyro, dt, jnp.asarray(bias_hat))
-    V = eqs.Var
-    first, second = range(N), range(N, 2 * N)
-    imu = eqs.ImuFactor(
-        V("x", first),
-        V("v", first),
-        V("x", second),
-        V("v", second),
-        V("b", first),
-        pim,
-        params,
-    )
-    comb = eqs.CombinedImuFactor(
-        V("x", first),
-        V("v", first),
-        V("x", second),
-        V("v", second),
-        V("b", first),
-        V("b", second),
-        pim,
-        params,
-    )
+    imu, comb = _pair(pim, params), _pair(pim, params, combined=True)
     s = _states(states, combined=True)
     values = {
         "x": eqs.SE3(jnp.concatenate([s[0].wxyz_xyz, s[2].wxyz_xyz])),
@@ -518,21 +489,7 @@ def _solve_position(acc_sigma, bias0, acc, gyro, dt):
     )
     pim = eqs.preintegrate(params, acc[:2], gyro[:2], dt[:2], jnp.zeros(6))
     V = eqs.Var
-    imu = eqs.ImuFactor(
-        V("x", [0, 1]),
-        V("v", [0, 1]),
-        V("x", [1, 2]),
-        V("v", [1, 2]),
-        V("b", [0, 1]),
-        pim,
-        params,
-    )
-    walk = eqs.BetweenFactor(
-        V("b", [0, 1]),
-        V("b", [1, 2]),
-        jnp.zeros((2, 6)),
-        eqs.DiagonalNoise.from_sigmas(jnp.full(6, 0.05)),
-    )
+    chain = eqs.factors.imu_chain(pim, params, jnp.full(6, 0.05))
     gps = eqs.TranslationPriorFactor(
         V("x", [0, 1, 2]),
         jnp.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.05, 0.0]]),
@@ -549,7 +506,7 @@ def _solve_position(acc_sigma, bias0, acc, gyro, dt):
     bprior = eqs.PriorFactor(
         V("b", [0]), bias0[None], eqs.IsotropicNoise.from_sigma(jnp.asarray(0.1))
     )
-    graph = eqs.FactorGraph([imu, walk, gps, prior, vprior, bprior])
+    graph = eqs.FactorGraph([*chain, gps, prior, vprior, bprior])
     values = {
         "x": eqs.SE3.identity((3,), jnp.float64),
         "v": jnp.zeros((3, 3)),
@@ -666,15 +623,7 @@ def test_hostile_factor_input():
         match=r"ImuFactor.pim has batch shape \(3,\) but "
         r"the factor has 2 rows",
     ):
-        eqs.ImuFactor(
-            V("x", [0, 1]),
-            V("v", [0, 1]),
-            V("x", [1, 2]),
-            V("v", [1, 2]),
-            V("b", [0, 1]),
-            pim,
-            _params(),
-        )
+        _pair(pim, _params(), first=[0, 1], second=[1, 2])
     # (The type names `pim`: the message of the runtime type check or ours.)
     with pytest.raises(TypeError, match=r"pim"):
         eqs.ImuFactor(
@@ -687,28 +636,18 @@ def test_hostile_factor_input():
             _params(),
         )
     with pytest.raises(ValueError, match=r"ImuFactor.gravity must have shape"):
-        _factors_with_gravity(pim, jnp.zeros(2))
+        _pair(pim, jnp.zeros(2))
     # No bias random walk in the parameters: the combined covariance is singular.
     no_walk = eqs.ImuParams(jnp.asarray(GRAVITY), SA, SG, SI)
     acc, gyro, dt, bias_hat, _ = _data()
     pim0 = eqs.preintegrate(no_walk, acc, gyro, dt, bias_hat)
-    first, second = range(N), range(N, 2 * N)
     with pytest.raises(
         ValueError,
         match=r"CombinedImuFactor: the combined "
         r"preintegrated covariance of rows \[0, 1, 2\]"
         r" is not positive definite",
     ):
-        eqs.CombinedImuFactor(
-            V("x", first),
-            V("v", first),
-            V("x", second),
-            V("v", second),
-            V("b", first),
-            V("b", second),
-            pim0,
-            no_walk,
-        )
+        _pair(pim0, no_walk, combined=True)
     # Wrong variable kinds name the factor and the variable.
     imu, _ = _factors(pim)
     _, _, _, _, states = _data()
@@ -727,20 +666,201 @@ def test_hostile_factor_input():
         _rows(imu, (s[0], s[1], s[1], s[3], s[4]))
 
 
-def _factors_with_gravity(pim, gravity):
+# ------------------------------------------------------------------ the chain
+
+
+WALK = np.array([0.05, 0.06, 0.07, 1e-3, 2e-3, 3e-3])
+
+
+def _chain_values(states):
+    """The random states of `_data` as a chain of 2N keyframes (first, then
+    second): per-group values and the same as one `(pose, velocity, bias)`
+    group."""
     import eqsmooth as eqs
 
-    V = eqs.Var
-    first, second = range(N), range(N, 2 * N)
-    return eqs.ImuFactor(
-        V("x", first),
-        V("v", first),
-        V("x", second),
-        V("v", second),
-        V("b", first),
-        pim,
-        gravity,
+    s = _states(states, combined=True)
+    split = {
+        "x": eqs.SE3(jnp.concatenate([s[0].wxyz_xyz, s[2].wxyz_xyz])),
+        "v": jnp.concatenate([s[1], s[3]]),
+        "b": jnp.concatenate([s[4], s[5]]),
+    }
+    return split, {"s": (split["x"], split["v"], split["b"])}
+
+
+@pytest.mark.parametrize("combined", [False, True], ids=["walk", "combined"])
+def test_imu_chain_and_transition_match_hand_built_factors(combined):
+    """`imu_chain` is the ImuFactor + bias BetweenFactor stacks (or the
+    CombinedImuFactor stack) between consecutive keyframes, and
+    `ImuTransitionFactor` on one `(pose, velocity, bias)` group has the same
+    cost; `bias_walk_sigmas` is √samples times the per-sample sigmas."""
+    import eqsmooth as eqs
+
+    _, _, _, _, states = _data()
+    pim = _ours()
+    walk = None if combined else WALK
+    ids = np.array([0, 3, 1, 4])  # keyframes in any order
+    pim_chain = jax.tree_util.tree_map(lambda a: a[: len(ids) - 1], pim)
+    chain = eqs.factors.imu_chain(
+        pim_chain, _params(), walk, ids=ids, combined=combined
     )
+    assert len(chain) == (1 if combined else 2)
+    i, j = ids[:-1], ids[1:]
+    V = eqs.Var
+    by_hand = [_pair(pim_chain, _params(), combined, first=i, second=j)]
+    if not combined:
+        by_hand.append(
+            eqs.BetweenFactor(
+                V("b", i),
+                V("b", j),
+                jnp.zeros((len(i), 6)),
+                eqs.DiagonalNoise.from_sigmas(jnp.asarray(WALK)),
+            )
+        )
+    transition = eqs.factors.ImuTransitionFactor(
+        V("s", i), V("s", j), pim_chain, _params(), walk
+    )
+    split, joint = _chain_values(states)
+    costs = [
+        float(eqs.FactorGraph(chain).cost(split)),
+        float(eqs.FactorGraph(by_hand).cost(split)),
+        float(eqs.FactorGraph([transition]).cost(joint)),
+    ]
+    assert costs[0] > 1.0
+    np.testing.assert_allclose(costs, costs[0], rtol=1e-12)
+    sig = eqs.factors.bias_walk_sigmas(0.1, jnp.array([1.0, 2.0, 3.0]), [4.0, 9.0])
+    np.testing.assert_allclose(
+        sig, [[0.2, 0.2, 0.2, 2.0, 4.0, 6.0], [0.3, 0.3, 0.3, 3.0, 6.0, 9.0]]
+    )
+
+
+def test_hostile_chain_input():
+    import eqsmooth as eqs
+
+    pim = _ours()
+    with pytest.raises(ValueError, match=r"imu_chain: give bias_walk_sigmas"):
+        eqs.factors.imu_chain(pim, _params())
+    with pytest.raises(ValueError, match=r"imu_chain: combined=True takes"):
+        eqs.factors.imu_chain(pim, _params(), WALK, combined=True)
+    with pytest.raises(
+        ValueError, match=r"imu_chain: bias_walk_sigmas must have shape \(6,\) or"
+    ):
+        eqs.factors.imu_chain(pim, _params(), WALK[:3])
+    with pytest.raises(ValueError, match=r"imu_chain: ids must hold the 4 keyframes"):
+        eqs.factors.imu_chain(pim, _params(), WALK, ids=[0, 1, 2])
+    # (The type names `pim`: the message of the runtime type check or ours.)
+    with pytest.raises(TypeError, match=r"pim"):
+        eqs.factors.imu_chain({"delta_t": 1.0}, _params(), WALK)
+    # (The runtime type check or ours names `samples`.)
+    with pytest.raises((TypeError, ValueError), match=r"samples"):
+        eqs.factors.bias_walk_sigmas(0.1, 0.1, np.ones((2, 2)))
+    V = eqs.Var
+    a, b = V("s", [0, 1, 2]), V("s", [1, 2, 3])
+    with pytest.raises(
+        ValueError,
+        match=r"ImuTransitionFactor.bias_walk_sigmas must have shape \(6,\) or "
+        r"\(3, 6\)",
+    ):
+        eqs.factors.ImuTransitionFactor(a, b, pim, _params(), np.ones((2, 6)))
+    with pytest.raises(ValueError, match=r"bias_walk_sigmas must be positive"):
+        eqs.factors.ImuTransitionFactor(a, b, pim, _params(), -WALK)
+    factor = eqs.factors.ImuTransitionFactor(a, b, pim, _params(), WALK)
+    _, _, _, _, states = _data()
+    s = _states(states, combined=True)
+    with pytest.raises(
+        TypeError, match=r"ImuTransitionFactor: the state_i variable must hold"
+    ):
+        _rows(factor, (s[0], (s[2], s[3], s[5])))
+
+
+def test_fixed_lag_imu_chain_matches_batch():
+    """`ImuTransitionFactor` as the transition of `fixed_lag_smoother`: a
+    chain of 12 keyframes with one position fix at keyframe 8 (heading and
+    velocity nearly free before it, as in the KITTI example's first
+    windows), smoothed with lag = T, gives the batch solution of the same
+    graph built by `imu_chain` with the initial belief as priors. The
+    windows use λ₀ = 1e-14, as `examples/kitti_imu_gps.py --fixed-lag` does."""
+    import eqsmooth as eqs
+
+    rng = np.random.default_rng(3)
+    T, k = 12, 10
+    n = (T - 1) * k
+    # A car turning gently: constant forward acceleration and yaw rate.
+    acc = np.tile([0.3, 0.2, 9.81], (n, 1)) + rng.normal(size=(n, 3)) * 0.01
+    gyro = np.tile([0.0, 0.0, 0.1], (n, 1)) + rng.normal(size=(n, 3)) * 1e-3
+    params = eqs.ImuParams.make_u(
+        9.81, accelerometer_sigma=0.01, gyroscope_sigma=1.75e-4
+    )
+    pim = eqs.preintegrate(
+        params,
+        acc.reshape(T - 1, k, 3),
+        gyro.reshape(T - 1, k, 3),
+        np.full((T - 1, k), 0.1),
+    )
+    walk = eqs.factors.bias_walk_sigmas(1.67e-4, 2.91e-6, np.full(T - 1, k))
+    ids = np.arange(T)
+    V = eqs.Var
+    fix_at, fix = 8, jnp.array([[40.0, 12.0, 0.5]])
+    mean = (eqs.SE3.identity(), jnp.array([1.0, 0.0, 0.0]), jnp.zeros(6))
+    sigmas = np.r_[[1.0] * 3, [1.0] * 3, [100.0] * 3, [0.1] * 3, [5e-5] * 3]
+    solver = eqs.LevenbergMarquardt(
+        ftol=1e-12, gtol=1e-9, xtol=1e-12, initial_damping=1e-14
+    )
+    sol = eqs.filters.fixed_lag_smoother(
+        eqs.factors.ImuTransitionFactor(
+            V("s", ids[:-1]), V("s", ids[1:]), pim, params, walk
+        ),
+        [
+            eqs.FunctionFactor(
+                _fix_residual,
+                (V("s", [fix_at]),),
+                eqs.IsotropicNoise.from_sigma(0.2),
+                data=fix,
+                residual_dim=3,
+            )
+        ],
+        mean,
+        jnp.diag(jnp.asarray(sigmas) ** 2),
+        lag=T,
+        solver=solver,
+    )
+    unit = lambda x: jnp.broadcast_to(x, (1, *jnp.shape(x)))
+    graph = eqs.FactorGraph(
+        [
+            *eqs.factors.imu_chain(pim, params, walk),
+            eqs.TranslationPriorFactor(
+                V("x", [fix_at]), fix, eqs.IsotropicNoise.from_sigma(0.2)
+            ),
+            eqs.PriorFactor(
+                V("x", [0]),
+                eqs.SE3.identity((1,)),
+                eqs.DiagonalNoise.from_sigmas(jnp.asarray(sigmas[:6])),
+            ),
+            eqs.PriorFactor(
+                V("v", [0]),
+                unit(mean[1]),
+                eqs.DiagonalNoise.from_sigmas(jnp.asarray(sigmas[6:9])),
+            ),
+            eqs.PriorFactor(
+                V("b", [0]),
+                unit(mean[2]),
+                eqs.DiagonalNoise.from_sigmas(jnp.asarray(sigmas[9:])),
+            ),
+        ]
+    )
+    last = jax.tree_util.tree_map(lambda a: a[-1], sol.windows)
+    batch = eqs.least_squares(
+        graph, {"x": last[0], "v": last[1], "b": last[2]}, solver, max_steps=20
+    )
+    got = np.asarray(sol.lagged_mean[0].translation())
+    np.testing.assert_allclose(
+        got, np.asarray(batch.value["x"].translation()), atol=1e-6
+    )
+    np.testing.assert_allclose(sol.lagged_mean[1], batch.value["v"], atol=1e-6)
+    assert np.abs(got[fix_at] - fix[0]).max() < 0.5
+
+
+def _fix_residual(state, position, params):
+    return state[0].translation() - position
 
 
 # ------------------------------------------------------------------ the example

@@ -27,8 +27,10 @@ from ._graph import FactorGraph as FactorGraph, GroupLayout as GroupLayout
 from ._imu import (
     CombinedImuFactor as CombinedImuFactor,
     ImuFactor as ImuFactor,
+    ImuTransitionFactor as ImuTransitionFactor,
     navigation_error as navigation_error,
 )
+from ._imu_chain import bias_walk_sigmas as bias_walk_sigmas, imu_chain as imu_chain
 from ._imu_preintegration import (
     ImuParams as ImuParams,
     preintegrate as preintegrate,

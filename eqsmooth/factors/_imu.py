@@ -27,6 +27,7 @@ is `(ω, v)`); both retract by `T Exp(δ)`, so a Jacobian column of ours is
 GTSAM's column with the two 3-blocks of a pose swapped.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
@@ -141,6 +142,43 @@ def _noise_from(name: str, covariance: Array, what: str) -> SqrtInformationNoise
     return SqrtInformationNoise.from_covariance(covariance)
 
 
+def _walk_covariance(name: str, pim, sigmas) -> Array:
+    """The 15 x 15 covariance of `(navigation error, bias drift)` with the
+    drift an independent random walk of per-row standard deviations
+    `sigmas` (`(6,)` or `(n, 6)`)."""
+    n = pim.delta_t.shape[0]
+    s = jnp.asarray(sigmas)
+    if s.shape not in ((6,), (n, 6)):
+        raise ValueError(
+            f"{name}.bias_walk_sigmas must have shape (6,) or ({n}, 6) (one row "
+            f"of (b_acc, b_omega) sigmas per interval), got {s.shape}"
+        )
+    if is_concrete(s) and not np.all(np.asarray(s) > 0):
+        raise ValueError(f"{name}.bias_walk_sigmas must be positive and finite")
+    walk = jnp.broadcast_to(s * s, (n, 6))
+    nav = pim.residual_covariance()
+    out = jnp.zeros((n, 15, 15), nav.dtype).at[:, :9, :9].set(nav)
+    return out.at[:, 9:, 9:].set(jax.vmap(jnp.diag)(walk.astype(nav.dtype)))
+
+
+def _imu_fields(name: str, pim, rows: int, gravity, noise, covariance):
+    """The `(pim, gravity, noise)` fields every IMU factor checks the same
+    way; `covariance(pim) -> (covariance, what)` gives the default noise's."""
+    _check_pim(name, pim, rows)
+    g = _check_gravity(name, gravity)
+    if noise is None:
+        noise = _noise_from(name, *covariance(pim))
+    return pim, g, noise
+
+
+def _preintegrated(pim):
+    return pim.residual_covariance(), "preintegrated covariance"
+
+
+def _combined(pim):
+    return pim.combined_residual_covariance(), "combined preintegrated covariance"
+
+
 class ImuFactor(AbstractFactor):
     """Preintegrated IMU measurements between keyframes `i` and `j`: GTSAM's
     `ImuFactor(pose_i, vel_i, pose_j, vel_j, bias_i, pim)`.
@@ -186,14 +224,9 @@ class ImuFactor(AbstractFactor):
         noise: AbstractNoiseModel | None = None,
     ):
         self.variables = (pose_i, velocity_i, pose_j, velocity_j, bias_i)
-        _check_pim("ImuFactor", pim, len(pose_i))
-        self.pim = pim
-        self.gravity = _check_gravity("ImuFactor", gravity)
-        if noise is None:
-            noise = _noise_from(
-                "ImuFactor", pim.residual_covariance(), "preintegrated covariance"
-            )
-        self.noise = noise
+        self.pim, self.gravity, self.noise = _imu_fields(
+            "ImuFactor", pim, len(pose_i), gravity, noise, _preintegrated
+        )
 
     def residual(
         self,
@@ -244,16 +277,9 @@ class CombinedImuFactor(AbstractFactor):
         noise: AbstractNoiseModel | None = None,
     ):
         self.variables = (pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j)
-        _check_pim("CombinedImuFactor", pim, len(pose_i))
-        self.pim = pim
-        self.gravity = _check_gravity("CombinedImuFactor", gravity)
-        if noise is None:
-            noise = _noise_from(
-                "CombinedImuFactor",
-                pim.combined_residual_covariance(),
-                "combined preintegrated covariance",
-            )
-        self.noise = noise
+        self.pim, self.gravity, self.noise = _imu_fields(
+            "CombinedImuFactor", pim, len(pose_i), gravity, noise, _combined
+        )
 
     def residual(
         self,
@@ -271,3 +297,69 @@ class CombinedImuFactor(AbstractFactor):
             self.pim, self.gravity, pose_i, velocity_i, pose_j, velocity_j, bias_i
         )
         return jnp.concatenate([nav, bias_i - bias_j])
+
+
+class ImuTransitionFactor(AbstractFactor):
+    """The IMU factor and the bias drift between two keyframe states held as
+    ONE variable each, `(pose, velocity, bias)`: the transition of
+    [`eqsmooth.filters.fixed_lag_smoother`][] and the other chain smoothers,
+    which want each time step's state in one group.
+
+    The 15-D residual is that of [`eqsmooth.factors.CombinedImuFactor`][]:
+    [`eqsmooth.factors.navigation_error`][] followed by `b_i − b_j`. With
+    `bias_walk_sigmas` the drift is an independent random walk of those
+    standard deviations (the cost is that of an
+    [`eqsmooth.factors.ImuFactor`][] plus a [`eqsmooth.factors.BetweenFactor`][]
+    on the biases, as [`eqsmooth.factors.imu_chain`][] builds); without, the
+    noise is the combined preintegrated covariance (that of
+    `CombinedImuFactor`, whose `ImuParams` bias densities must be positive).
+
+    **Arguments:**
+
+    - `state_i`, `state_j`: [`eqsmooth.factors.Var`][]s with `n` rows each,
+        whose values are tuples `(SE3 pose, (3,) velocity, (6,) bias)`.
+    - `pim`, `gravity`: as for [`eqsmooth.factors.ImuFactor`][].
+    - `bias_walk_sigmas`: the drift's standard deviations over each interval,
+        `(6,)` or `(n, 6)` in the order `(b_acc, b_omega)`; `None` for the
+        combined covariance.
+    - `noise`: optional noise model on the 15-D residual (replaces both).
+    """
+
+    variables: tuple[Var, ...]
+    pim: PreintegratedImuMeasurements
+    gravity: Float[Array, "3"] = shared_field()
+    noise: AbstractNoiseModel
+
+    def __init__(
+        self,
+        state_i: Var,
+        state_j: Var,
+        pim: PreintegratedImuMeasurements,
+        gravity: Float[ArrayLike, "..."] | ImuParams,
+        bias_walk_sigmas: Float[ArrayLike, "..."] | None = None,
+        noise: AbstractNoiseModel | None = None,
+    ):
+        name = "ImuTransitionFactor"
+        self.variables = (state_i, state_j)
+
+        def covariance(pim):
+            if bias_walk_sigmas is None:
+                return _combined(pim)
+            cov = _walk_covariance(name, pim, bias_walk_sigmas)
+            return cov, "preintegrated covariance with the bias walk"
+
+        self.pim, self.gravity, self.noise = _imu_fields(
+            name, pim, len(state_i), gravity, noise, covariance
+        )
+
+    def residual(self, state_i: PyTree, state_j: PyTree) -> Float[Array, "15"]:
+        for field, x in (("state_i", state_i), ("state_j", state_j)):
+            if not (isinstance(x, tuple) and len(x) == 3):
+                raise TypeError(
+                    f"ImuTransitionFactor: the {field} variable must hold "
+                    f"(pose, velocity, bias) tuples, got {type(x).__name__}"
+                )
+        (pose_i, v_i, b_i), (pose_j, v_j, b_j) = state_i, state_j
+        _check_states("ImuTransitionFactor", pose_i, v_i, pose_j, v_j, b_i, b_j)
+        nav = navigation_error(self.pim, self.gravity, pose_i, v_i, pose_j, v_j, b_i)
+        return jnp.concatenate([nav, b_i - b_j])
