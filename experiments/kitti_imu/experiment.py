@@ -59,27 +59,12 @@ def build(noise: ImuNoise, seg: dict, used: np.ndarray):
     pim = eqs.preintegrate(
         params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
     )
-    n = seg["gps"].shape[0]
-    V, ids = eqs.Var, np.arange(n)
-    walk = jnp.sqrt(seg["count"])[:, None] * jnp.repeat(sigma[2:], 3)[None, :]
+    V = eqs.Var
+    walk = eqs.factors.bias_walk_sigmas(sigma[2], sigma[3], seg["count"])
     gps_ids = np.flatnonzero(used)
     graph = eqs.FactorGraph(
         [
-            eqs.ImuFactor(
-                V("x", ids[:-1]),
-                V("v", ids[:-1]),
-                V("x", ids[1:]),
-                V("v", ids[1:]),
-                V("b", ids[:-1]),
-                pim,
-                params,
-            ),
-            eqs.BetweenFactor(
-                V("b", ids[:-1]),
-                V("b", ids[1:]),
-                jnp.zeros((n - 1, 6)),
-                eqs.DiagonalNoise.from_sigmas(walk),
-            ),
+            *eqs.factors.imu_chain(pim, params, walk),
             eqs.TranslationPriorFactor(
                 V("x", gps_ids),
                 seg["gps"][gps_ids],
@@ -97,6 +82,7 @@ def build(noise: ImuNoise, seg: dict, used: np.ndarray):
             ),
         ]
     )
+    n = seg["gps"].shape[0]
     rot = eqs.SO3.from_z_radians(seg["yaw"])
     values = {
         "x": eqs.SE3.from_rotation_and_translation(rot, seg["pos"]),
