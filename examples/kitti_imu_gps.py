@@ -31,8 +31,18 @@ with several other jobs (load average 9), 2 minutes (42 s of CPU time),
 nearly all of it compilation; the two trajectories agreed to 7e-9 m and
 3e-8 rad. The whole drive (469 keyframes) is the default.
 
+With `--fixed-lag LAG` the same model is also smoothed with a window of
+LAG keyframes by `eqs.filters.fixed_lag_smoother` (each keyframe's
+`(pose, velocity, bias)` one state, `eqs.factors.ImuTransitionFactor` the
+transition; Levenberg-Marquardt with `initial_damping=1e-14` in each
+window, as the windows of the first GPS fixes are nearly singular and the
+default 1e-8 crawls there) and by GTSAM's `BatchFixedLagSmoother`, which
+on this drive raises an `IndeterminateLinearSystemException` at the first
+fix (recorded in the summary). Whole drive, lag 10: 6.35 ms per keyframe
+after 110 s of compilation; lagged estimates up to 4.2 m from the batch.
+
     python examples/kitti_imu_gps.py --quick
-    python examples/kitti_imu_gps.py --json results/kitti_imu_gps.json
+    python examples/kitti_imu_gps.py --fixed-lag 10 --json results/kitti_imu_gps.json
 """
 
 import argparse

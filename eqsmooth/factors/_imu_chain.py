@@ -87,7 +87,8 @@ def imu_chain(
         (then `bias_walk_sigmas` must be `None`).
 
     To hold each keyframe's `(pose, velocity, bias)` in one variable (the
-    chain smoothers of [`eqsmooth.filters`][] want that), use
+    chain smoothers such as [`eqsmooth.filters.fixed_lag_smoother`][] want
+    that), use
     [`eqsmooth.factors.ImuTransitionFactor`][] with the same arguments.
 
     **Arguments:**
