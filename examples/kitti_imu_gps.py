@@ -138,7 +138,9 @@ def initial_values(gps_xyz):
     return {"x": poses, "v": jnp.asarray(step), "b": jnp.zeros((n, 6))}
 
 
-def build_graph(meta, samples, mask, running, gps_xyz):
+def preintegrated(meta, samples, mask):
+    """The IMU parameters of the metadata file and the keyframe intervals'
+    preintegrated measurements."""
     params = eqs.ImuParams.make_u(
         GRAVITY,
         accelerometer_sigma=meta["AccelerometerSigma"],
@@ -148,6 +150,11 @@ def build_graph(meta, samples, mask, running, gps_xyz):
     pim = eqs.preintegrate(
         params, samples[..., 2:5], samples[..., 5:8], samples[..., 1], mask=mask
     )
+    return params, pim
+
+
+def build_graph(meta, samples, mask, running, gps_xyz):
+    params, pim = preintegrated(meta, samples, mask)
     n = gps_xyz.shape[0]
     V = eqs.Var
     walk = eqs.factors.bias_walk_sigmas(
@@ -288,15 +295,7 @@ def solve_fixed_lag(meta, samples, mask, walk, gps_xyz, gps_ids, values, lag):
     """The same model with each keyframe's `(pose, velocity, bias)` as one
     state, smoothed by `eqs.filters.fixed_lag_smoother` (one `lax.scan`
     over the keyframes): run twice, the second run timed."""
-    params = eqs.ImuParams.make_u(
-        GRAVITY,
-        accelerometer_sigma=meta["AccelerometerSigma"],
-        gyroscope_sigma=meta["GyroscopeSigma"],
-        integration_sigma=meta["IntegrationSigma"],
-    )
-    pim = eqs.preintegrate(
-        params, samples[..., 2:5], samples[..., 5:8], samples[..., 1], mask=mask
-    )
+    params, pim = preintegrated(meta, samples, mask)
     ids = np.arange(gps_xyz.shape[0])
     transition = eqs.factors.ImuTransitionFactor(
         eqs.Var("s", ids[:-1]), eqs.Var("s", ids[1:]), pim, params, walk
