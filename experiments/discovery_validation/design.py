@@ -177,9 +177,12 @@ def main(argv=None):
     parser.add_argument("--effects", nargs="+", default=["drag", "coulomb"])
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--level", type=float, default=0.15)
+    parser.add_argument("--grid", type=int, nargs="+", default=list(GRID))
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
     args = parser.parse_args(argv)
+    global GRID
+    GRID = tuple(args.grid)
     t0 = time.perf_counter()
     coefs = calibrate([args.level])
     records: dict = {}
