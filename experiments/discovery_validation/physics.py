@@ -51,7 +51,7 @@ import eqsmooth.discover as dc  # noqa: E402
 from benchmarks._common import cli_command, write_json, write_text  # noqa: E402
 
 from .oscillator import _effect_term, _git, wilson  # noqa: E402
-from .systems import _dyn1, _inputs, _meas1, COULOMB_EPS, PRIOR1, Q1, R1  # noqa: E402
+from .systems import _dyn1, _meas1, _trajectories1, COULOMB_EPS, PRIOR1, Q1, R1  # noqa: E402
 
 
 B, T = 24, 40
@@ -79,16 +79,15 @@ def bump(x, u, centre, width):
 
 
 def trajectories(rng, effect: str, coef: float, num: int = B):
-    u = _inputs(rng, num)
-    x = np.stack([rng.normal(0, PRIOR1[0], num), rng.normal(0, PRIOR1[1], num)], 1)
-    xs = []
-    for t in range(T):
-        xs.append(x)
-        p, v = x[:, 0], x[:, 1]
-        a = -TRUTH["spring"] * p - TRUTH["damping"] * v + TRUTH["gain"] * u[:, t, 0]
-        a = a + (coef * _effect_term(effect, v) if coef else 0.0)
-        x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q1
-    return np.stack(xs, 1), u
+    return _trajectories1(
+        rng,
+        effect,
+        coef,
+        num,
+        spring=TRUTH["spring"],
+        damping=TRUTH["damping"],
+        gain=TRUTH["gain"],
+    )
 
 
 def simulate(rng, effect: str, coef: float) -> dc.Sequences:

@@ -169,14 +169,19 @@ def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
     return _effect_term(effect, v)
 
 
-def _trajectories1(rng, effect: str, coef: float, num: int):
+def _trajectories1(
+    rng, effect: str, coef: float, num: int, spring=SPRING, damping=0.0, gain=1.0
+):
+    """States `(num, T, 2)` and inputs `(num, T, 1)`; `physics.py` sets the
+    spring, a viscous damping and the actuator gain."""
     u = _inputs(rng, num)
     x = np.stack([rng.normal(0, PRIOR1[0], num), rng.normal(0, PRIOR1[1], num)], 1)
     xs = []
     for t in range(T):
         xs.append(x)
         p, v = x[:, 0], x[:, 1]
-        a = -SPRING * p + u[:, t, 0] + coef * _increment1(effect, v, u[:, t, 0])
+        a = -spring * p - damping * v + gain * u[:, t, 0]
+        a = a + coef * _increment1(effect, v, u[:, t, 0])
         x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q1
     return np.stack(xs, 1), u
 
