@@ -21,7 +21,7 @@ from test_filters import (
     Q_COV,
     T,
 )
-from test_fixed_lag import _check_gradient, _GN, _run, _UNROLLED
+from test_fixed_lag import _check_gradient, _GN, _run, _run_links, _UNROLLED
 
 import eqsmooth as eqs
 
@@ -469,3 +469,261 @@ def test_update_rows_without_throw_holds_no_host_callback(row_steps):
     assert state.result == eqs.solve.RESULTS.nonfinite_problem
     with pytest.raises(eqx.EquinoxRuntimeError, match="non-finite"):
         _ROWS_SMOOTHER.update_rows(state0, {}, bad)
+
+
+# --- loop closures in the online updates -------------------------------------
+
+_CT, _CLAG, _CBACK = 10, 4, 3  # steps, lag, max_back of the closure chain
+
+
+def _lin_link(a, b, data, params):
+    return b - params @ a - data
+
+
+@pytest.fixture(scope="module")
+def closure_chain():
+    """A linear 2-D chain of `_CT` steps, a position fix per step and two
+    closure rows per step (`_lin_link`, x_t-back -> x_t) with offsets and a
+    mask that vary; the scan's factors for the same data (the active
+    closures only: their longest span is `_CBACK`, the smoother's
+    `max_back`)."""
+    from test_filters import _lin_meas, _lin_trans, H1
+
+    rng = np.random.default_rng(7)
+    sqrt_info = eqs.SqrtInformationNoise.from_covariance
+    one = (eqs.Var("x", [0]), eqs.Var("x", [1]))
+    trans = eqs.FunctionFactor(
+        _lin_trans, one, sqrt_info(jnp.asarray(Q_COV)), params=jnp.asarray(F_MAT)
+    )
+    fix_noise = eqs.IsotropicNoise.from_sigma(jnp.asarray(0.3))
+    fix = (
+        lambda z: eqs.FunctionFactor(  # noqa: E731
+            _lin_meas, one[1:], fix_noise, data=z, params=jnp.asarray(H1)
+        )
+    )
+    P = jnp.asarray([[0.9, 0.2], [-0.1, 1.1]])
+    link_noise = sqrt_info(jnp.asarray([[0.4, 0.1], [0.1, 0.3]]))
+    pair = (eqs.Var("x", [0, 0]), eqs.Var("x", [1, 1]))
+    link = eqs.FunctionFactor(
+        _lin_link, pair, link_noise, data=jnp.zeros((2, 2)), params=P
+    )
+    z = jnp.asarray(rng.normal(size=(_CT, 1, 1)))
+    cz = jnp.asarray(rng.normal(size=(_CT, 2, 2)))
+    back = np.stack([1 + np.arange(_CT) % _CBACK, np.full(_CT, 2)], axis=1)
+    back = np.minimum(back, np.arange(_CT)[:, None])  # not before x_0
+    active = (back >= 1) & (np.arange(_CT)[:, None] % 3 != 1)
+    active[:, 1] &= np.arange(_CT) % 2 == 0
+    t, j = np.nonzero(active)
+    full = lambda ids: eqs.Var("x", ids)  # noqa: E731
+    scan = dict(
+        trans=eqs.FunctionFactor(
+            _lin_trans,
+            (full(np.arange(_CT - 1)), full(np.arange(1, _CT))),
+            sqrt_info(jnp.asarray(Q_COV)),
+            params=jnp.asarray(F_MAT),
+        ),
+        meas=eqs.FunctionFactor(
+            _lin_meas,
+            (full(np.arange(_CT)),),
+            fix_noise,
+            data=z[:, 0],
+            params=jnp.asarray(H1),
+        ),
+        links=eqs.FunctionFactor(
+            _lin_link,
+            (full(t - back[t, j]), full(t)),
+            link_noise,
+            data=cz[t, j],
+            params=P,
+        ),
+    )
+    assert int((back[t, j]).max()) == _CBACK
+    smoother = eqs.filters.FixedLagSmoother(lag=_CLAG, solver=_GN, adjoint=_UNROLLED)
+    m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
+    state0, x0 = smoother.init(m0, p0, trans, fix(z[0]), link, max_back=_CBACK)
+    steps = [
+        (({"data": z[t]},), {"data": cz[t]}, back[t], active[t]) for t in range(_CT)
+    ]
+    return smoother, state0, x0, steps, scan, (trans, fix, link)
+
+
+def _closure_run(smoother, state, steps, first=1):
+    out = []
+    for rows, crows, back, active in steps[first:]:
+        state, x = smoother.update_rows(state, {}, rows, None, crows, back, active)
+        out.append(x)
+    return jnp.stack(out), state
+
+
+def test_update_rows_with_closures_equal_the_scan(closure_chain):
+    """A run of `update_rows` with closures (offsets and masks changing every
+    step) gives the scan's online estimates and last window (1e-10), and
+    the scan without the masked closures; closures change the answer."""
+    smoother, state0, x0, steps, scan, _ = closure_chain
+    got, state = _closure_run(smoother, state0, steps)
+    sol = _run_links(
+        scan["trans"],
+        scan["meas"],
+        scan["links"],
+        jnp.asarray(M0),
+        jnp.asarray(P0),
+        _CLAG,
+        _GN,
+        _UNROLLED,
+    )
+    np.testing.assert_allclose(x0, sol.mean[0], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(got, sol.mean[1:], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(state.window, sol.windows[-1], rtol=0, atol=1e-10)
+    assert not bool(state.closure_refused.any())
+    none = [(r, c, b, np.zeros_like(a)) for r, c, b, a in steps]
+    without, _ = _closure_run(smoother, state0, none)
+    assert float(jnp.abs(got - without).max()) > 1e-2
+
+
+def test_masked_closures_are_dropped_closures(closure_chain):
+    """A masked closure adds nothing, whatever its offset and data: the run
+    with junk offsets and data in the masked rows equals the plain run."""
+    smoother, state0, _, steps, _, _ = closure_chain
+    want, _ = _closure_run(smoother, state0, steps)
+    junk = [
+        (r, {"data": jnp.where(a[:, None], c["data"], 7.0)}, np.where(a, b, 99), a)
+        for r, c, b, a in steps
+    ]
+    got, _ = _closure_run(smoother, state0, junk)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_update_with_closure_factors_equals_update_rows(closure_chain):
+    """`update` with closure factors (absent rows masked by `MaskedNoise`)
+    gives `update_rows`' estimates."""
+    smoother, state0, _, steps, _, (trans, fix, link) = closure_chain
+    want, _ = _closure_run(smoother, state0, steps[:5])
+    state, out = state0, []
+    for rows, crows, back, active in steps[1:5]:
+        closures = _masked(eqs.factors.with_rows(link, crows), active)
+        meas = fix(rows[0]["data"])
+        state, x = smoother.update(state, trans, meas, closures, back)
+        out.append(x)
+    np.testing.assert_allclose(jnp.stack(out), want, rtol=0, atol=1e-10)
+
+
+def test_closure_offsets_and_masks_compile_nothing(closure_chain):
+    """`init` compiled `update_rows`' program: updates with any offsets and
+    masks (NumPy or device arrays) compile nothing more."""
+    from helpers import compiled_programs
+
+    smoother, state0, _, steps, _, _ = closure_chain
+    state = state0
+    with compiled_programs() as names:
+        for i, (rows, crows, back, active) in enumerate(steps[1:6]):
+            if i % 2:
+                back, active = jnp.asarray(back), jnp.asarray(~active & (back >= 1))
+            state, x = smoother.update_rows(state, {}, rows, None, crows, back, active)
+        jax.block_until_ready(x)
+    assert names == [], names
+
+
+def test_closures_hostile_input(closure_chain):
+    """Closure stacks, rows, offsets and masks of the wrong kind are named;
+    an active closure reaching outside the window raises (or, without
+    `throw`, is left out and flagged)."""
+    smoother, state0, _, steps, _, (trans, fix, link) = closure_chain
+    rows, crows, back, active = steps[3]
+    update, who = smoother.update_rows, "FixedLagSmoother.update_rows"
+    m0, p0 = jnp.asarray(M0), jnp.asarray(P0)
+    with raises(ValueError, who, "closure row 0 reaches 4 steps back", "max_back = 3"):
+        update(state0, {}, rows, None, crows, np.array([4, 1]), active)
+    with raises(TypeError, who, "closure_back has shape (3,)", "2 rows"):
+        update(state0, {}, rows, None, crows, np.array([1, 1, 1]), None)
+    # (the jaxtyping hook names a float offset first; without it, the
+    # update's own check does, as `_advance_rows` below)
+    with raises(jaxtyping.TypeCheckError, "closure_back"):
+        update(state0, {}, rows, None, crows, np.array([1.0, 1.0]), None)
+    with raises(TypeError, who, "give closure_rows and closure_back every step"):
+        update(state0, {}, rows)
+    with raises(ValueError, who, "closure_rows['data'] has shape (1, 2)", "(2, 2)"):
+        update(state0, {}, rows, None, {"data": crows["data"][:1]}, back, active)
+    advance = eqs.filters._fixed_lag_update._advance_rows
+    with raises(TypeError, who, "closure_active has shape (2,) and dtype int64"):
+        advance(smoother, state0, {}, rows, None, (crows, back, np.ones(2, int)))
+    with raises(TypeError, "closure_back has shape (2,) and dtype float64"):
+        advance(smoother, state0, {}, rows, None, (crows, back * 1.0, active))
+    # reaching before x_0: known on the device only (state.t)
+    with raises(eqx.EquinoxRuntimeError, who, "closure reaches outside the window"):
+        update(state0, {}, rows, None, crows, jnp.asarray([2, 1]), jnp.ones(2, bool))
+    quiet = eqs.filters.FixedLagSmoother(
+        lag=_CLAG, solver=_GN, adjoint=_UNROLLED, throw=False
+    )
+    qstate, _ = quiet.init(m0, p0, trans, fix(rows[0]["data"]), link, max_back=_CBACK)
+    qstate, x = quiet.update_rows(
+        qstate, {}, rows, None, crows, jnp.asarray([2, 1]), jnp.ones(2, bool)
+    )
+    assert qstate.closure_refused.tolist() == [True, False]
+    one = jnp.ones(2, bool).at[0].set(False)
+    _, want = quiet.update_rows(
+        quiet.init(m0, p0, trans, fix(rows[0]["data"]), link, max_back=_CBACK)[0],
+        {},
+        rows,
+        None,
+        crows,
+        jnp.asarray([2, 1]),
+        one,
+    )
+    np.testing.assert_allclose(x, want, rtol=0, atol=1e-12)
+    init = smoother.init
+    with raises(
+        ValueError, "FixedLagSmoother.init", "max_back must be an int in 1..lag - 1 = 3"
+    ):
+        init(m0, p0, trans, fix(rows[0]["data"]), link, max_back=4)
+    with raises(ValueError, "max_back=2 is given without closures"):
+        init(m0, p0, trans, fix(rows[0]["data"]), max_back=2)
+    with raises(ValueError, "closure factor FunctionFactor must link two states"):
+        init(m0, p0, trans, fix(rows[0]["data"]), fix(rows[0]["data"]))
+    with raises(ValueError, "closures need lag >= 2"):
+        eqs.filters.FixedLagSmoother(lag=1).init(m0, p0, trans, (), link)
+    plain, _ = smoother.init(m0, p0, trans, fix(rows[0]["data"]))
+    with raises(ValueError, who, "init was given no closure stack"):
+        update(plain, {}, rows, None, crows, back, active)
+    with raises(ValueError, "FixedLagSmoother.update", "give closures"):
+        smoother.update(state0, trans, fix(rows[0]["data"]))
+    three = eqx.tree_at(
+        lambda f: (f.variables, f.data),
+        link,
+        ((eqs.Var("x", [0] * 3), eqs.Var("x", [1] * 3)), jnp.zeros((3, 2))),
+    )
+    with raises(ValueError, "FixedLagSmoother.update", "has 3 rows, init's has 2"):
+        smoother.update(state0, trans, fix(rows[0]["data"]), three, np.ones(3, int))
+
+
+@pytest.mark.parametrize(
+    "mode", ["forward", pytest.param("reverse", marks=pytest.mark.slow)]
+)
+def test_update_rows_closure_derivative_matches_central_differences(
+    closure_chain, mode
+):
+    """The derivative through four `update_rows` calls with closures with
+    respect to a closure measurement matches float64 central differences:
+    forward mode by default, `jax.grad` among the slow tests (its compile,
+    about 30 s on 2 cores)."""
+    smoother, state0, _, steps, _, _ = closure_chain
+    direction = jnp.asarray(np.random.default_rng(4).normal(size=(4, 2, 2)))
+
+    def loss(s):
+        state = jax.tree_util.tree_map(
+            lambda a: a + 0 * s if eqx.is_inexact_array(a) else a, state0
+        )
+        total = 0.0
+        for i, (rows, crows, back, active) in enumerate(steps[1:5]):
+            c = {"data": crows["data"] + s * direction[i]}
+            state, x = smoother.update_rows(state, {}, rows, None, c, back, active)
+            total = total + jnp.sum(x**2)
+        return total
+
+    if mode == "reverse":
+        _check_gradient(loss, 1e-7)
+        return
+    s, h = 1.3, 1e-5
+    _, d = jax.jvp(loss, (s,), (1.0,))
+    fd = (loss(s + h) - loss(s - h)) / (2 * h)
+    assert abs(float(d)) > 1e-3
+    np.testing.assert_allclose(float(d), float(fd), rtol=1e-7)

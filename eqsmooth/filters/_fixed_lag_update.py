@@ -30,7 +30,7 @@ from ..solve import (
 )
 from ._chain import check_smoother_noise, checked_covariance, residual_dim
 from ._rows import check_rows, row_whitening
-from ._window import ChainRows, initial_prior, window_step
+from ._window import ChainRows, floor_of, initial_prior, kept_links, window_step
 
 
 class FixedLagState(eqx.Module):
@@ -53,6 +53,15 @@ class FixedLagState(eqx.Module):
     - `result`: the [`eqsmooth.solve.RESULTS`][] code of the last update
         (`successful`; with `throw=False`, `nonfinite_problem` for
         non-finite step data or the window solve's failure code).
+    - `closure_template`: the closure stack `init` was given (`None`: the
+        smoother takes no closures).
+    - `closure_rows`: the closures of the last `lag + 1` time steps: their
+        per-row data, square-root information (zero for an absent closure)
+        and how many steps back each reaches (0: absent).
+    - `closure_refused`: per closure row of the last update, whether it was
+        given (active) but reached outside the window: before `x_0` or more
+        than `max_back` steps back. With `throw=True` such an update raises
+        instead; with `throw=False` the row is left out and only this says so.
     """
 
     t: Int[Array, ""]
@@ -62,6 +71,9 @@ class FixedLagState(eqx.Module):
     rows: tuple
     templates: tuple
     result: RESULTS
+    closure_template: AbstractFactor | None = None
+    closure_rows: tuple = ()
+    closure_refused: Bool[Array, " k"] | None = None
 
 
 def _step_rows(transition, measurements, mean0, dtype):
@@ -247,6 +259,114 @@ def _data_rows(template: AbstractFactor, rows):
     return {k: v for k, v in rows.items() if not (k in empty and v is None)}
 
 
+def _reach(state) -> int:
+    """The prior's span `S` of a state: its `max_back` (1 without closures)."""
+    return jax.tree_util.tree_leaves(state.prior[0])[0].shape[0]
+
+
+def _check_closure_stack(who, closures, group: str, k: int | None):
+    """A closure stack: a factor linking two states of the chain's group,
+    with Gaussian (maskable) noise and `k` rows when `k` is given."""
+    if not isinstance(closures, AbstractFactor):
+        raise TypeError(
+            f"{who}: closures must be an AbstractFactor stack (e.g. a BetweenFactor "
+            f"of k rows), got {type(closures).__name__}"
+        )
+    name = type(closures).__name__
+    if len(closures.variables) != 2 or any(
+        v.group != group for v in closures.variables
+    ):
+        raise ValueError(
+            f"{who}: closure factor {name} must link two states of group {group!r} "
+            f"(x_t-back, x_t); it touches "
+            f"{[(v.group, len(v)) for v in closures.variables]}"
+        )
+    if k is not None and closures.num_rows != k:
+        raise ValueError(
+            f"{who}: closure factor {name} has {closures.num_rows} rows, init's has "
+            f"{k}: give the same number of closure rows every step (mask absent ones)"
+        )
+    check_rows(closures)
+    check_smoother_noise(closures.noise, f"{who}: closure factor {name}", maskable=True)
+
+
+def _host_back(who, back, active, k: int, max_back: int):
+    """`closure_back` (and `closure_active`) as arrays; values checked here
+    when they are on the host (NumPy, lists): a step that reaches outside
+    `1..max_back` is named before any work. Device arrays are checked in
+    the compiled update (against the newest time, too)."""
+    if back is None:
+        raise TypeError(
+            f"{who}: this smoother takes closures (init was given a closure stack): "
+            "give closure_rows and closure_back every step (absent closures: "
+            "closure_active false)"
+        )
+    if not isinstance(back, jax.Array):
+        back = np.asarray(back)
+        if back.shape != (k,) or not np.issubdtype(back.dtype, np.integer):
+            raise TypeError(
+                f"{who}: closure_back has shape {back.shape} and dtype {back.dtype}; "
+                f"the closure stack has {k} rows: give ({k},) integers, the steps "
+                "back each closure reaches"
+            )
+    if active is None:
+        active = np.ones(k, bool)
+    elif not isinstance(active, jax.Array):
+        active = np.asarray(active)
+    if isinstance(back, np.ndarray) and isinstance(active, np.ndarray):
+        on = active.astype(bool) if active.shape == (k,) else np.ones(k, bool)
+        bad = on & ((back < 1) | (back > max_back))
+        if bad.any():
+            j = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"{who}: closure row {j} reaches {int(back[j])} steps back: a "
+                f"closure reaches 1 to max_back = {max_back} steps back (inside "
+                "the window; init's max_back); mask it with closure_active, or "
+                "give init a larger max_back (at most lag - 1)"
+            )
+    return back, active
+
+
+def _step_closures(who, state, closure_rows, back, active):
+    """`update_rows`' closures as (factor, back, active): `init`'s closure
+    stack with the given rows; shapes and dtypes checked while tracing."""
+    template = state.closure_template
+    if template is None:
+        raise ValueError(
+            f"{who}: closure_rows given, but init was given no closure stack: pass "
+            "init(..., closures=<a factor stack of k rows>) to take closures"
+        )
+    if template.noise.active_rows() is not None:
+        raise TypeError(
+            f"{who}: init's closure stack ({type(template).__name__}) has masked "
+            f"noise ({template.noise.name}); its mask would hold for every step. "
+            "Give init the unmasked noise and mask steps' closures with "
+            "closure_active"
+        )
+    factor = with_rows(
+        template, _checked_rows(who, "closure_rows", closure_rows, template)
+    )
+    return (factor, *_checked_back(who, template.num_rows, back, active))
+
+
+def _checked_back(who, k: int, back, active):
+    """`closure_back` and `closure_active` as traced (k,) arrays, or an error
+    naming the one of the wrong shape or dtype."""
+    back, active = jnp.asarray(back), jnp.asarray(active)
+    if back.shape != (k,) or not jnp.issubdtype(back.dtype, jnp.integer):
+        raise TypeError(
+            f"{who}: closure_back has shape {back.shape} and dtype {back.dtype}; the "
+            f"closure stack has {k} rows: give ({k},) integers"
+        )
+    if active.shape != (k,) or active.dtype != jnp.bool_:
+        raise TypeError(
+            f"{who}: closure_active has shape {active.shape} and dtype "
+            f"{active.dtype}; the closure stack has {k} rows: give ({k},) booleans, "
+            "false for an absent closure"
+        )
+    return back, active
+
+
 def _step_factors(who, lag, state, transition_rows, measurement_rows, active):
     """`update_rows`' step as factors: `init`'s stacks (kept in the state)
     with the given rows, measurement rows masked by `active`."""
@@ -331,7 +451,19 @@ class FixedLagSmoother(eqx.Module):
     wrapped in a `jit`; `init` compiles `update_rows`' program (unless its
     measurement noise is masked), so a robot's loop of `update_rows`
     compiles once, in `init`, and `update` compiles on its first call.
-    Loop closures are not taken here (use the scan's `closures`).
+
+    Loop closures: give `init` a closure stack (a two-state factor such as
+    [`eqsmooth.factors.BetweenFactor`][] of `k` rows, linking `(x_t-back, x_t)`) and
+    `max_back`; each update then takes `k` closures from the new state back
+    to states still in the window, `closure_back` steps back (data: any
+    offset in `1..max_back` runs the same compiled program), absent ones
+    masked. A closure enters the window with its new state and is
+    marginalised with its earlier one, as in the scan's `closures`, so a run
+    of updates equals the scan with those closures (tested to 1e-10) when
+    `max_back` is the scan's longest closure. With closures the window's
+    linear solve is dense (its structure is data), and the prior spans the
+    window's first `max_back` states: keep `max_back` as short as the robot's
+    closures allow.
 
     `update_rows` is the same update with the step's data as arrays, for a
     robot's loop: no factor objects per step and no Python checks per call
@@ -369,6 +501,8 @@ class FixedLagSmoother(eqx.Module):
         initial_covariance: Float[ArrayLike, "d d"],
         transition: AbstractFactor,
         measurements: AbstractFactor | Sequence[AbstractFactor] = (),
+        closures: AbstractFactor | None = None,
+        max_back: int | None = None,
     ) -> tuple[FixedLagState, PyTree]:
         """The state after the first time step.
 
@@ -379,50 +513,138 @@ class FixedLagSmoother(eqx.Module):
             give (its data is not used: `x_0` has no predecessor).
         - `measurements`: the measurement stacks of `x_0` (none by default;
             every update must then give the same stacks, with the same rows).
+        - `closures`: `None` (no loop closures), or a closure stack of the
+            kind every update will give: a factor of `k` rows on two states,
+            its first variable the earlier state `x_t-back`, its second the
+            new state `x_t` (its data is not used: `x_0` has no closure).
+        - `max_back`: the furthest a closure may reach back, `1 ≤ max_back ≤
+            lag − 1` (default `lag − 1`, with closures): the prior on the
+            window spans its first `max_back` states (as the scan's prior
+            spans its longest closure).
 
         **Returns:** `(state, estimate of x_0)`.
         """
         who = "FixedLagSmoother.init"
-        transition, measurements, _ = _check_step(who, transition, measurements, None)
+        transition, measurements, group = _check_step(
+            who, transition, measurements, None
+        )
         d = tangent_dim(initial_mean)
         cov0 = checked_covariance(who, initial_covariance, d)
         step = _step_rows(transition, measurements, initial_mean, cov0.dtype)
         n = self.lag + 1  # time steps kept: the window and the state leaving it
-        rows = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * n, axis=0), step)
+        tile = lambda tree: jax.tree_util.tree_map(  # noqa: E731
+            lambda a: jnp.concatenate([a] * n, axis=0), tree
+        )
         window = jax.tree_util.tree_map(
             lambda a: jnp.broadcast_to(a, (self.lag, *jnp.shape(a))), initial_mean
         )
+        S, kept, refused = self._closure_reach(who, closures, max_back, group), (), None
+        if closures is not None:
+            k, fields = closures.num_rows, per_row_fields(closures)
+            m = residual_dim(closures, fields, initial_mean, initial_mean)
+            zero = jnp.zeros((k * n, m, m), cov0.dtype)  # no closure yet
+            kept = (tile(fields), zero, jnp.zeros(k * n, int))
+            refused = jnp.zeros(k, bool)
+        floor = floor_of(step[0][1][0], S) if S > 1 else None
         state = FixedLagState(
             jnp.array(-1),
             window,
             jnp.array(0),
-            initial_prior(1, initial_mean, cov0),
-            rows,
+            initial_prior(S, initial_mean, cov0, floor),
+            tile(step),
             (transition, *measurements),
             RESULTS.successful,
+            closures,
+            kept,
+            refused,
         )
-        if any(f.noise.active_rows() is not None for f in measurements):
-            return _advance(self, state, transition, measurements, step)
+        none = () if closures is None else (np.zeros(k, int), np.zeros(k, bool))
+        if any(f.noise.active_rows() is not None for f in measurements) or (
+            closures is not None and closures.noise.active_rows() is not None
+        ):
+            closure = None if closures is None else (closures, *none)
+            return _advance(self, state, transition, measurements, step, closure)
         # `update_rows`' program, so that its first call compiles nothing new.
         rows = tuple(_data_rows(f, per_row_fields(f)) for f in measurements)
         trans_rows = _data_rows(transition, per_row_fields(transition))
-        return self.update_rows(state, trans_rows, rows)
+        if closures is None:
+            return self.update_rows(state, trans_rows, rows)
+        closure_rows = _data_rows(closures, per_row_fields(closures))
+        return self.update_rows(state, trans_rows, rows, None, closure_rows, *none)
+
+    def _closure_reach(self, who, closures, max_back, group) -> int:
+        """The prior's span `S`: `max_back` with closures, else 1."""
+        if closures is None:
+            if max_back is not None:
+                raise ValueError(
+                    f"{who}: max_back={max_back!r} is given without closures; it "
+                    "bounds the closures' reach (give init a closure stack)"
+                )
+            return 1
+        _check_closure_stack(who, closures, group, None)
+        if self.lag < 2:
+            raise ValueError(
+                f"{who}: closures need lag >= 2 (a closure links two states of the "
+                f"window), this smoother has lag={self.lag}"
+            )
+        if max_back is None:
+            return self.lag - 1
+        if (
+            isinstance(max_back, bool)
+            or not isinstance(max_back, (int, np.integer))
+            or not 1 <= max_back <= self.lag - 1
+        ):
+            raise ValueError(
+                f"{who}: max_back must be an int in 1..lag - 1 = {self.lag - 1} (a "
+                f"closure reaches back inside the window), got {max_back!r}"
+            )
+        return int(max_back)
 
     def update(
         self,
         state: FixedLagState,
         transition: AbstractFactor,
         measurements: AbstractFactor | Sequence[AbstractFactor] = (),
+        closures: AbstractFactor | None = None,
+        closure_back: Int[ArrayLike, " k"] | None = None,
     ) -> tuple[FixedLagState, PyTree]:
-        """Add the next state: its transition from the newest state and its
-        measurements; solve the window.
+        """Add the next state: its transition from the newest state, its
+        measurements and (if `init` took closures) its closures; solve the
+        window.
+
+        `closures` is a stack of the kind and row count `init` was given
+        (absent rows masked with [`eqsmooth.factors.MaskedNoise`][]) and
+        `closure_back` a `(k,)` integer array: row `j` links the state
+        `closure_back[j]` steps back to the new one.
 
         **Returns:** `(state, estimate of the new state given everything so
         far)`; `state.window` holds the whole window's estimates.
         """
         who = "FixedLagSmoother.update"
         _check_state(who, self.lag, state)
-        transition, measurements, _ = _check_step(who, transition, measurements, None)
+        transition, measurements, group = _check_step(
+            who, transition, measurements, None
+        )
+        closure = None
+        if (closures is None) != (state.closure_template is None):
+            raise ValueError(
+                f"{who}: "
+                + (
+                    "init was given a closure stack: give closures (absent ones "
+                    "masked) and closure_back every step"
+                    if closures is None
+                    else "closures given, but init was given no closure stack"
+                )
+            )
+        if closures is not None:
+            template = state.closure_template
+            _check_closure_stack(who, closures, group, template.num_rows)
+            _checked_rows(who, "closures", per_row_fields(closures), template)
+            mask = closures.noise.active_rows()
+            back, mask = _host_back(
+                who, closure_back, mask, template.num_rows, _reach(state)
+            )
+            closure = (closures, *_checked_back(who, template.num_rows, back, mask))
         _check_dtypes(who, transition, measurements, state.rows)
         mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
         step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
@@ -440,7 +662,7 @@ class FixedLagSmoother(eqx.Module):
                 "those the state was built with (init); every step must have the "
                 "same structure"
             )
-        return _advance(self, state, transition, measurements, step)
+        return _advance(self, state, transition, measurements, step, closure)
 
     def update_rows(
         self,
@@ -448,6 +670,9 @@ class FixedLagSmoother(eqx.Module):
         transition_rows: dict[str, PyTree[ArrayLike]],
         measurement_rows: Sequence[dict[str, PyTree[ArrayLike]]] = (),
         active: Sequence[Bool[ArrayLike, " _k"] | None] | None = None,
+        closure_rows: dict[str, PyTree[ArrayLike]] | None = None,
+        closure_back: Int[ArrayLike, " k"] | None = None,
+        closure_active: Bool[ArrayLike, " k"] | None = None,
     ) -> tuple[FixedLagState, PyTree]:
         """`update` with the step's data as arrays: one compiled call, no
         factor objects built and nothing read back to the host.
@@ -479,6 +704,16 @@ class FixedLagSmoother(eqx.Module):
             [`eqsmooth.factors.MaskedNoise`][] row in `update` (its data must
             still be finite). Give arrays, not Python booleans, so that every
             mask runs the same compiled program.
+        - `closure_rows`, `closure_back`, `closure_active` (with a closure
+            stack in `init`, every step): the `k` closures' per-row data (a
+            dict as for the measurements), a `(k,)` integer array of how
+            many steps back each reaches (`1..max_back`, and not before
+            `x_0`), and `None` (all present) or `(k,)` booleans, false for
+            an absent closure (its data must still be finite; its
+            `closure_back` is not read). An active closure reaching
+            outside the window raises (`throw=True`; from NumPy offsets
+            before the call, naming the row) or is left out and flagged in
+            `state.closure_refused` (`throw=False`).
 
         **Returns:** `(state, estimate of the new state given everything so
         far)`, both on the device; `state.window` holds the whole window's
@@ -495,40 +730,92 @@ class FixedLagSmoother(eqx.Module):
             )
         if isinstance(active, (tuple, list)) and len(active) == k:
             active = None if all(a is None for a in active) else active
-        return _advance_rows(self, state, transition_rows, measurement_rows, active)
+        closure = None
+        template = getattr(state, "closure_template", None)
+        if template is not None or closure_rows is not None:
+            who = "FixedLagSmoother.update_rows"
+            if template is not None:
+                if closure_rows is None:
+                    closure_back = None  # refused below, with the way
+                k = template.num_rows
+                closure_back, closure_active = _host_back(
+                    who, closure_back, closure_active, k, _reach(state)
+                )
+                closure_rows = _data_rows(template, closure_rows)
+            closure = (closure_rows, closure_back, closure_active)
+        return _advance_rows(
+            self, state, transition_rows, measurement_rows, active, closure
+        )
 
 
 # One compiled program for `init` and every `update` of a smoother (the state
 # has the same shapes before and after each step), also when `update` is
 # not wrapped in a `jit`; under a caller's `jit` it is inlined.
 @eqx.filter_jit
-def _advance(smoother, state, transition, measurements, step):
+def _advance(smoother, state, transition, measurements, step, closure):
     who = "FixedLagSmoother.init/update"
-    return _solve_step(smoother, state, transition, measurements, step, who)
+    return _solve_step(smoother, state, transition, measurements, step, closure, who)
 
 
 # `update_rows`: the step's factors are built while tracing, so a call is
 # one dispatch of one compiled program (no Python checks once compiled).
 @eqx.filter_jit
-def _advance_rows(smoother, state, transition_rows, measurement_rows, active):
+def _advance_rows(
+    smoother, state, transition_rows, measurement_rows, active, closure=None
+):
     who = "FixedLagSmoother.update_rows"
     transition, measurements = _step_factors(
         who, smoother.lag, state, transition_rows, measurement_rows, active
     )
+    if closure is not None:
+        closure = _step_closures(who, state, *closure)
     mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
     step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
-    return _solve_step(smoother, state, transition, measurements, step, who)
+    return _solve_step(smoother, state, transition, measurements, step, closure, who)
 
 
-def _solve_step(smoother, state, transition, measurements, step, who):
+def _closure_step(state, closure, t):
+    """The new closures' kept rows `(data, R, back)` (refused and absent ones
+    with zero `R` and `back`), and which active ones were refused."""
+    factor, back, active = closure
+    back = back.astype(state.closure_rows[2].dtype)
+    reach = jnp.minimum(_reach(state), t)  # inside the window, not before x_0
+    refused = active & ((back < 1) | (back > reach))
+    keep = active & ~refused
+    mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
+    fields = per_row_fields(factor)
+    m = residual_dim(factor, fields, mean, mean)
+    R, _ = row_whitening(factor, m, state.prior[1].dtype)
+    R = jnp.where(keep[:, None, None], R, jnp.zeros((), R.dtype))
+    return (fields, R, jnp.where(keep, back, jnp.zeros((), back.dtype))), refused
+
+
+def _solve_step(smoother, state, transition, measurements, step, closure, who):
     """Write the step's rows into the state, and solve the new window."""
     lag = smoother.lag
+    t = state.t + 1
+    kept, refused, links = state.closure_rows, state.closure_refused, ()
+    new = step
+    if closure is not None:
+        entry, refused = _closure_step(state, closure, t)
+        new = (step, entry)
     if smoother.throw:
-        t, bad = _finite(step, state.t + 1, who), jnp.array(False)
+        t, bad = _finite(new, t, who), jnp.array(False)
+        if closure is not None:
+            t = eqx.error_if(
+                t,
+                jnp.any(refused),
+                f"{who}: a closure reaches outside the window: closure_back must be "
+                "in 1..max_back (init's) and not reach before x_0 (at most the new "
+                "state's time); mask an absent closure with closure_active",
+            )
     else:
-        t, bad = state.t + 1, _nonfinite(step)
+        bad = _nonfinite(new)
     vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
     rows = _write(state.rows, step, vt, t > lag)
+    if closure is not None:
+        kept = _write(kept, entry, vt, t > lag)
+        links = (kept_links(closure[0], *kept, lag + 1, _reach(state)),)
     (trans_rows, trans_R), *meas = rows
     k = [R.shape[0] // (lag + 1) for _, R in meas]
     # Kept step v holds the transition into v; the model's row v is the
@@ -542,10 +829,10 @@ def _solve_step(smoother, state, transition, measurements, step, who):
         meas_R=tuple(R for _, R in meas),
         meas_table=tuple(np.arange((lag + 1) * kj).reshape(lag + 1, kj) for kj in k),
         meas_mask=tuple(np.ones((lag + 1, kj), bool) for kj in k),
-        links=(),
+        links=links,
         group=transition.variables[0].group,
         T=lag + 1,
-        S=1,
+        S=_reach(state),
     )
     carry, (window, start, prior, result) = window_step(
         model,
@@ -560,5 +847,16 @@ def _solve_step(smoother, state, transition, measurements, step, who):
     )
     newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
     result = RESULTS.where(bad, RESULTS.nonfinite_problem, result)
-    new = FixedLagState(t, window, t - vt + start, prior, rows, state.templates, result)
+    new = FixedLagState(
+        t,
+        window,
+        t - vt + start,
+        prior,
+        rows,
+        state.templates,
+        result,
+        state.closure_template,
+        kept,
+        refused,
+    )
     return new, newest

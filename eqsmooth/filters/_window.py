@@ -82,15 +82,19 @@ class _Rows(AbstractFactor):
 class _Links:
     """One stack of factors linking two states of the chain (loop closures):
     rows indexed by their earlier time (for marginalisation) and, per
-    (span, order) group, by their later time (for the window's stacks)."""
+    (span, order) group, by their later time (for the window's stacks). A
+    group whose span is `None` takes each row's span from `span` (data: the
+    online smoother's closures), its earlier state by a dynamic index."""
 
     factor: AbstractFactor
     rows: dict  # per-row fields
     R: Array  # (n, m, m)
-    span: np.ndarray  # (n,) later time - earlier time
+    span: np.ndarray | Array  # (n,) later time - earlier time
     swap: np.ndarray  # (n,) the factor's first variable is the later state
-    early: tuple[np.ndarray, np.ndarray]  # (T, K) table and mask by earlier time
-    late: tuple[tuple[int, bool, np.ndarray, np.ndarray], ...]  # (s, swap, table, mask)
+    early: tuple[
+        np.ndarray, np.ndarray | Array
+    ]  # (T, K) table and mask by earlier time
+    late: tuple[tuple[int | None, bool, np.ndarray, np.ndarray | Array], ...]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,6 +188,34 @@ def _link_rows(factor: AbstractFactor, mean0, T: int, dtype) -> _Links:
     return _Links(factor, rows, R, span, swap, (table, mask), tuple(groups))
 
 
+def kept_links(factor: AbstractFactor, rows, R, back, T: int, S: int) -> _Links:
+    """Links whose spans are data: `T` time steps of `k` rows each, row
+    `v * k + j` linking time `v - back[v * k + j]` (the factor's first
+    variable) to time `v` (its second); a `back` of 0 is no link. Rows are
+    marginalised with their earlier state, whose successors they reach at
+    most `S` steps ahead."""
+    k = R.shape[0] // T
+    table = np.arange(T * k).reshape(T, k)
+    span = jnp.clip(back, 0, S)
+    steps = np.arange(1, S + 1)
+    later = np.arange(T)[:, None] + steps  # (T, S): the candidates' times
+    inside = later <= T - 1
+    later = np.minimum(later, T - 1)
+    by_early = (later[:, :, None] * k + np.arange(k)).reshape(T, S * k)
+    # the rows s steps after time tau that reach back s: those starting at tau
+    starts = (span.reshape(T, k)[later] == steps[None, :, None]) & inside[..., None]
+    late = ((None, False, table, span.reshape(T, k) >= 1),)
+    return _Links(
+        factor,
+        rows,
+        R,
+        span,
+        np.zeros(T * k, bool),
+        (by_early, starts.reshape(T, S * k)),
+        late,
+    )
+
+
 def _predict(model: ChainRows, x_prev, t, prediction_steps: int):
     """`x_t` from `x_{t-1}` by Newton steps on the transition residual."""
     d = tangent_dim(x_prev)
@@ -251,9 +283,13 @@ def information_floor(model: ChainRows, tau) -> Float[Array, " Sd"]:
     yet then keep a factorisable prior; the floor is scaled by the process
     noise, not by the belief on `x_0` (a tight initial covariance must not
     pin the later states)."""
-    R = model.trans_R[jnp.clip(tau, 0, model.T - 2)]
+    return floor_of(model.trans_R[jnp.clip(tau, 0, model.T - 2)], model.S)
+
+
+def floor_of(R: Float[Array, "d d"], S: int) -> Float[Array, " Sd"]:
+    """`information_floor` of a transition row's square-root information."""
     info = jnp.sum(R * R, axis=0)
-    return jnp.sqrt(jnp.finfo(R.dtype).eps) * jnp.tile(info, model.S)
+    return jnp.sqrt(jnp.finfo(R.dtype).eps) * jnp.tile(info, S)
 
 
 def _marginalise(model: ChainRows, prior, xs, tau):
@@ -333,6 +369,9 @@ def _window_graph(model: ChainRows, values, prior, start, t, lag: int):
             )
     for lk in model.links:
         for span, swap, table, mask in lk.late:
+            if span is None:
+                stacks += _dynamic_links(lk, swap, table, mask, times, used, lag, g)
+                continue
             k = slots[: lag - span]
             late = jnp.clip(start + k + span, 0, model.T - 1)
             pair = (
@@ -351,6 +390,32 @@ def _window_graph(model: ChainRows, values, prior, start, t, lag: int):
                     )
                 )
     return FactorGraph(stacks)
+
+
+def _dynamic_links(lk: _Links, swap: bool, table, mask, times, used, lag: int, g):
+    """The window's stacks of links whose spans are data (`kept_links`): per
+    layer, one row per window slot for the link arriving at that slot's
+    time, reaching its earlier state by a dynamic index (rows whose earlier
+    state has left the window were marginalised with it, and add nothing)."""
+    slots = np.arange(lag)
+    late = jnp.clip(times, 0, table.shape[0] - 1)
+    unit = _unit(lk.R.dtype)
+    out = []
+    for layer in range(table.shape[1]):
+        index = jnp.asarray(table[:, layer])[late]
+        early = slots - jnp.asarray(lk.span)[index]
+        active = jnp.asarray(mask)[late, layer] & used & (early >= 0)
+        pair = (Var.dynamic(g, jnp.clip(early, 0, lag - 1)), Var(g, slots))
+        out.append(
+            _Rows(
+                pair[::-1] if swap else pair,
+                MaskedNoise(unit, active),
+                _take(lk.rows, index),
+                lk.R[index],
+                lk.factor,
+            )
+        )
+    return out
 
 
 def window_step(
