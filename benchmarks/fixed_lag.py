@@ -1,26 +1,22 @@
 """Fixed-lag smoothing of an SE(2) pose chain against GTSAM's fixed-lag smoothers.
 
-T poses, odometry between neighbours, a noisy pose fix on every pose and
-(`--closures`) a loop closure every 4th step to the pose `--span` steps back,
-inside every window. eqsmooth runs `eqs.filters.fixed_lag_smoother(lag=L)` as
-one jitted scan: per-update latency is the median run time / T after
-compilation, with the default `LevenbergMarquardt()` ("eqsmooth_lm", the
-reference answer), `GaussNewton()` (both with the implicit adjoint) and
-`FixedStepGaussNewton(3)` with the unrolled adjoint ("eqsmooth_fixed3").
-GTSAM runs `BatchFixedLagSmoother` and `IncrementalFixedLagSmoother` with
-smoother lag L - 2 (after each update's marginalisation they hold L - 1
-poses; during the update L, as eqsmooth's window), one `update` per step,
-timed around the call. `max_diff`: the largest tangent difference of the
-newest pose's estimate from eqsmooth_lm's, over all steps
-(`max_diff_before`: over the steps before the first marginalisation).
-`--se2vel`: the SE(2) + velocity chain instead (GTSAM through Python
-CustomFactors with numeric Jacobians: its values compare, its time does
-not). `--first-window-only`: GTSAM's own graph error at the first
-marginalisation, for GTSAM's answer and eqsmooth's. `--per-update`: a
-robot's loop, `FixedLagSmoother.update_rows` (arrays in, the state on the
-device; also with `throw=False`), `update` (factors) and GTSAM's `update`,
-each call timed with its newest estimate awaited (`max_diff`: from
-update_rows' estimates).
+T poses, odometry, a noisy pose fix on every pose and (`--closures`) a loop
+closure every 4th step to the pose `--span` steps back. eqsmooth runs
+`eqs.filters.fixed_lag_smoother(lag=L)` as one jitted scan (per update: run
+time / T) with `LevenbergMarquardt()` (the default; "eqsmooth_lm", the
+reference), `GaussNewton()` and `FixedStepGaussNewton(3)` (unrolled adjoint).
+GTSAM's Batch- and IncrementalFixedLagSmoother get smoother lag L - 2 (L poses
+per update, as eqsmooth's window), one timed `update` per step. `max_diff`:
+the largest tangent difference of the newest pose from the reference
+(`max_diff_before`: before the first marginalisation). `--se2vel`: an SE(2) +
+velocity chain (GTSAM through Python CustomFactors with numeric Jacobians: its
+values compare, its time does not). `--first-window-only`: GTSAM's graph error
+at the first marginalisation, at GTSAM's answer and eqsmooth's. `--per-update`:
+a robot's loop without and with closures (`max_back` = `--span`),
+`FixedLagSmoother.update_rows` (arrays in, state on the device; also with
+`throw=False`), `update` (factors) and GTSAM's `update`, each call timed with
+its estimate awaited (`max_diff`: from update_rows'); `dispatch_floor`: a
+jitted call taking and returning the state, doing nothing.
 
     python -m benchmarks.fixed_lag --json benchmarks/results/fixed_lag.json
     python -m benchmarks.fixed_lag --closures \
@@ -29,7 +25,7 @@ update_rows' estimates).
         --json benchmarks/results/fixed_lag_first_window.json
     python -m benchmarks.fixed_lag --se2vel --steps 100 --lags 10 50 \
         --json benchmarks/results/fixed_lag_se2vel.json
-    python -m benchmarks.fixed_lag --per-update \
+    OPENBLAS_NUM_THREADS=1 python -m benchmarks.fixed_lag --per-update \
         --json benchmarks/results/fixed_lag_per_update.json
 """
 
@@ -48,7 +44,7 @@ from ._common import cli, optional, time_host, write_json
 
 jax.config.update("jax_enable_x64", True)
 ODO, FIX, LOOP = (np.array(s) for s in ([0.05, 0.05, 0.02], [0.5, 0.5, 0.1], [0.1] * 3))
-COV0 = 1e-4
+COV0, fls = 1e-4, eqs.filters.fixed_lag_smoother
 
 
 def problem(T: int, span: int, closures: bool, seed: int = 0):
@@ -61,41 +57,32 @@ def problem(T: int, span: int, closures: bool, seed: int = 0):
     truth = eqs.SE2(jnp.stack([p.parameters() for p in truth]))
     noise = lambda n, s: eqs.SE2.exp(jnp.asarray(s * rng.normal(size=(n, 3))))
     diag = lambda s: eqs.DiagonalNoise.from_sigmas(jnp.asarray(s))
-    t = np.arange(T)
+    t, x = np.arange(T), lambda ids: eqs.Var("x", ids)
     odo = truth[t[:-1]].inverse() @ truth[t[1:]] @ noise(T - 1, ODO)
     fix = truth @ noise(T, FIX)
-    trans = eqs.BetweenFactor(eqs.Var("x", t[:-1]), eqs.Var("x", t[1:]), odo, diag(ODO))
-    data = dict(trans=trans, fix=eqs.PriorFactor(eqs.Var("x", t), fix, diag(FIX)))
+    trans = eqs.BetweenFactor(x(t[:-1]), x(t[1:]), odo, diag(ODO))
+    data = dict(trans=trans, fix=eqs.PriorFactor(x(t), fix, diag(FIX)))
     data |= dict(odo=np.asarray(odo.parameters()), fixes=np.asarray(fix.parameters()))
     data |= dict(closures=(), pairs=[])
     if closures:
-        b = np.arange(span, T, 4)
-        a = b - span
+        a, b = np.arange(0, T - span, 4), np.arange(span, T, 4)
         rel = truth[a].inverse() @ truth[b] @ noise(len(a), LOOP)
-        va, vb = eqs.Var("x", a), eqs.Var("x", b)
-        data["closures"] = eqs.BetweenFactor(va, vb, rel, diag(LOOP))
+        data["closures"] = eqs.BetweenFactor(x(a), x(b), rel, diag(LOOP))
         data["pairs"] = list(zip(a.tolist(), b.tolist(), np.asarray(rel.parameters())))
     return data
 
 
-def timed_fixed_lag(
-    trans, meas, mean0, cov0, lag, solver, adjoint, repeats, closures=()
-):
-    """eqsmooth's fixed-lag estimates (compiled), the first call's seconds and
-    the median seconds per update over `repeats` runs."""
-    options = dict(lag=lag, solver=solver, adjoint=adjoint)
-    smoother = eqs.filters.fixed_lag_smoother
-    run = eqx.filter_jit(
-        lambda tr, m, c: smoother(tr, m, mean0, cov0, closures=c, **options).mean
-    )
-    call = lambda: jax.block_until_ready(run(trans, meas, closures))
+def timed_fixed_lag(trans, meas, mean0, cov0, lag, solver, adjoint, repeats, links=()):
+    """eqsmooth's estimates, first call's seconds, median seconds per update."""
+    o = dict(lag=lag, solver=solver, adjoint=adjoint)
+    run = eqx.filter_jit(lambda tr, m, c: fls(tr, m, mean0, cov0, closures=c, **o).mean)
+    call = lambda: jax.block_until_ready(run(trans, meas, links))
     first, times, mean = time_host(call, repeats)
     return mean, first, statistics.median(times) / (trans.num_rows + 1)
 
 
-def _pose(gtsam, r):
-    """GTSAM's Pose2 of SE(2) parameters `(cos, sin, x, y)`."""
-    return gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))
+# GTSAM's Pose2 of SE(2) parameters `(cos, sin, x, y)`
+_pose = lambda gtsam, r: gtsam.Pose2(r[2], r[3], np.arctan2(r[1], r[0]))
 
 
 def gtsam_run(gtsam, smoother, data):
@@ -137,33 +124,35 @@ def gtsam_smoothers(gtsam, lag: int):
 
 
 def first_marginal_window(gtsam, lag: int) -> dict:
-    """GTSAM's own factor-graph error, at the first update after a
-    marginalisation (a chain of `lag + 1` steps), of GTSAM's answer
-    (LevenbergMarquardtOptimizer on the smoother's graph after update
-    `lag - 1` plus update `lag`'s factors) and of eqsmooth's window (30
-    fixed Gauss-Newton steps)."""
+    """GTSAM's graph error after the first marginalisation (the smoother's
+    graph after update `lag - 1` plus update `lag`'s factors) at GTSAM's
+    answer (its LM optimizer) and at eqsmooth's window (30 GN steps)."""
     data, mean0 = problem(lag + 1, 1, False), eqs.SE2.identity(dtype=jnp.float64)
-    solver = eqs.FixedStepGaussNewton(num_steps=30)
-    sol = eqs.filters.fixed_lag_smoother(
-        data["trans"], data["fix"], mean0, COV0 * jnp.eye(3), lag=lag, solver=solver
-    )
+    gn = eqs.FixedStepGaussNewton(num_steps=30)
+    sol = fls(data["trans"], data["fix"], mean0, COV0 * jnp.eye(3), lag=lag, solver=gn)
     ours = np.asarray(sol.windows[lag].parameters())
     lm = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"].params()
     head = dict(data, fixes=data["fixes"][:lag], odo=data["odo"][: lag - 1], pairs=[])
     smoother = gtsam.BatchFixedLagSmoother(float(lag - 2), lm)
     gtsam_run(gtsam, smoother, head)
-    graph = gtsam.NonlinearFactorGraph(smoother.getFactors())
-    init = gtsam.Values(smoother.calculateEstimate())
-    pose = lambda r: _pose(gtsam, r)
-    odo = pose(data["odo"][lag - 1])
-    sig = gtsam.noiseModel.Diagonal.Sigmas
-    graph.add(gtsam.BetweenFactorPose2(lag - 1, lag, odo, sig(ODO)))
-    graph.add(gtsam.PriorFactorPose2(lag, pose(data["fixes"][lag]), sig(FIX)))
-    init.insert(lag, init.atPose2(lag - 1).compose(odo))
-    theirs = gtsam.LevenbergMarquardtOptimizer(graph, init, lm).optimize()
-    mine = gtsam.Values()
+    pose, sig = (lambda r: _pose(gtsam, r)), gtsam.noiseModel.Diagonal.Sigmas
+    odo, mine = pose(data["odo"][lag - 1]), gtsam.Values()
     for i, r in enumerate(ours):
         mine.insert(i + 1, pose(r))
+    new = [gtsam.BetweenFactorPose2(lag - 1, lag, odo, sig(ODO))]
+    new.append(gtsam.PriorFactorPose2(lag, pose(data["fixes"][lag]), sig(FIX)))
+    start = lambda v: v.insert(lag, v.atPose2(lag - 1).compose(odo))
+    return _window_errors(gtsam, smoother, lm, new, start, mine)
+
+
+def _window_errors(gtsam, smoother, lm, new, start, mine) -> dict:
+    """The error of the smoother's graph + `new` at GTSAM's answer and `mine`."""
+    graph = gtsam.NonlinearFactorGraph(smoother.getFactors())
+    init = gtsam.Values(smoother.calculateEstimate())
+    for f in new:
+        graph.add(f)
+    start(init)
+    theirs = gtsam.LevenbergMarquardtOptimizer(graph, init, lm).optimize()
     return dict(gtsam_error=graph.error(theirs), eqsmooth_error=graph.error(mine))
 
 
@@ -178,21 +167,18 @@ def _car_trans(a, b, data, params):
     return eqs.local(pred, b)
 
 
-def _car_gps(x, data, params):
-    return x["pose"].translation() - data
+_car_gps = lambda x, data, params: x["pose"].translation() - data
 
 
 def se2vel_problem(T: int, seed: int = 0):
     rng = np.random.default_rng(seed)
-    vel = [VEL0]
-    poses = [eqs.SE2.identity(dtype=jnp.float64)]
+    vel, poses = [VEL0], [eqs.SE2.identity(dtype=jnp.float64)]
     for _ in range(T - 1):
         poses.append(poses[-1] @ eqs.SE2.exp(jnp.asarray(DT * vel[-1])))
         vel.append(vel[-1] + 0.05 * rng.normal(size=3))
     pos = np.stack([np.asarray(p.translation()) for p in poses])
     gps = pos + GPS_SIG * rng.normal(size=pos.shape)
-    t = np.arange(T)
-    var = lambda ids: eqs.Var("s", ids)
+    t, var = np.arange(T), lambda ids: eqs.Var("s", ids)
     noise = eqs.DiagonalNoise.from_sigmas(jnp.asarray(TRANS_SIG))
     trans = eqs.FunctionFactor(_car_trans, (var(t[:-1]), var(t[1:])), noise)
     noise = eqs.IsotropicNoise.from_sigma(jnp.asarray(GPS_SIG))
@@ -202,32 +188,29 @@ def se2vel_problem(T: int, seed: int = 0):
 
 
 def _numeric_jacobians(gtsam, error, values, keys, jacobians, h=1e-6):
-    """Central-difference Jacobians of `error(values)` in GTSAM's tangent
-    coordinates of each key (Pose2 at even keys, 3-vector at odd)."""
-    for j, k in enumerate(keys):
-
-        def moved(step, k=k):
-            v = gtsam.Values(values)
-            if k % 2 == 0:
-                v.update(k, values.atPose2(k).retract(step))
-            else:
-                v.update(k, values.atVector(k) + step)
-            return error(v)
-
+    """`error(values)`, and (when asked) its central-difference Jacobians in
+    GTSAM's tangent coordinates of each key (Pose2 at even keys, 3-vector at
+    odd): a CustomFactor's error function."""
+    for j, k in enumerate(keys if jacobians is not None else ()):
+        at = values.atPose2(k).retract if k % 2 == 0 else values.atVector(k).__add__
+        moved = lambda step, k=k, at=at: error(_with(gtsam, values, k, at(step)))
         cols = [(moved(e) - moved(-e)) / (2 * h) for e in h * np.eye(3)]
         jacobians[j] = np.column_stack(cols)
+    return error(values)
+
+
+def _with(gtsam, values, key, value):
+    out = gtsam.Values(values)
+    out.update(key, value)
+    return out
 
 
 def _se2vel_factors(gtsam, gps):
     """GTSAM factors of the chain: pose keys 2t, velocity keys 2t+1."""
-    P, V = (lambda t: 2 * t), (lambda t: 2 * t + 1)  # noqa: E731
+    P, V = (lambda t: 2 * t), (lambda t: 2 * t + 1)
 
     def custom(noise, keys, err):
-        def f(this, values, jacobians):
-            if jacobians is not None:
-                _numeric_jacobians(gtsam, err, values, keys, jacobians)
-            return err(values)
-
+        f = lambda _, values, jac: _numeric_jacobians(gtsam, err, values, keys, jac)
         return gtsam.CustomFactor(noise, keys, f)
 
     def trans_factor(t):
@@ -277,32 +260,25 @@ def gtsam_se2vel(gtsam, smoother, gps, T: int):
 
 
 def se2vel_first_window(gtsam, lag: int) -> dict:
-    """`first_marginal_window` on the SE(2) + velocity chain: GTSAM's own
-    graph error after the first marginalisation plus the next update, at
-    GTSAM's answer and at eqsmooth's window (tight Levenberg-Marquardt)."""
+    """`first_marginal_window` on the SE(2) + velocity chain (eqsmooth: LM)."""
     trans, meas, mean0, gps = se2vel_problem(lag + 1)
     tight = eqs.LevenbergMarquardt(ftol=1e-14, gtol=1e-14, xtol=1e-14)
-    sol = eqs.filters.fixed_lag_smoother(
-        trans, meas, mean0, COV0 * jnp.eye(6), lag=lag, solver=tight
-    )
+    sol = fls(trans, meas, mean0, COV0 * jnp.eye(6), lag=lag, solver=tight)
     window = jax.tree_util.tree_map(lambda a: a[lag], sol.windows)
     lm = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"].params()
     smoother = gtsam.BatchFixedLagSmoother(float(lag - 2), lm)
     gtsam_se2vel(gtsam, smoother, np.asarray(gps), lag)
     P, V, trans_factor, gps_factor = _se2vel_factors(gtsam, np.asarray(gps))
-    graph = gtsam.NonlinearFactorGraph(smoother.getFactors())
-    init = gtsam.Values(smoother.calculateEstimate())
-    graph.add(trans_factor(lag))
-    graph.add(gps_factor(lag))
-    init.insert(P(lag), init.atPose2(P(lag - 1)))
-    init.insert(V(lag), init.atVector(V(lag - 1)))
-    theirs = gtsam.LevenbergMarquardtOptimizer(graph, init, lm).optimize()
     mine = gtsam.Values()
     params, vel = np.asarray(window["pose"].parameters()), np.asarray(window["vel"])
     for i, (r, v) in enumerate(zip(params, vel)):
         mine.insert(P(i + 1), _pose(gtsam, r))
         mine.insert(V(i + 1), v)
-    return dict(gtsam_error=graph.error(theirs), eqsmooth_error=graph.error(mine))
+    new, ks = [trans_factor(lag), gps_factor(lag)], (P(lag), V(lag))
+    start = lambda v: [
+        v.insert(k, g(k - 2)) for k, g in zip(ks, (v.atPose2, v.atVector))
+    ]
+    return _window_errors(gtsam, smoother, lm, new, start, mine)
 
 
 def se2vel_record(gtsam, T: int, lag: int, repeats: int) -> dict:
@@ -316,24 +292,20 @@ def se2vel_record(gtsam, T: int, lag: int, repeats: int) -> dict:
         run = (trans, meas, mean0, COV0 * jnp.eye(6), lag, *solver, repeats)
         means[name], first, per = timed_fixed_lag(*run)
         rec[name] = dict(first_call_s=first, ms_per_update=1e3 * per)
-    diff = lambda a: tangent_diff(a, means["eqsmooth_lm"])  # noqa: E731
+    diff = lambda a: tangent_diff(a, means["eqsmooth_lm"])
     rec["eqsmooth_fixed3"]["max_diff"] = float(diff(means["eqsmooth_fixed3"]).max())
     if gtsam:
         smoother = gtsam_smoothers(gtsam, lag)["BatchFixedLagSmoother"]
         est, times = gtsam_se2vel(gtsam, smoother, np.asarray(gps), T)
-        d = diff(est)
-        rec["BatchFixedLagSmoother"] = dict(
-            ms_per_update_python_factors=1e3 * statistics.median(times),
-            max_diff=float(d.max()),
-            max_diff_before=float(d[: min(lag, T)].max()),
-        )
+        d, ms = diff(est), 1e3 * statistics.median(times)
+        b = rec["BatchFixedLagSmoother"] = dict(ms_per_update_python_factors=ms)
+        b |= dict(max_diff=float(d.max()), max_diff_before=float(d[:lag].max()))
         rec["first_marginal_window"] = se2vel_first_window(gtsam, lag)
     return rec
 
 
-def tangent_diff(a, b) -> np.ndarray:
-    """Per step, the largest tangent coordinate of `local(a, b)`."""
-    return np.abs(np.asarray(eqs.local(a, b, batch_ndim=1))).max(axis=1)
+# per step, the largest tangent coordinate of `local(a, b)`
+tangent_diff = lambda a, b: np.abs(np.asarray(eqs.local(a, b, batch_ndim=1))).max(1)
 
 
 def chain_record(gtsam, data, lag: int, a) -> dict:
@@ -364,25 +336,35 @@ def chain_record(gtsam, data, lag: int, a) -> dict:
     return rec
 
 
-def per_update_record(gtsam, data, lag: int) -> dict:
-    """`--per-update`: the rows, factors and GTSAM graphs are built before
-    the timed calls; medians over the calls after the first."""
+def per_update_record(gtsam, data, lag: int, max_back: int) -> dict:
+    """`--per-update`: inputs built before the timed calls (one closure row
+    per step, absent ones masked); medians over the calls after the first."""
     T, one = len(data["fixes"]), (eqs.Var("x", [0]), eqs.Var("x", [1]))
     odo, fix = (eqs.SE2(jnp.asarray(data[k])) for k in ("odo", "fixes"))
+    back, rel = np.zeros((T, 1), int), np.tile([1.0, 0, 0, 0], (T, 1))
+    for a, b, r in data["pairs"]:
+        back[b], rel[b] = b - a, r
+    on, rel, closed = back > 0, eqs.SE2(jnp.asarray(rel)), bool(data["pairs"])
+    noise = eqs.DiagonalNoise.from_sigmas(jnp.asarray(LOOP))
+    loop = lambda k, n: eqs.BetweenFactor(*one, rel[k : k + 1], n)
     trans = lambda k: eqs.BetweenFactor(*one, odo[k - 1 : k], data["trans"].noise)
     prior = lambda k: eqs.PriorFactor(one[1], fix[k : k + 1], data["fix"].noise)
+    f, init = eqs.factors.per_row_fields, (trans(1), prior(0))
+    init += (loop(0, noise), max_back) if closed else ()
     steps = [(trans(k), prior(k)) for k in range(1, T)]
-    fields = eqs.factors.per_row_fields
-    rows = [(fields(a), (fields(b),)) for a, b in steps]
+    rows = [(f(a), (f(b),)) for a, b in steps]
+    for k in range(1, T) if closed else ():  # (active, closure rows, back, active)
+        rows[k - 1] += (None, f(loop(k, noise)), back[k], on[k])
     rec, ests = dict(benchmark="fixed_lag_per_update", T=T, lag=lag), {}
+    rec |= dict(closures=closed, max_back=max_back if closed else None)
     for name, throw, method, args in (
         ("update_rows", True, "update_rows", rows),
         ("update_rows_throw_false", False, "update_rows", rows),
         ("update", True, "update", steps),
-    ):
+    )[: 3 - closed]:  # with closures: `update` is not timed
         smoother = eqs.filters.FixedLagSmoother(lag=lag, throw=throw)
         mean0, update = eqs.SE2.identity(dtype=jnp.float64), getattr(smoother, method)
-        state, x = smoother.init(mean0, COV0 * jnp.eye(3), trans(1), prior(0))
+        state, x = smoother.init(mean0, COV0 * jnp.eye(3), *init)
         out, times = [x], []
         for step in args:
             t0 = time.perf_counter()
@@ -393,13 +375,30 @@ def per_update_record(gtsam, data, lag: int) -> dict:
         rec[name] = dict(first_call_s=times[0], median_s=statistics.median(times[1:]))
     med = rec["update_rows"]["median_s"]
     rec |= dict(median_s=med, compile_s=rec["update_rows"]["first_call_s"] - med)
+    rec["dispatch_floor"] = dispatch_floor(state, rows[-1])
     diff = lambda est: float(tangent_diff(est, ests["update_rows"]).max())
-    for name in ("update", "update_rows_throw_false"):  # the same estimates
+    for name in list(ests)[1:]:  # the same estimates
         rec[name]["max_diff"] = diff(ests[name])
     for name, smoother in (gtsam_smoothers(gtsam, lag) if gtsam else {}).items():
         est, median = gtsam_run(gtsam, smoother, data)
         rec[name] = dict(median_s=median, max_diff=diff(est))
     return rec
+
+
+def dispatch_floor(state, step, calls: int = 200) -> dict:
+    """Median seconds of a call taking `state` and a step's rows and returning
+    the state (`t + 1`) and newest pose: `eqx.filter_jit`, `jax.jit` of leaves."""
+    bump = lambda s, _: (eqx.tree_at(lambda s: s.t, s, s.t + 1), s.window[-1])
+    arrays, rest = eqx.partition((state, step), eqx.is_array)
+    leaves, tree = jax.tree_util.tree_flatten(arrays)
+    whole = lambda ls: bump(*eqx.combine(tree.unflatten(ls), rest))
+    bare = jax.jit(lambda ls: eqx.filter(whole(ls), eqx.is_array))
+    run = lambda f, *a: time_host(lambda: jax.block_until_ready(f(*a)), calls)[1]
+    times = dict(filter_jit_s=run(eqx.filter_jit(bump), state, step))
+    times["jax_jit_s"] = run(bare, leaves)
+    return {k: statistics.median(v) for k, v in times.items()} | dict(
+        leaves=len(leaves)
+    )
 
 
 def main():
@@ -413,23 +412,22 @@ def main():
     ap.add_argument("--se2vel", action="store_true", help="SE(2) + velocity chain")
     ap.add_argument("--per-update", action="store_true", help="update_rows per call")
     a = ap.parse_args()
-    if a.per_update and a.closures:
-        ap.error("--per-update: FixedLagSmoother takes no closures")
     gtsam = optional("gtsam", " (GTSAM's fixed-lag smoothers)")
     chain = not (a.se2vel or a.first_window_only)
     data = problem(a.steps, a.span, a.closures) if chain else None
+    loops = problem(a.steps, a.span, True) if a.per_update else None
     records = []
     for lag in a.lags:
         if a.se2vel:
-            rec = se2vel_record(gtsam, a.steps, lag, a.repeats)
-        elif a.per_update:
-            rec = per_update_record(gtsam, data, lag)
+            new = [se2vel_record(gtsam, a.steps, lag, a.repeats)]
+        elif a.per_update:  # without, then with closures
+            new = [per_update_record(gtsam, d, lag, a.span) for d in (data, loops)]
         elif a.first_window_only:
-            rec = dict(lag=lag, **first_marginal_window(gtsam, lag))
+            new = [dict(lag=lag, **first_marginal_window(gtsam, lag))]
         else:
-            rec = chain_record(gtsam, data, lag, a)
-        print(rec, flush=True)
-        records.append(rec)
+            new = [chain_record(gtsam, data, lag, a)]
+        print(*new, sep="\n", flush=True)
+        records += new
     if a.json:
         write_json(a.json, records, dict(options=vars(a)))
 
