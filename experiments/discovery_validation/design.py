@@ -87,10 +87,10 @@ def verdict(data: dc.Sequences) -> tuple:
     return found, named, open_
 
 
-def needed(rng, effect, coef, truth, design) -> dict:
-    """The first size of `GRID` at which `design` gives the truth alone."""
+def needed(rng, effect, coef, truth, design, grid) -> dict:
+    """The first size of `grid` at which `design` gives the truth alone."""
     wrong = 0
-    for n in GRID:
+    for n in grid:
         _, named, open_ = verdict(measure(rng, effect, coef, design, n))
         if not open_ and named["named"] == [truth]:
             return {"sequences": n, "wrong": wrong}
@@ -99,10 +99,10 @@ def needed(rng, effect, coef, truth, design) -> dict:
     return {"sequences": None, "wrong": wrong}
 
 
-def one_seed(effect, coef, seed) -> dict:
+def one_seed(effect, coef, seed, grid=GRID) -> dict:
     truth = EFFECTS[effect]
     rng = np.random.default_rng(np.random.SeedSequence([2026, 1130, seed]))
-    data = measure(rng, effect, coef, "default", GRID[0])
+    data = measure(rng, effect, coef, "default", grid[0])
     found, named, open_ = verdict(data)
     rec = {"seed": seed, "first_verdict": named["verdict"], "open": open_}
     if not open_:
@@ -112,17 +112,17 @@ def one_seed(effect, coef, seed) -> dict:
     rec["proposal"] = prop["proposal"]
     rec["predicted"] = prop["sequences"]
     rec["figures"] = {k: v["sequences_needed"] for k, v in prop["designs"].items()}
-    rec["default"] = needed(rng, effect, coef, truth, "default")
+    rec["default"] = needed(rng, effect, coef, truth, "default", grid)
     if prop["proposal"] is not None:
-        rec["proposed"] = needed(rng, effect, coef, truth, prop["proposal"])
+        rec["proposed"] = needed(rng, effect, coef, truth, prop["proposal"], grid)
     return rec
 
 
-def summarise(runs: list[dict]) -> dict:
+def summarise(runs: list[dict], grid=GRID) -> dict:
     opened = [r for r in runs if r["open"] and r.get("proposed")]
 
     def sizes(key):
-        return [r[key]["sequences"] or 2 * GRID[-1] for r in opened]
+        return [r[key]["sequences"] or 2 * grid[-1] for r in opened]
 
     out = {"seeds": len(runs), "open": len(opened)}
     if opened:
@@ -147,7 +147,7 @@ def report(records: dict, info: dict) -> str:
         "# Following `propose`: sequences to a confident correct name",
         "",
         f"- command: `{info['command']}`",
-        f"- git {info['git'][0]}; level {info['level']}; grid {list(GRID)}; "
+        f"- git {info['git'][0]}; level {info['level']}; grid {info['grid']}; "
         f"{info['seconds']:.0f} s",
         "",
         "| effect | seeds | open at 24 | median default | median proposed | ratio "
@@ -167,7 +167,7 @@ def report(records: dict, info: dict) -> str:
         )
     lines += [
         "",
-        f"Sizes past the grid count as {2 * GRID[-1]} in the medians.",
+        f"Sizes past the grid count as {2 * info['grid'][-1]} in the medians.",
     ]
     return "\n".join(lines)
 
@@ -181,12 +181,12 @@ def main(argv=None):
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
     args = parser.parse_args(argv)
-    global GRID
-    GRID = tuple(args.grid)
+    grid = tuple(args.grid)
     t0 = time.perf_counter()
     coefs = calibrate([args.level])
     records: dict = {}
     info = {"command": cli_command(), "git": _git(), "level": args.level}
+    info["grid"] = list(grid)
 
     def save() -> str:
         info["seconds"] = time.perf_counter() - t0
@@ -202,9 +202,9 @@ def main(argv=None):
         runs = []
         records[effect] = {"coefficient": coef, "runs": runs}
         for seed in range(args.seeds):
-            runs.append(one_seed(effect, coef, seed))
+            runs.append(one_seed(effect, coef, seed, grid))
             print(effect, runs[-1], flush=True)
-            records[effect]["summary"] = summarise(runs)
+            records[effect]["summary"] = summarise(runs, grid)
             save()
     print(save())
 
