@@ -177,8 +177,8 @@ def write_markdown(path, records, m: dict, solver_name: str, args):
         f"JAX {m['jax']} ({m['backend']}), Python {m['python']}",
         f"- git: {git}",
         "- times: median of `repeats` full solves after a warm-up call, seconds",
+        *[f"- BLAS used by CHOLMOD: {', '.join(b)}" for b in [m.get("blas")] if b],
     ]
-    lines += [f"- BLAS used by CHOLMOD: {', '.join(m['blas'])}"] * bool(m.get("blas"))
     lines += [
         "",
         table_of(records),
