@@ -92,7 +92,9 @@ def build(noise: ImuNoise, seg: dict, used: np.ndarray):
     return graph, values
 
 
-def solve(noise: ImuNoise, seg: dict, cfg: Config):
+def solve(noise: ImuNoise, seg: dict, cfg: Config, build=build):
+    """The segment's batch solve; `build(noise, seg, used)` makes its graph
+    (`protocol_2` passes its per-interval one)."""
     used = ~outage_mask(cfg)
     graph, values = build(noise, seg, used)
     solver = eqs.LevenbergMarquardt(ftol=1e-10, gtol=1e-8, xtol=1e-10)
@@ -102,14 +104,14 @@ def solve(noise: ImuNoise, seg: dict, cfg: Config):
     return graph, sol
 
 
-def make_loss(cfg: Config):
+def make_loss(cfg: Config, build=build):
     """Mean squared horizontal error at the withheld fixes of one segment
     (a batch of one), through the solve."""
     withheld = np.flatnonzero(outage_mask(cfg))
 
     def loss(noise: ImuNoise, batch: dict):
         seg = jax.tree_util.tree_map(lambda x: x[0], batch)
-        _, sol = solve(noise, seg, cfg)
+        _, sol = solve(noise, seg, cfg, build)
         p = sol.value["x"].translation()[withheld]
         err = p[:, :2] - seg["gps"][withheld, :2]
         return jnp.mean(jnp.sum(err * err, axis=-1))
@@ -117,13 +119,13 @@ def make_loss(cfg: Config):
     return loss
 
 
-def score(noise: ImuNoise, seg: dict, cfg: Config) -> dict:
+def score(noise: ImuNoise, seg: dict, cfg: Config, build=build) -> dict:
     """The declared metrics of one segment: horizontal RMS and max error at
     the withheld fixes, and the mean NLL of those fixes under the position
     marginal plus GPS noise."""
     withheld = np.flatnonzero(outage_mask(cfg))
     seg = jax.tree_util.tree_map(jnp.asarray, seg)
-    graph, sol = solve(noise, seg, cfg)
+    graph, sol = solve(noise, seg, cfg, build)
     x = sol.value["x"]
     cov = eqs.marginal_covariances(sol, groups=["x"])["x"]  # (n, 6, 6), (v, w)
     R = x.rotation().as_matrix()
@@ -145,14 +147,17 @@ def score(noise: ImuNoise, seg: dict, cfg: Config) -> dict:
     }
 
 
-def learn_constant(meta: dict, data: dict, fold: int, cfg: Config):
+def learn_constant(
+    meta: dict, data: dict, fold: int, cfg: Config, init=None, build=build
+):
     """The `learned_constant` row: train on the fold's training segments,
-    select on its validation segment."""
+    select on its validation segment (`init`, `build`: another model and its
+    graph, as `protocol_2`'s `learned_hetero`)."""
     split = fold_split(fold, cfg)
-    loss = make_loss(cfg)
+    loss = make_loss(cfg, build)
     t0 = time.perf_counter()
     result = eql.train(
-        ImuNoise.from_metadata(meta),
+        ImuNoise.from_metadata(meta) if init is None else init,
         loss,
         take(data, split["train"]),
         optimizer=eql.make_optimizer(cfg.learning_rate),

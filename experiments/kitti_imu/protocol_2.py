@@ -1,0 +1,310 @@
+"""The second declared protocol's rows (docs/tutorial/imu.md, "a second
+protocol"): per-interval sigmas from a network (`learned_hetero`), and the
+metadata and learned constant sigmas run in the EKF and the fixed-lag
+smoother. Data, folds, outages, loss, training and selection are the first
+protocol's (`experiment.py`).
+
+    python -m experiments.kitti_imu.protocol_2 --folds 0 1 2 3 4
+    python -m experiments.kitti_imu.protocol_2 --quick --out /tmp/p2
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jaxtyping import Array, Float  # noqa: E402
+
+import eqsmooth as eqs  # noqa: E402
+import eqsmooth.learn as eql  # noqa: E402
+
+from . import data as D  # noqa: E402
+from .experiment import (  # noqa: E402
+    BIAS_PRIOR_SIGMAS,
+    build,
+    GPS_VARIANCE,
+    GRAVITY,
+    ImuNoise,
+    learn_constant,
+    score,
+    VELOCITY_SIGMA,
+)
+
+
+OUT = Path("results/kitti_imu/protocol_2")
+LAG = 10
+ATTITUDE_SIGMA = 1.0  # rad, about the track's yaw (the example's first_state)
+FIRST_POSITION_SIGMA = 1.0  # m
+
+
+def interval_features(seg: dict) -> Float[Array, "n 4"]:
+    """Mean and standard deviation of the accelerometer norm and of the
+    gyroscope norm over each interval's samples."""
+    s, m = seg["samples"], seg["mask"].astype(float)
+    count = jnp.sum(m, axis=-1)
+    out = []
+    for cols in (slice(1, 4), slice(4, 7)):
+        norm = jnp.linalg.norm(s[..., cols], axis=-1)
+        mean = jnp.sum(norm * m, axis=-1) / count
+        var = jnp.sum((norm - mean[:, None]) ** 2 * m, axis=-1) / count
+        out += [mean, jnp.sqrt(var)]
+    return jnp.stack(out, -1)
+
+
+class HeteroNoise(eqx.Module):
+    """`learned_hetero`: the constant log-sigmas plus a network's per-interval
+    offsets of the accelerometer and gyroscope log-sigmas."""
+
+    constant: ImuNoise
+    net: eqx.nn.MLP
+    feature_mean: Float[Array, "4"]
+    feature_std: Float[Array, "4"]
+
+    @staticmethod
+    def init(meta: dict, train: dict) -> "HeteroNoise":
+        feats = jnp.concatenate(
+            [
+                interval_features(jax.tree_util.tree_map(lambda x: x[i], train))
+                for i in range(train["gps"].shape[0])
+            ]
+        )
+        net = eqx.nn.MLP(4, 2, 16, 1, activation=jnp.tanh, key=jax.random.key(0))
+        last = net.layers[-1]
+        net = eqx.tree_at(
+            lambda n: (n.layers[-1].weight, n.layers[-1].bias),
+            net,
+            (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias)),
+        )
+        return HeteroNoise(
+            ImuNoise.from_metadata(meta), net, feats.mean(0), feats.std(0)
+        )
+
+    def interval_log_sigmas(self, seg: dict) -> Float[Array, "n 2"]:
+        mean = jax.lax.stop_gradient(self.feature_mean)
+        std = jax.lax.stop_gradient(self.feature_std)
+        z = (interval_features(seg) - mean) / std
+        return self.constant.log_sigma[:2] + jax.vmap(self.net)(z)
+
+    def sigmas(self) -> dict:
+        return self.constant.sigmas()
+
+
+def hetero_pim(noise: HeteroNoise, seg: dict):
+    """Each interval preintegrated with its own accelerometer and gyroscope
+    sigmas (the same recursion, vmapped over intervals of one)."""
+    log_s = noise.interval_log_sigmas(seg)
+    s = seg["samples"]
+
+    def one(ls, samples, mask):
+        params = eqs.ImuParams.make_u(
+            GRAVITY,
+            accelerometer_sigma=jnp.exp(ls[0]),
+            gyroscope_sigma=jnp.exp(ls[1]),
+        )
+        return eqs.preintegrate(
+            params,
+            samples[None, :, 1:4],
+            samples[None, :, 4:7],
+            samples[None, :, 0],
+            mask=mask[None],
+        )
+
+    pim = jax.vmap(one)(log_s, s, seg["mask"])
+    return jax.tree_util.tree_map(lambda a: a[:, 0], pim)
+
+
+def hetero_build(noise: HeteroNoise, seg: dict, used: np.ndarray):
+    """`experiment.build` with the per-interval preintegration."""
+    graph, values = build(noise.constant, seg, used)
+    pim = hetero_pim(noise, seg)
+    imu = graph.factors[0]
+    factors = list(graph.factors)
+    factors[0] = eqx.tree_at(lambda f: f.pim, imu, pim)
+    return eqs.FactorGraph(factors), values
+
+
+def first_belief(seg: dict):
+    """The belief on a segment's first keyframe (the example's
+    `first_state`): mean `(pose, velocity, bias)` and covariance."""
+    rot = eqs.SO3.from_z_radians(seg["yaw"][:1])[0]
+    pose = eqs.SE3.from_rotation_and_translation(rot, seg["gps"][0])
+    mean = (pose, seg["vel"][0], jnp.zeros(6))
+    sigmas = jnp.asarray(
+        [FIRST_POSITION_SIGMA] * 3
+        + [ATTITUDE_SIGMA] * 3
+        + [VELOCITY_SIGMA] * 3
+        + list(BIAS_PRIOR_SIGMAS)
+    )
+    return mean, jnp.diag(sigmas**2)
+
+
+def _gps_residual(state, position, params):
+    return state[0].translation() - position
+
+
+def chain_model(noise: ImuNoise, seg: dict, used: np.ndarray):
+    """The transition (`ImuTransitionFactor`, bias walk included) and the GPS
+    stack of one segment, each keyframe one state."""
+    sigma = jnp.exp(noise.log_sigma)
+    params = eqs.ImuParams.make_u(
+        GRAVITY, accelerometer_sigma=sigma[0], gyroscope_sigma=sigma[1]
+    )
+    s = seg["samples"]
+    pim = eqs.preintegrate(
+        params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
+    )
+    walk = eqs.factors.bias_walk_sigmas(sigma[2], sigma[3], seg["count"])
+    ids = np.arange(seg["gps"].shape[0])
+    transition = eqs.factors.ImuTransitionFactor(
+        eqs.Var("s", ids[:-1]), eqs.Var("s", ids[1:]), pim, params, walk
+    )
+    gps_ids = np.flatnonzero(used)
+    gps = eqs.FunctionFactor(
+        _gps_residual,
+        (eqs.Var("s", gps_ids),),
+        eqs.IsotropicNoise.from_sigma(float(np.sqrt(GPS_VARIANCE))),
+        data=jnp.asarray(seg["gps"][gps_ids]),
+        residual_dim=3,
+    )
+    return transition, gps
+
+
+def _position_scores(p, world_cov, seg, withheld) -> dict:
+    e = seg["gps"][withheld] - p[withheld]
+    h = np.linalg.norm(np.asarray(e[:, :2]), axis=-1)
+    out = {
+        "rms_horizontal_m": float(np.sqrt(np.mean(h**2))),
+        "max_horizontal_m": float(h.max()),
+        "withheld_fixes": int(len(withheld)),
+    }
+    if world_cov is not None:
+        cal = eql.gaussian_calibration(
+            e, world_cov[withheld] + GPS_VARIANCE * jnp.eye(3)[None]
+        )
+        out["nll"] = float(np.mean(np.asarray(cal.nll)))
+        out["valid_covariances"] = int(np.sum(np.asarray(cal.valid)))
+    return out
+
+
+def score_ekf(noise: ImuNoise, seg: dict, cfg: D.Config) -> dict:
+    withheld = np.flatnonzero(D.outage_mask(cfg))
+    seg = jax.tree_util.tree_map(jnp.asarray, seg)
+    transition, gps = chain_model(noise, seg, ~D.outage_mask(cfg))
+    mean, cov = first_belief(seg)
+    sol = eqs.filters.ekf(transition, [gps], mean, cov, throw=False)
+    pose = sol.mean[0]
+    R = pose.rotation().as_matrix()
+    world = R @ sol.covariance[:, :3, :3] @ jnp.swapaxes(R, -1, -2)
+    return _position_scores(pose.translation(), world, seg, withheld)
+
+
+def score_fixed_lag(noise: ImuNoise, seg: dict, cfg: D.Config) -> dict:
+    withheld = np.flatnonzero(D.outage_mask(cfg))
+    seg = jax.tree_util.tree_map(jnp.asarray, seg)
+    transition, gps = chain_model(noise, seg, ~D.outage_mask(cfg))
+    mean, cov = first_belief(seg)
+    solver = eqs.LevenbergMarquardt(
+        ftol=1e-10, gtol=1e-6, xtol=1e-9, initial_damping=1e-14
+    )
+    sol = eqs.filters.fixed_lag_smoother(
+        transition, [gps], mean, cov, lag=LAG, solver=solver, max_steps=100
+    )
+    p = sol.lagged_mean[0].translation()
+    return _position_scores(p, None, seg, withheld)
+
+
+def run_fold(meta: dict, data: dict, fold: int, cfg: D.Config) -> dict:
+    """The second protocol's rows on one fold: train and select
+    `learned_constant` and `learned_hetero` (validation only), then score
+    the test segment with every declared estimator."""
+    split = D.fold_split(fold, cfg)
+    constant, constant_s = learn_constant(meta, data, fold, cfg)
+    init = HeteroNoise.init(meta, D.take(data, split["train"]))
+    hetero, hetero_s = learn_constant(
+        meta, data, fold, cfg, init=init, build=hetero_build
+    )
+    test = D.take(data, split["test"])
+    seg = {k: v[0] for k, v in test.items()}
+    metadata = ImuNoise.from_metadata(meta)
+    learned = constant.best_model
+    training = {}
+    for key, res, sec in (
+        ("learned_constant", constant, constant_s),
+        ("learned_hetero", hetero, hetero_s),
+    ):
+        training[key] = {
+            "seconds": sec,
+            "best_step": int(res.best_step),
+            "best_valid_loss_m2": float(res.best_valid_loss),
+            "history": list(res.history),
+        }
+    rows = {
+        "metadata": score(metadata, seg, cfg),
+        "learned_constant": score(learned, seg, cfg),
+        "learned_hetero": score(hetero.best_model, seg, cfg, hetero_build),
+        "metadata_ekf": score_ekf(metadata, seg, cfg),
+        "learned_constant_ekf": score_ekf(learned, seg, cfg),
+        "metadata_fixed_lag": score_fixed_lag(metadata, seg, cfg),
+        "learned_constant_fixed_lag": score_fixed_lag(learned, seg, cfg),
+    }
+    return {
+        "fold": fold,
+        "split": split,
+        "test_time_s": [float(seg["time"][0]), float(seg["time"][-1])],
+        "training": training,
+        "sigmas": {
+            "learned_constant": learned.sigmas(),
+            "learned_hetero_constant_part": hetero.best_model.sigmas(),
+        },
+        "rows": rows,
+    }
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--folds", type=int, nargs="+", default=None)
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--out", type=Path, default=OUT)
+    args = p.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    eqs.enable_compilation_cache()
+    cfg = D.QUICK if args.quick else D.Config()
+    folds = args.folds or ([0] if args.quick else list(range(cfg.num_segments)))
+    meta, imu, gps = D.load(args.data_dir)
+    data = D.segments(meta, imu, gps, cfg)
+    for fold in folds:
+        path = args.out / f"fold_{fold}.json"
+        t0 = time.perf_counter()
+        out = run_fold(meta, data, fold, cfg)
+        out["seconds"] = time.perf_counter() - t0
+        out["config"] = {**cfg.__dict__, "quick": bool(args.quick)}
+        out["command"] = "python -m experiments.kitti_imu.protocol_2 " + " ".join(
+            sys.argv[1:]
+        )
+        out["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+        path.write_text(json.dumps(out, indent=2, default=float) + "\n")
+        print(
+            f"fold {fold}: "
+            + "; ".join(
+                f"{k} rms {v['rms_horizontal_m']:.3f} m"
+                + (f" nll {v['nll']:.3f}" if "nll" in v else "")
+                for k, v in out["rows"].items()
+            )
+            + f" ({out['seconds']:.0f} s)",
+            flush=True,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    main()
