@@ -269,14 +269,77 @@ def run_fold(meta: dict, data: dict, fold: int, cfg: D.Config) -> dict:
     }
 
 
+PAIRS = (
+    ("learned_hetero", "learned_constant"),
+    ("learned_hetero", "metadata"),
+    ("learned_constant_ekf", "metadata_ekf"),
+    ("learned_constant_fixed_lag", "metadata_fixed_lag"),
+)
+METRICS = ("rms_horizontal_m", "max_horizontal_m", "nll")
+
+
+def summary(out: Path) -> dict:
+    """The declared report from the finished folds: each row's per-fold
+    scores and the paired differences (row minus reference per fold, their
+    mean, and on how many folds the row is lower)."""
+    folds = [json.loads(p.read_text()) for p in sorted(Path(out).glob("fold_*.json"))]
+    rows = sorted({r for f in folds for r in f["rows"]})
+    per_row = {
+        r: {m: [f["rows"][r].get(m) for f in folds] for m in METRICS} for r in rows
+    }
+    paired = {}
+    for a, b in PAIRS:
+        for m in METRICS:
+            d = [
+                f["rows"][a][m] - f["rows"][b][m]
+                for f in folds
+                if m in f["rows"][a] and m in f["rows"][b]
+            ]
+            if d:
+                paired[f"{a} - {b}: {m}"] = {
+                    "mean": float(np.mean(d)),
+                    "lower_on": int(np.sum(np.asarray(d) < 0)),
+                    "folds": len(d),
+                    "per_fold": d,
+                }
+    record = {"folds": [f["fold"] for f in folds], "rows": per_row, "paired": paired}
+    (Path(out) / "summary.json").write_text(json.dumps(record, indent=2) + "\n")
+    lines = [
+        "# KITTI IMU, second protocol: results",
+        "",
+        f"Folds: {record['folds']} (`python -m experiments.kitti_imu.protocol_2`; "
+        "the protocol: `protocol_2.md`).",
+        "",
+        "| row | " + " | ".join(f"fold {f}" for f in record["folds"]) + " |",
+        "|---|" + "---|" * len(folds),
+    ]
+    for r in rows:
+        cells = []
+        for f in folds:
+            v = f["rows"][r]
+            nll = f" / {v['nll']:.2f}" if "nll" in v else ""
+            cells.append(f"{v['rms_horizontal_m']:.3f}{nll}")
+        lines.append(f"| {r} | " + " | ".join(cells) + " |")
+    lines += ["", "Cells: RMS horizontal error (m) / NLL (nats).", ""]
+    lines += ["| paired difference | mean | lower on |", "|---|---|---|"]
+    for k, v in paired.items():
+        lines.append(f"| {k} | {v['mean']:+.3f} | {v['lower_on']} of {v['folds']} |")
+    (Path(out) / "summary.md").write_text("\n".join(lines) + "\n")
+    return record
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--folds", type=int, nargs="+", default=None)
     p.add_argument("--quick", action="store_true")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--summary", action="store_true", help="pool the finished folds")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.summary:
+        summary(args.out)
+        return 0
     eqs.enable_compilation_cache()
     cfg = D.QUICK if args.quick else D.Config()
     folds = args.folds or ([0] if args.quick else list(range(cfg.num_segments)))
