@@ -47,18 +47,20 @@ class ImuNoise(eqx.Module):
         return dict(zip(NAMES, np.exp(np.asarray(self.log_sigma)).tolist()))
 
 
-def build(noise: ImuNoise, seg: dict, used: np.ndarray):
+def build(noise: ImuNoise, seg: dict, used: np.ndarray, pim=None):
     """The graph and initial values of one segment (`seg`: one example of
     `data.segments`, no leading axis); `used`: the keyframes whose GPS fix
-    enters the graph."""
+    enters the graph; `pim`: the intervals' preintegration, if not the one
+    of `noise`'s sigmas (`protocol_2`'s per-interval sigmas)."""
     sigma = jnp.exp(noise.log_sigma)
     params = eqs.ImuParams.make_u(
         GRAVITY, accelerometer_sigma=sigma[0], gyroscope_sigma=sigma[1]
     )
     s = seg["samples"]
-    pim = eqs.preintegrate(
-        params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
-    )
+    if pim is None:
+        pim = eqs.preintegrate(
+            params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
+        )
     V = eqs.Var
     walk = eqs.factors.bias_walk_sigmas(sigma[2], sigma[3], seg["count"])
     gps_ids = np.flatnonzero(used)

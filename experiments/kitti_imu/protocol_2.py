@@ -123,13 +123,9 @@ def hetero_pim(noise: HeteroNoise, seg: dict):
 
 
 def hetero_build(noise: HeteroNoise, seg: dict, used: np.ndarray):
-    """`experiment.build` with the per-interval preintegration."""
-    graph, values = build(noise.constant, seg, used)
-    pim = hetero_pim(noise, seg)
-    imu = graph.factors[0]
-    factors = list(graph.factors)
-    factors[0] = eqx.tree_at(lambda f: f.pim, imu, pim)
-    return eqs.FactorGraph(factors), values
+    """`experiment.build` with the per-interval preintegration (the IMU
+    factors' noise is built from it)."""
+    return build(noise.constant, seg, used, pim=hetero_pim(noise, seg))
 
 
 def first_belief(seg: dict):
