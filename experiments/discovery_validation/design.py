@@ -14,7 +14,8 @@ default and for the proposed design, fresh sequences of that design are
 simulated from the truth at each size of `GRID` and named; the size where
 the verdict first is the true effect alone (confident: no set, not
 tentative) is the sequences needed (`None` past the grid). A confident name
-that is not the truth is counted as a wrong name (at any size).
+that is not the truth is counted as a wrong name (at any size). `sine`, a
+periodic force, is outside the library: every confident name is wrong.
 
     python -m experiments.discovery_validation.design --effects drag \\
         --seeds 10 --json results/discover_design/summary.json \\
@@ -67,12 +68,17 @@ def measure(rng, effect: str, coef: float, design: str, num: int) -> dc.Sequence
     the prior about the design's means)."""
     x0 = release(design, num)
     x = x0 + PRIOR * rng.normal(size=(num, 2))
+    if effect == "sine":  # outside the library: a periodic force, as oscillator.py
+        period = rng.uniform(8.0, 20.0, num)
+        phase = rng.uniform(0.0, 2 * np.pi, num)
     xs = []
     for t in range(T):
         xs.append(x.copy())
         p, v = x[:, 0], x[:, 1]
         a = -SPRING * p
-        if effect != "none":
+        if effect == "sine":
+            a = a + coef * np.sin(2 * np.pi * t / period + phase)
+        elif effect != "none":
             a = a + coef * _effect_term(effect, v)
         x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q
     y = np.stack(xs, 1)[..., :1] + R * rng.normal(size=(num, T, 1))
