@@ -47,22 +47,29 @@ class ImuNoise(eqx.Module):
         return dict(zip(NAMES, np.exp(np.asarray(self.log_sigma)).tolist()))
 
 
-def build(noise: ImuNoise, seg: dict, used: np.ndarray, pim=None):
-    """The graph and initial values of one segment (`seg`: one example of
-    `data.segments`, no leading axis); `used`: the keyframes whose GPS fix
-    enters the graph; `pim`: the intervals' preintegration, if not the one
-    of `noise`'s sigmas (`protocol_2`'s per-interval sigmas)."""
+def imu_parts(noise: ImuNoise, seg: dict):
+    """`(params, pim, walk)` of one segment: the IMU parameters of `noise`'s
+    sigmas, its intervals' preintegration and the bias walk's sigmas."""
     sigma = jnp.exp(noise.log_sigma)
     params = eqs.ImuParams.make_u(
         GRAVITY, accelerometer_sigma=sigma[0], gyroscope_sigma=sigma[1]
     )
     s = seg["samples"]
-    if pim is None:
-        pim = eqs.preintegrate(
-            params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
-        )
-    V = eqs.Var
+    pim = eqs.preintegrate(
+        params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
+    )
     walk = eqs.factors.bias_walk_sigmas(sigma[2], sigma[3], seg["count"])
+    return params, pim, walk
+
+
+def build(noise: ImuNoise, seg: dict, used: np.ndarray, pim=None):
+    """The graph and initial values of one segment (`seg`: one example of
+    `data.segments`, no leading axis); `used`: the keyframes whose GPS fix
+    enters the graph; `pim`: the intervals' preintegration, if not the one
+    of `noise`'s sigmas (`protocol_2`'s per-interval sigmas)."""
+    params, own_pim, walk = imu_parts(noise, seg)
+    pim = own_pim if pim is None else pim
+    V = eqs.Var
     gps_ids = np.flatnonzero(used)
     graph = eqs.FactorGraph(
         [

@@ -33,6 +33,7 @@ from .experiment import (  # noqa: E402
     build,
     GPS_VARIANCE,
     GRAVITY,
+    imu_parts,
     ImuNoise,
     learn_constant,
     score,
@@ -150,15 +151,7 @@ def _gps_residual(state, position, params):
 def chain_model(noise: ImuNoise, seg: dict, used: np.ndarray):
     """The transition (`ImuTransitionFactor`, bias walk included) and the GPS
     stack of one segment, each keyframe one state."""
-    sigma = jnp.exp(noise.log_sigma)
-    params = eqs.ImuParams.make_u(
-        GRAVITY, accelerometer_sigma=sigma[0], gyroscope_sigma=sigma[1]
-    )
-    s = seg["samples"]
-    pim = eqs.preintegrate(
-        params, s[..., 1:4], s[..., 4:7], s[..., 0], mask=seg["mask"]
-    )
-    walk = eqs.factors.bias_walk_sigmas(sigma[2], sigma[3], seg["count"])
+    params, pim, walk = imu_parts(noise, seg)
     ids = np.arange(seg["gps"].shape[0])
     transition = eqs.factors.ImuTransitionFactor(
         eqs.Var("s", ids[:-1]), eqs.Var("s", ids[1:]), pim, params, walk
