@@ -6,6 +6,12 @@ protocol's (`experiment.py`).
 
     python -m experiments.kitti_imu.protocol_2 --folds 0 1 2 3 4
     python -m experiments.kitti_imu.protocol_2 --quick --out /tmp/p2
+
+Every run writes each fold's file again (nothing is skipped). Besides the
+declared scores, a fold file keeps what `figures.py` draws: per row, the
+horizontal error of each withheld fix (and, for rows with a covariance, its
+NLL, squared Mahalanobis distance and χ²₃ CDF value) and the estimated
+keyframe positions; and the test segment's GPS fixes, times and outages.
 """
 
 import argparse
@@ -27,6 +33,7 @@ from jaxtyping import Array, Float  # noqa: E402
 import eqsmooth as eqs  # noqa: E402
 import eqsmooth.learn as eql  # noqa: E402
 
+from .._provenance import git_hash  # noqa: E402
 from . import data as D  # noqa: E402
 from .experiment import (  # noqa: E402
     BIAS_PRIOR_SIGMAS,
@@ -37,6 +44,7 @@ from .experiment import (  # noqa: E402
     ImuNoise,
     learn_constant,
     score,
+    solve,
     VELOCITY_SIGMA,
 )
 
@@ -167,7 +175,16 @@ def chain_model(noise: ImuNoise, seg: dict, used: np.ndarray):
     return transition, gps
 
 
+def _floats(x) -> list[float]:
+    return [float(v) for v in np.asarray(x)]
+
+
 def _position_scores(p, world_cov, seg, withheld) -> dict:
+    """The declared scores of the positions `p` at the withheld fixes, and
+    per fix (in the order of `withheld`) what the figures draw: horizontal
+    error and, with a covariance, NLL, squared Mahalanobis distance and its
+    χ²₃ CDF value (position covariance plus the GPS noise, as the NLL);
+    and every keyframe's estimated x, y."""
     e = seg["gps"][withheld] - p[withheld]
     h = np.linalg.norm(np.asarray(e[:, :2]), axis=-1)
     out = {
@@ -175,13 +192,65 @@ def _position_scores(p, world_cov, seg, withheld) -> dict:
         "max_horizontal_m": float(h.max()),
         "withheld_fixes": int(len(withheld)),
     }
+    per_fix = {"horizontal_error_m": _floats(h)}
     if world_cov is not None:
         cal = eql.gaussian_calibration(
             e, world_cov[withheld] + GPS_VARIANCE * jnp.eye(3)[None]
         )
         out["nll"] = float(np.mean(np.asarray(cal.nll)))
         out["valid_covariances"] = int(np.sum(np.asarray(cal.valid)))
+        per_fix |= {
+            "nll": _floats(cal.nll),
+            "mahalanobis2": _floats(cal.nees),
+            "chi2_cdf": _floats(cal.cdf),
+        }
+    out["per_fix"] = per_fix
+    out["trajectory_x"] = _floats(p[:, 0])
+    out["trajectory_y"] = _floats(p[:, 1])
     return out
+
+
+def score_batch(noise: ImuNoise, seg: dict, cfg: D.Config, build=build) -> dict:
+    """`experiment.score` (the declared scores, computed by the first
+    protocol's code) and the per-fix record of the same solve, solved a
+    second time because `score` keeps only the summaries."""
+    out = score(noise, seg, cfg, build)
+    withheld = np.flatnonzero(D.outage_mask(cfg))
+    seg = jax.tree_util.tree_map(jnp.asarray, seg)
+    _, sol = solve(noise, seg, cfg, build)
+    x = sol.value["x"]
+    cov = eqs.marginal_covariances(sol, groups=["x"])["x"]
+    R = x.rotation().as_matrix()
+    world = R @ cov[:, :3, :3] @ jnp.swapaxes(R, -1, -2)
+    record = _position_scores(x.translation(), world, seg, withheld)
+    return out | {k: record[k] for k in ("per_fix", "trajectory_x", "trajectory_y")}
+
+
+def segment_record(seg: dict, cfg: D.Config) -> dict:
+    """The test segment as the figures draw it: keyframe times, every GPS
+    fix (withheld ones included), the withheld keyframes with their seconds
+    since the last fix before their outage, and the outages."""
+    t = np.asarray(seg["time"])
+    withheld = np.flatnonzero(D.outage_mask(cfg))
+    since = np.zeros(len(withheld))
+    for a, b in cfg.outages:
+        inside = (withheld >= a) & (withheld < b)
+        since[inside] = t[withheld[inside]] - t[a - 1]
+    return {
+        "time_s": _floats(t),
+        "gps_x": _floats(seg["gps"][:, 0]),
+        "gps_y": _floats(seg["gps"][:, 1]),
+        "withheld_keyframes": withheld.tolist(),
+        "seconds_into_outage": _floats(since),
+        "outages": [
+            {
+                "keyframes": [a, b],
+                "last_fix_s": float(t[a - 1]),
+                "next_fix_s": float(t[b]) if b < len(t) else None,
+            }
+            for a, b in cfg.outages
+        ],
+    }
 
 
 def score_ekf(noise: ImuNoise, seg: dict, cfg: D.Config) -> dict:
@@ -237,9 +306,9 @@ def run_fold(meta: dict, data: dict, fold: int, cfg: D.Config) -> dict:
             "history": list(res.history),
         }
     rows = {
-        "metadata": score(metadata, seg, cfg),
-        "learned_constant": score(learned, seg, cfg),
-        "learned_hetero": score(hetero.best_model, seg, cfg, hetero_build),
+        "metadata": score_batch(metadata, seg, cfg),
+        "learned_constant": score_batch(learned, seg, cfg),
+        "learned_hetero": score_batch(hetero.best_model, seg, cfg, hetero_build),
         "metadata_ekf": score_ekf(metadata, seg, cfg),
         "learned_constant_ekf": score_ekf(learned, seg, cfg),
         "metadata_fixed_lag": score_fixed_lag(metadata, seg, cfg),
@@ -255,6 +324,7 @@ def run_fold(meta: dict, data: dict, fold: int, cfg: D.Config) -> dict:
             "learned_hetero_constant_part": hetero.best_model.sigmas(),
         },
         "rows": rows,
+        "test_segment": segment_record(seg, cfg),
     }
 
 
@@ -334,6 +404,7 @@ def main(argv=None):
     folds = args.folds or ([0] if args.quick else list(range(cfg.num_segments)))
     meta, imu, gps = D.load(args.data_dir)
     data = D.segments(meta, imu, gps, cfg)
+    commit = git_hash()  # the code as it was when the run started
     for fold in folds:
         path = args.out / f"fold_{fold}.json"
         t0 = time.perf_counter()
@@ -343,6 +414,7 @@ def main(argv=None):
         out["command"] = "python -m experiments.kitti_imu.protocol_2 " + " ".join(
             sys.argv[1:]
         )
+        out["commit"] = commit
         out["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
         path.write_text(json.dumps(out, indent=2, default=float) + "\n")
         print(
