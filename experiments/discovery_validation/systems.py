@@ -150,8 +150,9 @@ def _meas1(x, spring):
     return x[:1]
 
 
-def _inputs(rng, num: int) -> np.ndarray:
-    """Known input force `(num, T, 1)`: a sinusoid plus a random telegraph."""
+def _inputs(rng, num: int, amplitude: float = 1.0) -> np.ndarray:
+    """Known input force `(num, T, 1)`: a sinusoid plus a random telegraph,
+    both scaled by `amplitude` (`design.py`'s input designs)."""
     t = np.arange(T)[None]
     period = rng.uniform(6.0, 20.0, (num, 1))
     phase = rng.uniform(0.0, 2 * np.pi, (num, 1))
@@ -159,7 +160,7 @@ def _inputs(rng, num: int) -> np.ndarray:
     flips = rng.random((num, T)) < 0.15
     sign = np.where(rng.random((num, 1)) < 0.5, -1.0, 1.0)
     tele = 0.4 * sign * np.cumprod(np.where(flips, -1.0, 1.0), axis=1)
-    return (sine + tele)[..., None]
+    return (amplitude * (sine + tele))[..., None]
 
 
 def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -170,24 +171,40 @@ def _increment1(effect: str, v: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 def _trajectories1(
-    rng, effect: str, coef: float, num: int, spring=SPRING, damping=0.0, gain=1.0
+    rng,
+    effect: str,
+    coef: float,
+    num: int,
+    spring=SPRING,
+    damping=0.0,
+    gain=1.0,
+    amplitude=1.0,
+    actuator=None,
+    extra=None,
 ):
     """States `(num, T, 2)` and inputs `(num, T, 1)`; `physics.py` sets the
-    spring, a viscous damping and the actuator gain."""
-    u = _inputs(rng, num)
+    spring, a viscous damping and the actuator gain; `design.py` the input's
+    `amplitude`, an `actuator` (the force applied for an input `(num,)`,
+    e.g. a saturation; default the input itself) and an `extra` velocity
+    increment `(num,)` at step t for velocities v, `extra(t, v)`."""
+    u = _inputs(rng, num, amplitude)
     x = np.stack([rng.normal(0, PRIOR1[0], num), rng.normal(0, PRIOR1[1], num)], 1)
     xs = []
     for t in range(T):
         xs.append(x)
         p, v = x[:, 0], x[:, 1]
-        a = -spring * p - damping * v + gain * u[:, t, 0]
+        force = u[:, t, 0] if actuator is None else actuator(u[:, t, 0])
+        a = -spring * p - damping * v + gain * force
         a = a + coef * _increment1(effect, v, u[:, t, 0])
+        if extra is not None:
+            a = a + extra(t, v)
         x = np.stack([p + v, v + a], 1) + rng.normal(size=(num, 2)) * Q1
     return np.stack(xs, 1), u
 
 
-def _simulate1(rng, effect: str, coef: float, num: int = B):
-    xs, u = _trajectories1(rng, effect, coef, num)
+def _simulate1(rng, effect: str, coef: float, num: int = B, **options):
+    """Data of `num` sequences; `options` go to `_trajectories1`."""
+    xs, u = _trajectories1(rng, effect, coef, num, **options)
     y = xs[..., :1] + R1 * rng.normal(size=(num, T, 1))
     init = np.concatenate([y, np.zeros_like(y)], -1)
     return dc.Sequences(y, np.zeros((num, 2)), inputs=u, initial_states=init)
