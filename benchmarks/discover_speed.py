@@ -8,9 +8,9 @@ case: the first call, its XLA compilations (count, time, the five longest
 programs) and tracing and lowering time, and the median later call.
 `--flags fast`: `eqsmooth.set_xla_cpu_flags(fast_compile=True)` first.
 `--cache DIR`: each case twice with `eqsmooth.enable_compilation_cache(DIR)`
-(fast flags only with `--flags fast`), DIR emptied first ("cold cache"), then
-in a new process reading it ("warm cache"). `--eqsmooth PATH`: time another
-checkout (before/after in one command).
+(compiled and, since 2026-11-29, traced programs; fast flags only with `--flags
+fast`), DIR emptied first ("cold cache"), then in a new process reading it
+("warm cache"). `--eqsmooth PATH`: another checkout (before/after in one command).
 
     python -m benchmarks.discover_speed --cases oscillator --flags default \\
         --repeats 3 --cache /tmp/dc_cache --json benchmarks/results/discover_speed.json
@@ -85,6 +85,7 @@ def child(case: str, repeats: int, flags: str, cache: str | None) -> dict:
             rec["first_call_compile_s"] = total.get("backend_compile_duration", 0.0)
             rec["first_call_trace_s"] = total.get("jaxpr_trace_duration", 0.0)
             rec["first_call_lower_s"] = total.get("jaxpr_to_mlir_module_duration", 0.0)
+            rec["first_call_cache_read_s"] = total.get("cache_retrieval_time_sec", 0.0)
             top = sorted(programs.items(), key=lambda kv: -kv[1])[:5]
             rec["first_call_top_programs"] = {k: round(v, 2) for k, v in top}
     where = Path(eqsmooth.__file__).resolve().parent
@@ -135,8 +136,7 @@ def main(argv=None):
                 rec |= {"label": label, "command": cli_command()}
                 rec["load_average"] = machine()["load_average"]
                 records.append(rec)
-                keys = ("first_call_s", "first_call_compiles", "first_call_compile_s")
-                keys += ("first_call_trace_s", "later_median_s")
+                keys = ("first_call_s", "first_call_trace_s", "later_median_s")
                 print(label, case, flags, {k: rec[k] for k in keys}, flush=True)
                 if path:  # saved after every case: a stopped run keeps its cases
                     write_json(path, records, {"info": {"machine": machine()}})

@@ -77,3 +77,65 @@ def test_ekf_checks_a_traced_initial_belief_only_when_asked_to_throw():
     assert "callback" not in str(jax.make_jaxpr(run, static_argnums=1)(bad, False))
     with pytest.raises(ValueError, match="positive definite"):
         run(bad, False)  # concrete: checked either way
+
+
+def test_stored_program_is_read_back_without_tracing(tmp_path, monkeypatch):
+    """With a program folder (`enable_compilation_cache`), a function is
+    exported once and a later wrapper (as in a new process) calls the stored
+    program without tracing it; under a transformation it runs as before."""
+    import jax
+
+    from eqsmooth import _compilation_cache as cc
+
+    monkeypatch.setattr(cc, "_PROGRAM_DIR", tmp_path)
+    traces = []
+
+    def fn(x, power):
+        traces.append(power)
+        return {"y": jnp.sin(x) ** power, "z": (x.sum(),)}
+
+    def fingerprint(arguments):
+        return ""
+
+    x = jnp.linspace(0.0, 1.0, 5)
+    first = cc.stored_program(fn, jax.jit(fn, static_argnums=1), fingerprint)
+    out = first(x, 2)
+    assert traces == [2] and len(list(tmp_path.iterdir())) == 1
+    later = cc.stored_program(fn, jax.jit(fn, static_argnums=1), fingerprint)
+    again = later(x, power=2)
+    assert traces == [2]  # read back, not traced
+    assert jax.tree.structure(again) == jax.tree.structure(out)
+    np.testing.assert_array_equal(np.asarray(again["y"]), np.sin(x) ** 2)
+    later(x, 3)  # another static argument: another program
+    assert traces == [2, 3] and len(list(tmp_path.iterdir())) == 2
+    grad = jax.grad(lambda x: later(x, 2)["z"][0])(x)  # traced: not stored
+    np.testing.assert_array_equal(np.asarray(grad), np.ones(5))
+
+
+def test_model_fingerprint_follows_the_model_functions():
+    """The key of a stored discover program changes with what the model's
+    functions compute (their constants too), not with the objects."""
+    from test_discover import _simulate
+
+    import eqsmooth.discover as dc
+    from eqsmooth.discover._model import _fingerprint
+
+    data = _simulate(0)
+    library = dc.mechanical_library([0], [1], 2, measured_positions=[0])
+
+    def model(gain):
+        def dyn(x, u, params):
+            return jnp.asarray(gain) @ x + jnp.stack([0.0, -params * x[0]])
+
+        def meas(x, params):
+            return x[:1]
+
+        sigmas = (np.ones(2), np.ones(1), np.ones(2))
+        return dc.ChainModel(dyn, meas, jnp.asarray(0.1), *sigmas, library)
+
+    a = np.array([[1.0, 1.0], [0.0, 1.0]])
+    key = _fingerprint({"model": model(a), "data": data})
+    assert _fingerprint({"model": model(a.copy()), "data": data}) == key
+    assert _fingerprint({"model": model(a * 1.01), "data": data}) != key
+    other = {"model": model(a), "inputs": np.zeros((2, 3, 4))}
+    assert _fingerprint(other) != key  # another input size

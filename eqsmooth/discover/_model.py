@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import hashlib
 import math
 from collections.abc import Callable, Sequence
 
@@ -9,8 +10,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend.core import ClosedJaxpr, Jaxpr
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from .._compilation_cache import stored_program
 from ..factors import (
     AbstractNoiseModel,
     DiagonalNoise,
@@ -514,7 +517,7 @@ def _compiled(fn: Callable) -> Callable:
     code, so models that differ in it share one compiled program; otherwise
     each new prior width compiled the MAP, evidence and score programs again.
     """
-    jitted = eqx.filter_jit(fn)
+    jitted = stored_program(fn, eqx.filter_jit(fn), _fingerprint)
 
     @functools.wraps(fn)
     def call(model: ChainModel, *args, **kwargs):
@@ -523,6 +526,45 @@ def _compiled(fn: Callable) -> Callable:
         return jitted(model, *args, **kwargs)
 
     return call
+
+
+def _fingerprint(arguments: dict) -> str:
+    """What the model's functions compute, for the key of a stored program
+    (`eqsmooth.enable_compilation_cache`): the jaxpr of its transition and
+    measurement means (candidates included) at a state and an input of the
+    call's shapes, with the values of its constants. Every use of the
+    model's callables in the compiled programs goes through these two."""
+    model = arguments["model"]
+    u = arguments["data"].inputs if "data" in arguments else arguments["inputs"]
+    dynamic, static = eqx.partition(model, eqx.is_array)
+
+    def means(dynamic, x, u):
+        m = eqx.combine(dynamic, static)
+        return m.transition(x, u), m.observe(x, u)
+
+    n = model.process_sigma.shape[0]
+    x = jax.ShapeDtypeStruct((n,), u.dtype)
+    closed = jax.make_jaxpr(means)(
+        dynamic, x, jax.ShapeDtypeStruct(u.shape[-1:], u.dtype)
+    )
+    digest = hashlib.sha256()
+    for c in _constants(closed):
+        digest.update(repr((np.shape(c), str(np.result_type(c)))).encode())
+        digest.update(np.ascontiguousarray(c).tobytes())
+    return f"{closed.jaxpr}\nconstants {digest.hexdigest()}"
+
+
+def _constants(closed) -> list:
+    """The constants of a closed jaxpr and of every jaxpr nested in it."""
+    out = list(closed.consts)
+    for eqn in closed.jaxpr.eqns:
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (tuple, list)) else (p,):
+                if isinstance(sub, ClosedJaxpr):
+                    out += _constants(sub)
+                elif isinstance(sub, Jaxpr):
+                    out += _constants(ClosedJaxpr(sub, ()))
+    return out
 
 
 def _map_one(model, y, u, x0, xinit, max_steps):
