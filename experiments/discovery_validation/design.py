@@ -19,9 +19,15 @@ command; the first state is not theirs to set here), and it moves the
 velocities the friction terms are seen at: RMS velocity 7.9, 8.7, 11.4 and
 14.8 for the four. Hidden effects: actuator gain, quadratic drag, Coulomb
 friction and a constant force (coefficients from `systems._calibrate1` at
-`--level`), and outside the library an input `saturation` at ±`--shape` or a
+`--level`), and outside the library: an input `saturation` at ±`--shape` or a
 `dead zone` of half-width `--shape` (`nonsmooth.py`'s: the force applied is
-shape(u), so a larger command amplitude shows more of it).
+shape(u), so a larger command amplitude shows more of it; their stand-ins,
+actuator gain and sensor scale, are structurally equivalent, which no
+design settles), `stiction` of coefficient `--shape` and a periodic force
+`sine` of amplitude `--shape` (neither gave a name at 24 sequences in a
+first look), and `drag 1.5`, a drag `c · sign(v) |v|^1.5` at the SNR
+`--level` (its stand-ins, viscous damping or quadratic drag, have shapes
+that a larger data set can check).
 
 Per seed: 24 default sequences go through `find` and `name`; if the verdict
 is open, `propose` picks a design from the current fit. Then, for the
@@ -30,10 +36,11 @@ simulated from the truth at each size of `GRID` and named; the size where
 the verdict first is the true effect alone (confident: no set, not
 tentative, and on `driven` not partial) is the sequences needed (`None`
 past the grid). A confident name that is not the truth is counted as a wrong
-name (at any size). `sine` (oscillator), `saturation` and `dead zone`
-(driven) are outside the library: every confident name is wrong. (The
-oscillator runs of 2026-11-29 counted a partial verdict as confident; the
-driven study follows `nonsmooth.py`, where it is not.)
+name (at any size). `sine` (oscillator), and `saturation`, `dead zone`,
+`stiction`, `sine` and `drag 1.5` (driven) are outside the library: every
+confident name is wrong. (The oscillator runs of 2026-11-29 counted a
+partial verdict as confident; the driven study follows `nonsmooth.py`,
+where it is not.)
 
     python -m experiments.discovery_validation.design --effects drag \\
         --seeds 10 --json results/discover_design/summary.json \\
@@ -46,8 +53,10 @@ driven study follows `nonsmooth.py`, where it is not.)
 
 import argparse
 import dataclasses
+import json
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import jax
 
@@ -164,6 +173,14 @@ DRIVEN_EFFECTS: dict[str, str | None] = {
     "dead zone": None,
     "stiction": None,
     "sine": None,
+    "drag 1.5": None,
+}
+# Velocity effects outside the library (unit coefficient): `nonsmooth.py`'s
+# stiction, and a drag growing as |v|^1.5 (between viscous damping and
+# quadratic drag, both candidates: its stand-ins have shapes to check).
+_OUTSIDE = {
+    "stiction": _VELOCITY["stiction"],
+    "drag 1.5": lambda v: -np.sign(v) * np.abs(v) ** 1.5,
 }
 
 
@@ -171,13 +188,14 @@ def measure_driven(rng, effect: str, coef: float, design: str, num: int):
     """`num` sequences of the driven oscillator under input `design`; an
     input `saturation` or `dead zone` of parameter `coef` makes the force
     applied `shape(u)` (`nonsmooth.py`'s shapes); `stiction` of coefficient
-    `coef` is `nonsmooth.py`'s, `sine` a periodic force of amplitude `coef`
-    (period 8-20 steps and phase per sequence, as `oscillator.py`'s)."""
+    `coef` is `nonsmooth.py`'s, `drag 1.5` is `coef · sign(v) |v|^1.5`,
+    `sine` a periodic force of amplitude `coef` (period 8-20 steps and phase
+    per sequence, as `oscillator.py`'s)."""
     amplitude = AMPLITUDES[design]
-    if effect == "stiction":
+    if effect in _OUTSIDE:
 
         def extra(t, v):
-            return coef * _VELOCITY["stiction"](v)
+            return coef * _OUTSIDE[effect](v)
 
     elif effect == "sine":
         period = rng.uniform(8.0, 20.0, num)
@@ -186,7 +204,7 @@ def measure_driven(rng, effect: str, coef: float, design: str, num: int):
         def extra(t, v):
             return coef * np.sin(2 * np.pi * t / period + phase)
 
-    if effect in ("stiction", "sine"):
+    if effect in _OUTSIDE or effect == "sine":
         options = {"amplitude": amplitude, "extra": extra}
         return d2._simulate1(rng, "none", 0.0, num, **options)
     if DRIVEN_EFFECTS[effect] is None:
@@ -211,7 +229,11 @@ def _input_template(design: str, num: int, seed: int) -> dc.Sequences:
 def driven(shape: float = 0.4) -> Study:
     def coefficients(level):
         out = dict(d2._calibrate1(level))
-        return out | {e: shape for e, t in DRIVEN_EFFECTS.items() if t is None}
+        out |= {e: shape for e, t in DRIVEN_EFFECTS.items() if t is None}
+        # `drag 1.5` by its per-step SNR, as `systems._calibrate1` does.
+        xs, _ = d2._trajectories1(np.random.default_rng(12345), "none", 0.0, 2000)
+        unit = np.sqrt(np.mean(np.square(_OUTSIDE["drag 1.5"](xs[:, :-1, 1]))))
+        return out | {"drag 1.5": level * d2.Q1[1] / float(unit)}
 
     return Study(
         "driven",
@@ -367,6 +389,26 @@ def report(records: dict, info: dict) -> str:
     return "\n".join(lines)
 
 
+def render(paths, json_path=None, markdown=None) -> str:
+    """One report of several saved runs (their effects side by side, each
+    run's command listed)."""
+    records: dict = {}
+    infos = []
+    for path in paths:
+        payload = json.loads(Path(path).read_text())
+        records |= payload["records"]
+        infos.append(payload["info"])
+    info = dict(infos[0])
+    info["command"] = "`; `".join(i["command"] for i in infos)
+    info["seconds"] = sum(i["seconds"] for i in infos)
+    if json_path:
+        write_json(json_path, records, {"info": info, "runs": infos})
+    text = report(records, info)
+    if markdown:
+        write_text(markdown, text)
+    return text
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--system", choices=list(STUDIES), default="oscillator")
@@ -378,7 +420,13 @@ def main(argv=None):
     parser.add_argument("--grid", type=int, nargs="+", default=list(GRID))
     parser.add_argument("--json", default=None)
     parser.add_argument("--markdown", default=None)
+    parser.add_argument(
+        "--render", nargs="+", default=None, metavar="JSON", help="merge saved runs"
+    )
     args = parser.parse_args(argv)
+    if args.render:
+        print(render(args.render, args.json, args.markdown))
+        return
     study = STUDIES[args.system](args.shape)
     for effect in args.effects:
         if effect not in study.effects:
