@@ -54,6 +54,8 @@ where it is not.)
 import argparse
 import dataclasses
 import json
+import shlex
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -66,7 +68,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import eqsmooth.discover as dc  # noqa: E402
-from benchmarks._common import cli_command, write_json, write_text  # noqa: E402
+from benchmarks._common import write_json, write_text  # noqa: E402
 
 from . import systems as d2  # noqa: E402
 from .nonsmooth import _INPUT, _VELOCITY  # noqa: E402
@@ -435,7 +437,10 @@ def main(argv=None):
     t0 = time.perf_counter()
     coefs = study.coefficients(args.level)
     records: dict = {}
-    info = {"command": cli_command(), "git": _git(), "level": args.level}
+    # Quoted, so that effect names with spaces (`drag 1.5`) survive a shell.
+    command = "python -m experiments.discovery_validation.design "
+    command += shlex.join(sys.argv[1:] if argv is None else argv)
+    info = {"command": command, "git": _git(), "level": args.level}
     info["grid"] = list(grid)
     if study.name != "oscillator":
         info |= {"system": study.name, "designs": list(study.designs)}
