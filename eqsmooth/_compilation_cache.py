@@ -136,6 +136,19 @@ def _weak(x) -> bool:
     return bool(getattr(x, "weak_type", False))
 
 
+@functools.cache
+def _device() -> jax.sharding.SingleDeviceSharding:
+    return jax.sharding.SingleDeviceSharding(jax.devices()[0])
+
+
+def _elsewhere(x, device) -> bool:
+    """Whether `x` is traced, or placed on another device than the default
+    one that stored programs run on."""
+    if isinstance(x, jax.core.Tracer):
+        return True
+    return isinstance(x, jax.Array) and x.committed and x.sharding != device
+
+
 def stored_program(
     fn: Callable, jitted: Callable, fingerprint: Callable[[dict], str]
 ) -> Callable:
@@ -161,7 +174,8 @@ def stored_program(
         full = (bound.args, bound.kwargs)
         dynamic, static = eqx.partition(full, eqx.is_array)
         leaves, structure = jax.tree.flatten(dynamic)
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        device = _device()
+        if any(_elsewhere(x, device) for x in leaves):
             return jitted(*args, **kwargs)
         static_leaves, static_structure = jax.tree.flatten(static)
         avals = tuple((x.shape, str(x.dtype), _weak(x)) for x in leaves)
@@ -199,7 +213,7 @@ def _load_or_export(fn, structure, static, avals, fingerprint: str):
     try:
         exported, skeleton = pickle.loads(path.read_bytes())
         out_structure = jax.tree.structure(skeleton)
-    except (OSError, pickle.UnpicklingError, EOFError, ValueError, TypeError):
+    except Exception:  # noqa: BLE001 - missing, unreadable or stale: export again
         out_structures = []
 
         def flat(*leaves):
@@ -229,4 +243,11 @@ def _load_or_export(fn, structure, static, avals, fingerprint: str):
             os.replace(temporary, path)
         except OSError as e:
             _log.debug("eqsmooth: could not write %s: %r", path, e)
-    return jax.jit(exported.call), out_structure
+        # Called as a later process will read it back: the program that
+        # calls it is then the same, and so is its key in JAX's cache (the
+        # exported object before pickling made another key).
+        exported = pickle.loads(blob)[0]
+    # Placed explicitly: arguments committed to the device (outputs of
+    # other programs) and uncommitted ones (NumPy arrays) otherwise lower
+    # to two programs, each compiled (the score program twice, 70 s).
+    return jax.jit(exported.call, in_shardings=_device()), out_structure

@@ -106,6 +106,10 @@ def test_stored_program_is_read_back_without_tracing(tmp_path, monkeypatch):
     assert traces == [2]  # read back, not traced
     assert jax.tree.structure(again) == jax.tree.structure(out)
     np.testing.assert_array_equal(np.asarray(again["y"]), np.sin(x) ** 2)
+    with compiled_programs() as names:  # placed or not: one program
+        later(jax.device_put(x, jax.devices()[0]), 2)
+        later(np.asarray(x), 2)
+    assert names == [], names
     later(x, 3)  # another static argument: another program
     assert traces == [2, 3] and len(list(tmp_path.iterdir())) == 2
     grad = jax.grad(lambda x: later(x, 2)["z"][0])(x)  # traced: not stored

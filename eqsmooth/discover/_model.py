@@ -542,11 +542,10 @@ def _fingerprint(arguments: dict) -> str:
         m = eqx.combine(dynamic, static)
         return m.transition(x, u), m.observe(x, u)
 
-    n = model.process_sigma.shape[0]
-    x = jax.ShapeDtypeStruct((n,), u.dtype)
-    closed = jax.make_jaxpr(means)(
-        dynamic, x, jax.ShapeDtypeStruct(u.shape[-1:], u.dtype)
-    )
+    u = u if hasattr(u, "dtype") else np.asarray(u)
+    n, k, dtype = model.process_sigma.shape[0], u.shape[-1], u.dtype
+    x, u = jax.ShapeDtypeStruct((n,), dtype), jax.ShapeDtypeStruct((k,), dtype)
+    closed = jax.make_jaxpr(means)(dynamic, x, u)
     digest = hashlib.sha256()
     for c in _constants(closed):
         digest.update(repr((np.shape(c), str(np.result_type(c)))).encode())
