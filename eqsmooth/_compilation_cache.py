@@ -50,9 +50,9 @@ def enable_compilation_cache(
     is cached unless you call it.
 
     JAX still traces and lowers every program in each new process to find
-    it in the cache, and for the large programs of
-    [`eqsmooth.discover`][] that took most of a first call (about 13 of
-    20 s). With `store_programs`, those programs are also kept as lowered
+    it in the cache, and for the large programs of `eqsmooth.discover`
+    that took most of a first call (22 of 28 s on a loaded machine). With
+    `store_programs`, those programs are also kept as lowered
     (StableHLO) programs, keyed by everything their tracing depends on: the
     installed eqsmooth sources, the JAX version and settings, the shapes,
     dtypes and static settings of the arguments, and the traced model
@@ -69,7 +69,8 @@ def enable_compilation_cache(
         earlier fusion emitters: about a third less compile time), leaving
         out quietly any flag this jaxlib does not know.
     - `store_programs`: also keep traced programs (in `cache_dir/programs`),
-        as described above.
+        as described above. They are pickled files: keep the folder as
+        private as the compiled programs beside it.
 
     **Returns:** the cache folder.
     """
