@@ -393,14 +393,21 @@ def report(records: dict, info: dict) -> str:
 
 def render(paths, json_path=None, markdown=None) -> str:
     """One report of several saved runs (their effects side by side, each
-    run's command listed)."""
+    run's command listed; runs of one grid and level)."""
     records: dict = {}
     infos = []
     for path in paths:
         payload = json.loads(Path(path).read_text())
-        records |= payload["records"]
         infos.append(payload["info"])
+        for effect, rec in payload["records"].items():
+            # Runs of one effect over several seed ranges are joined.
+            records.setdefault(effect, {"coefficient": rec["coefficient"], "runs": []})
+            records[effect]["runs"] += rec["runs"]
     info = dict(infos[0])
+    designs = tuple(info.get("designs", DESIGNS))
+    for rec in records.values():
+        rec["runs"].sort(key=lambda r: r["seed"])
+        rec["summary"] = summarise(rec["runs"], tuple(info["grid"]), designs)
     info["command"] = "`; `".join(i["command"] for i in infos)
     info["seconds"] = sum(i["seconds"] for i in infos)
     if json_path:
