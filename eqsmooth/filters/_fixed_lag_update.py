@@ -558,6 +558,12 @@ class FixedLagSmoother(eqx.Module):
             kept,
             refused,
         )
+        # NumPy leaves (the result code, NumPy data in the templates) as JAX
+        # arrays: the state then takes `update_rows`' `jax.jit` entry, as
+        # the states of the updates do.
+        state = jax.tree_util.tree_map(
+            lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, state
+        )
         none = () if closures is None else (np.zeros(k, int), np.zeros(k, bool))
         if any(f.noise.active_rows() is not None for f in measurements) or (
             closures is not None and closures.noise.active_rows() is not None
@@ -742,10 +748,15 @@ class FixedLagSmoother(eqx.Module):
                     who, closure_back, closure_active, k, _reach(state)
                 )
                 closure_rows = _data_rows(template, closure_rows)
+            if isinstance(closure_back, np.ndarray):  # checked on the host above
+                closure_back = jnp.asarray(closure_back)
+            if isinstance(closure_active, np.ndarray):
+                closure_active = jnp.asarray(closure_active)
             closure = (closure_rows, closure_back, closure_active)
-        return _advance_rows(
-            self, state, transition_rows, measurement_rows, active, closure
-        )
+        args = (self, state, transition_rows, measurement_rows, active, closure)
+        if not self.throw and _all_arrays(args):
+            return _advance_rows_of_arrays(*args)
+        return _advance_rows(*args)
 
 
 # One compiled program for `init` and every `update` of a smoother (the state
@@ -757,10 +768,11 @@ def _advance(smoother, state, transition, measurements, step, closure):
     return _solve_step(smoother, state, transition, measurements, step, closure, who)
 
 
-# `update_rows`: the step's factors are built while tracing, so a call is
-# one dispatch of one compiled program (no Python checks once compiled).
-@eqx.filter_jit
-def _advance_rows(
+def _all_arrays(tree) -> bool:
+    return all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(tree))
+
+
+def _update_rows(
     smoother, state, transition_rows, measurement_rows, active, closure=None
 ):
     who = "FixedLagSmoother.update_rows"
@@ -772,6 +784,19 @@ def _advance_rows(
     mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
     step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
     return _solve_step(smoother, state, transition, measurements, step, closure, who)
+
+
+# `update_rows`: the step's factors are built while tracing, so a call is
+# one dispatch of one compiled program (no Python checks once compiled).
+# Two entry points to it: without error checks (`throw=False`) and when
+# every leaf of the arguments is a JAX array (a robot's loop: the state and
+# rows from the previous call), `jax.jit` dispatches in C++, which costs
+# less per call than `eqx.filter_jit`'s partition of the arguments (the
+# smoother, the state's factor templates) into arrays and the rest;
+# anything else goes through `eqx.filter_jit`, which treats non-array leaves
+# as static and turns a failed check into an `EquinoxRuntimeError`.
+_advance_rows = eqx.filter_jit(_update_rows)
+_advance_rows_of_arrays = jax.jit(_update_rows)
 
 
 def _closure_step(state, closure, t):

@@ -32,6 +32,7 @@ from ..factors import (
 )
 from ..manifold import local, retract, tangent_dim
 from ..solve import least_squares
+from ._banded import BandedCholesky
 from ._chain import chain_order, residual_dim, time_layers, value_and_jacobian
 from ._rows import row_whitening
 
@@ -460,6 +461,7 @@ def window_step(
     values, prior = lax.cond(t >= lag, slide, grow)
     start = jnp.maximum(t - lag + 1, 0)
     graph = _window_graph(model, values, prior, start, t, lag)
+    solver = _banded_unless_chain(solver, model, lag, tangent_dim(x_prev))
     sol = least_squares(
         graph,
         {model.group: values},
@@ -470,6 +472,30 @@ def window_step(
     )
     values = sol.value[model.group]
     return (values, prior), (values, start, prior, sol.result)
+
+
+BANDED_MIN_BLOCKS = 4
+"""The fewest blocks of `(S + 1) · d` coordinates for which a window with
+closures is solved by `BandedCholesky` (below, a dense Cholesky costs less)."""
+
+
+def _banded_unless_chain(solver, model: ChainRows, lag: int, d: int):
+    """`solver` with a banded linear solver when the window is not a chain
+    (closures, a prior on several slots) and the solver would choose one
+    (its `linear_solver` is `None`): the window's factors link slots at most
+    `S` apart, so its normal matrix is block tridiagonal in blocks of `S + 1`
+    slots (the default would be a dense Cholesky of the window)."""
+    chain = not model.links and model.S == 1
+    if chain or getattr(solver, "linear_solver", False) is not None:
+        return solver
+    if -(-lag // (model.S + 1)) < BANDED_MIN_BLOCKS:
+        return solver
+    banded = BandedCholesky(block=(model.S + 1) * d)
+    return eqx.tree_at(lambda s: s.linear_solver, solver, banded, is_leaf=_is_none)
+
+
+def _is_none(x) -> bool:
+    return x is None
 
 
 def initial_prior(S: int, mean0, cov0, floor=None):
