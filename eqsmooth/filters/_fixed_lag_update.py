@@ -461,9 +461,11 @@ class FixedLagSmoother(eqx.Module):
     marginalised with its earlier one, as in the scan's `closures`, so a run
     of updates equals the scan with those closures (tested to 1e-10) when
     `max_back` is the scan's longest closure. With closures the window's
-    linear solve is dense (its structure is data), and the prior spans the
-    window's first `max_back` states: keep `max_back` as short as the robot's
-    closures allow.
+    normal matrix is banded (no factor links states more than `max_back`
+    apart; by default it is solved by a block Cholesky in blocks of
+    `max_back + 1` states, dense for a short window), and the prior spans
+    the window's first `max_back` states: keep `max_back` as short as the
+    robot's closures allow.
 
     `update_rows` is the same update with the step's data as arrays, for a
     robot's loop: no factor objects per step and no Python checks per call
