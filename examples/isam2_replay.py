@@ -11,10 +11,12 @@ of eqsmooth's updates that did not grow a buffer (the growths, each one
 compile, are counted and timed apart) and of ISAM2's `update` +
 `calculateEstimate`; `max_diff`: the largest tangent difference of each
 library's final estimate from the batch Levenberg-Marquardt solution of
-the whole graph.
+the whole graph. `--one-step` adds a run with one Gauss-Newton step per
+update (`IncrementalSmoother(FixedStepGaussNewton(num_steps=1))`), as
+iSAM2 relinearises once per update instead of iterating to convergence.
 
     OPENBLAS_NUM_THREADS=1 python examples/isam2_replay.py --replays square \
-        --json benchmarks/results/incremental.json
+        --one-step --json benchmarks/results/incremental.json
 
 (`OPENBLAS_NUM_THREADS=1`: on a busy machine jaxlib's LAPACK calls on
 OpenBLAS threads can be a hundred times slower.)
@@ -73,7 +75,7 @@ def tangent_diff(a: eqs.SE2, b: eqs.SE2) -> float:
     return float(np.abs(np.asarray((a.inverse() @ b).log())).max())
 
 
-def eqsmooth_replay(edges, poses: int) -> tuple[dict, eqs.SE2]:
+def eqsmooth_replay(edges, poses: int, solver) -> tuple[dict, eqs.SE2]:
     noise = eqs.DiagonalNoise.from_sigmas(jnp.asarray(SIGMAS))
 
     def between(a, b, m):
@@ -84,7 +86,7 @@ def eqsmooth_replay(edges, poses: int) -> tuple[dict, eqs.SE2]:
     odom = {b: m for a, b, m in edges if b == a + 1}
     into = [[e for e in edges if e[1] == j] for j in range(poses)]
     prior = eqs.PriorFactor(eqs.Var("pose", [0]), se2([0, 0, 0]), noise)
-    smoother = eqs.solve.IncrementalSmoother()
+    smoother = eqs.solve.IncrementalSmoother(solver)
     t0 = time.perf_counter()
     first = eqs.FactorGraph([prior, between(0, 1, odom[1])])
     state = smoother.init(first, {"pose": se2([[0, 0, 0], odom[1]])})
@@ -149,6 +151,11 @@ def main():
     )
     ap.add_argument("--replays", nargs="+", default=["square", "w10000"])
     ap.add_argument("--json", default=None, help="write the records here")
+    ap.add_argument(
+        "--one-step",
+        action="store_true",
+        help="also run one Gauss-Newton step per update (FixedStepGaussNewton(1))",
+    )
     args = ap.parse_args()
     try:
         import gtsam
@@ -163,11 +170,18 @@ def main():
     for name, edges, poses in replays:
         if name not in args.replays:
             continue
-        rec, batch = eqsmooth_replay(edges, poses)
+        rec, batch = eqsmooth_replay(edges, poses, eqs.LevenbergMarquardt())
         rec = dict(replay=name, poses=poses, edges=len(edges), eqsmooth=rec)
+        if args.one_step:
+            # One Gauss-Newton step per update, as iSAM2 relinearises once.
+            one_step = eqs.FixedStepGaussNewton(num_steps=1)
+            one, _ = eqsmooth_replay(edges, poses, one_step)
+            rec["eqsmooth_one_step"] = one
         if gtsam:
             rec["isam2"] = isam2_replay(gtsam, edges, poses, batch)
             rec["ratio"] = rec["eqsmooth"]["median_ms"] / rec["isam2"]["median_ms"]
+            if args.one_step:
+                rec["ratio_one_step"] = one["median_ms"] / rec["isam2"]["median_ms"]
         print(json.dumps(rec), flush=True)
         records.append(rec)
     if args.json:
@@ -175,7 +189,8 @@ def main():
             command="OPENBLAS_NUM_THREADS=1 python examples/isam2_replay.py --poses "
             + " ".join(map(str, args.poses))
             + " --replays "
-            + " ".join(args.replays),
+            + " ".join(args.replays)
+            + (" --one-step" if args.one_step else ""),
             jax=jax.__version__,
             gtsam=getattr(gtsam, "__version__", None),
             cpus=os.cpu_count(),
