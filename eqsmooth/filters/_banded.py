@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Float
 
 from ..factors import GroupLayout
 from ..solve import AbstractFactorization, AbstractNormalSolver, NormalOperator
-from ..solve._linear._linear_solver import pivot_tolerance
+from ..solve._linear._linear_solver import diagonal_blocks, pivot_tolerance
 from ..solve._linearization import flatten_layout, unflatten_layout
 
 
@@ -76,15 +76,7 @@ class BandedFactorization(AbstractFactorization):
 
     def inverse_block_diagonal(self) -> dict[str, Float[Array, "_N _d _d"]]:
         inv = self.solve(jnp.eye(self.size, dtype=self.diag.dtype))
-        out, start = {}, 0
-        for g in self.layout:
-            size = g.count * g.dim
-            block = inv[start : start + size, start : start + size]
-            block = block.reshape(g.count, g.dim, g.count, g.dim)
-            i = np.arange(g.count)
-            out[g.name] = block[i, :, i, :]
-            start += size
-        return out
+        return diagonal_blocks(inv, self.layout)
 
 
 class BandedCholesky(AbstractNormalSolver):

@@ -6,7 +6,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
-import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ...factors import GroupLayout
@@ -17,6 +16,7 @@ from .._linearization import (
 from ._linear_solver import (
     AbstractFactorization,
     AbstractNormalSolver,
+    diagonal_blocks,
     NormalOperator,
     pivot_tolerance,
     symmetric_psd_operator,
@@ -59,16 +59,7 @@ class DenseFactorization(AbstractFactorization):
                 "blocks); this one factorises a general lineax operator"
             )
         eye = jnp.eye(self.lower.shape[0], dtype=self.lower.dtype)
-        inv = self.solve(eye)
-        out, start = {}, 0
-        for g in self.layout:
-            size = g.count * g.dim
-            block = inv[start : start + size, start : start + size]
-            block = block.reshape(g.count, g.dim, g.count, g.dim)
-            i = np.arange(g.count)
-            out[g.name] = block[i, :, i, :]
-            start += size
-        return out
+        return diagonal_blocks(self.solve(eye), self.layout)
 
 
 def _ravel(vector: PyTree[Array]) -> Float[Array, " N"]:

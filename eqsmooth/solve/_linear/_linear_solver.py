@@ -312,6 +312,22 @@ def symmetric_psd_operator(
     return operator
 
 
+def diagonal_blocks(
+    inverse: Float[Array, "N N"], layout: tuple
+) -> dict[str, Float[Array, "_n _d _d"]]:
+    """The `(d, d)` diagonal blocks of a dense inverse of the normal matrix,
+    per variable group of the tangent `layout` (group-major, as flattened)."""
+    out, start = {}, 0
+    for g in layout:
+        size = g.count * g.dim
+        block = inverse[start : start + size, start : start + size]
+        block = block.reshape(g.count, g.dim, g.count, g.dim)
+        i = np.arange(g.count)
+        out[g.name] = block[i, :, i, :]
+        start += size
+    return out
+
+
 def pivot_tolerance(dtype, size: int, scale: Float[Array, ""]) -> Float[Array, ""]:
     """Smallest acceptable squared Cholesky pivot.
 
