@@ -5,6 +5,7 @@ import dataclasses
 import functools
 import hashlib
 import importlib.metadata
+import importlib.resources
 import inspect
 import logging
 import os
@@ -101,16 +102,27 @@ _FORMAT = 1
 _FAILED = object()
 
 
+def _sources(folder, prefix: str = ""):
+    """Every `.py` file under `folder` (an `importlib.resources` traversable,
+    so it works for a checkout and an installed wheel alike), as
+    `(relative name, bytes)` in a fixed order."""
+    for entry in sorted(folder.iterdir(), key=lambda e: e.name):
+        name = f"{prefix}{entry.name}"
+        if entry.is_dir():
+            yield from _sources(entry, f"{name}/")
+        elif entry.name.endswith(".py"):
+            yield name, entry.read_bytes()
+
+
 @functools.cache
 def _environment() -> str:
     """What every stored program depends on besides its own arguments: the
     eqsmooth sources (any edit makes new keys), JAX's version and the
     settings that change tracing."""
-    root = Path(__file__).resolve().parent
     digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        digest.update(str(path.relative_to(root)).encode())
-        digest.update(path.read_bytes())
+    for name, source in _sources(importlib.resources.files("eqsmooth")):
+        digest.update(name.encode())
+        digest.update(source)
     settings = [
         f"{name}={getattr(jax.config, name, None)}"
         for name in (
