@@ -19,12 +19,13 @@ rows per stack, the prior's one row kept) so that one call solves them all.
 `--other-graphs K`: after the 5-pose loop, K more SE(2) loops of 5 to 8 poses
 with 1 to 3 loop closures each (one factor stack per type, so the factor
 types are the same; sizes and connectivity differ), each solved once as a
-user would: `static` (`eqs.least_squares` on the graph as built) and
-`padded` (`eqs.solve.pad_graph`, the solve, `unpad`), in one process; per
-graph, the time to the answer and the XLA programs compiled (JAX's compile
-events), and the largest pose difference between the two answers. Then the
-later-solve medians of the 5-pose loop: `static`, `padded` (padding, solve
-and unpad each time) and `padded_solve_only` (padded once), beside GTSAM's.
+user would: `static` (`eqs.least_squares(..., pad_to=None)`, the graph as
+built) and `default` (`eqs.least_squares`, which pads to power-of-two buckets),
+in one process; per graph, the time to the answer and the XLA programs
+compiled (JAX's compile events), and the largest pose difference between the
+two answers. Then the later-solve medians of the 5-pose loop: `static`,
+`default` (padding, solve and unpad each time) and `padded_solve_only`
+(`pad_graph` once), beside GTSAM's.
 
     python -m benchmarks.small_graph --json benchmarks/results/small_graph.json
     python -m benchmarks.small_graph --batch 1000 --repeats 5 \\
@@ -439,12 +440,11 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
     solver = eqs.LevenbergMarquardt()
 
     def static(graph, values):
-        return jax.block_until_ready(eqs.least_squares(graph, values, solver).value)
+        sol = eqs.least_squares(graph, values, solver, pad_to=None)
+        return jax.block_until_ready(sol.value)
 
-    def padded(graph, values):
-        p = eqs.solve.pad_graph(graph, values)
-        sol = eqs.least_squares(p.graph, p.values, solver)
-        return jax.block_until_ready(p.unpad(sol.value))
+    def default(graph, values):  # pads to power-of-two buckets by itself
+        return jax.block_until_ready(eqs.least_squares(graph, values, solver).value)
 
     rng = np.random.default_rng(0)
     problems = [pose2_problem()]
@@ -457,13 +457,13 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
         row = {"graph": k, "poses": len(values["x"].x())}
         row["factors"] = sum(f.num_rows for f in graph.factors)
         answers = {}
-        for name, fn in (("static", static), ("padded", padded)):
+        for name, fn in (("static", static), ("default", default)):
             start = len(compiled)
             t0 = time.perf_counter()
             answers[name] = fn(graph, values)["x"]
             row[f"{name}_s"] = time.perf_counter() - t0
             row[f"{name}_programs"] = len(compiled) - start
-        diff = (answers["static"].inverse() @ answers["padded"]).log()
+        diff = (answers["static"].inverse() @ answers["default"]).log()
         row["max_difference"] = float(jnp.max(jnp.abs(diff)))
         rows.append(row)
     print(markdown_table(rows, list(rows[0])))
@@ -474,13 +474,13 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
             "max_s_after_first": max(r[f"{name}_s"] for r in later),
             "programs_after_first": sum(r[f"{name}_programs"] for r in later),
         }
-        for name in ("static", "padded")
+        for name in ("static", "default")
     }
     graph, values = problems[0]
     once = eqs.solve.pad_graph(graph, values)
     calls = {
         "static": lambda: static(graph, values),
-        "padded": lambda: padded(graph, values),
+        "default": lambda: default(graph, values),
         "padded_solve_only": lambda: static(once.graph, once.values),
     }
     steady = {name: _times(call, repeats)[0] for name, call in calls.items()}
@@ -493,8 +493,8 @@ def other_graphs(gtsam, count: int, repeats: int) -> list[dict]:
         {
             "benchmark": "small_graph_structure",
             "config": {"graphs": count + 1, "solver": "LevenbergMarquardt"},
-            "median_s": steady["padded"],
-            "compile_s": rows[0]["padded_s"] - steady["padded"],
+            "median_s": steady["default"],
+            "compile_s": rows[0]["default_s"] - steady["default"],
             "graphs": rows,
             "after_first": summary,
             "later_solve_median_s": steady,

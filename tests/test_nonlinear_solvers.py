@@ -228,10 +228,15 @@ def test_array_arguments_dispatch_through_jax_jit_with_the_same_result():
     # Every leaf a JAX array: the C++ `jax.jit` dispatch.
     a = eqs.least_squares(graph, {"x": jnp.zeros((4, 2))}, solver)
     assert L._least_squares_of_arrays._cache_size() == fast_before + 1
-    # A numpy leaf: `eqx.filter_jit`, which keeps non-array leaves static.
+    # A numpy leaf: `jax.jit` too (it transfers numpy arguments in C++), under
+    # its own dispatch signature.
     b = eqs.least_squares(graph, {"x": np.zeros((4, 2))}, solver)
-    assert L._least_squares_of_arrays._cache_size() == fast_before + 1
+    assert L._least_squares_of_arrays._cache_size() == fast_before + 2
+    # Per-call options: `eqx.filter_jit`, which keeps non-array leaves static.
+    c = eqs.least_squares(graph, {"x": jnp.zeros((4, 2))}, solver, options={"x": 1})
+    assert L._least_squares_of_arrays._cache_size() == fast_before + 2
     np.testing.assert_allclose(a.value["x"], b.value["x"], rtol=1e-12)
+    np.testing.assert_allclose(a.value["x"], c.value["x"], rtol=1e-12)
     np.testing.assert_allclose(a.value["x"], data, rtol=1e-12)
 
 

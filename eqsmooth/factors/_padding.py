@@ -10,6 +10,7 @@ compiled program. Each noise model pads its own rows
 
 import math
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -130,10 +131,22 @@ class PaddedGraph(eqx.Module):
                 f"PaddedGraph.unpad: groups {sorted(unknown)} are not in the padded "
                 f"graph (groups: {sorted(counts)})"
             )
-        return {
-            name: _pad_rows(group, np.arange(counts[name]))
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return {
+                name: _pad_rows(group, np.arange(counts[name]))
+                for name, group in tree.items()
+            }
+        # Concrete: one transfer to the host and one back, sliced in numpy
+        # (an eager JAX slice would compile a program per shape).
+        names = [
+            name
             for name, group in tree.items()
-        }
+            for _ in jax.tree_util.tree_leaves(group)
+        ]
+        host = jax.device_get(leaves)
+        real = [np.asarray(h)[: counts[n]] for h, n in zip(host, names)]
+        return jax.tree_util.tree_unflatten(treedef, jax.device_put(real))
 
 
 def pad_graph(
@@ -265,3 +278,142 @@ def padding_size(graph: FactorGraph) -> tuple[Array | int, Array | int]:
             variables = variables + k
             coordinates = coordinates + k * tangent_dim(f.value, batch_ndim=1)
     return variables, coordinates
+
+
+# ---------------------------------------------------------------------------
+# The padding of one structure, learnt once: what `least_squares` pads with
+# ---------------------------------------------------------------------------
+
+# A padded graph's array leaves are row gathers of the original's leaves
+# (`take_leading`) or constants of the structure (masks, dynamic indices).
+# `pad_concrete` learns which, once per structure, by padding a copy whose
+# leaves hold distinct codes, and then pads by numpy gathers and one
+# transfer: a small fraction of `pad_graph`'s cost, which builds every
+# Module and transfers every leaf again.
+
+_PLANS: "dict[object, _Plan | None]" = {}
+_MAX_PLANS = 256
+_CODE_BASE = 1 << 20  # codes start here: constants (indices, 0, 1) stay below
+
+
+class _Plan(NamedTuple):
+    treedef: Any
+    # Per output leaf: (input leaf, rows) for a gather (rows None: as is),
+    # or (None, constant).
+    recipes: tuple
+
+
+def pad_concrete(
+    graph: FactorGraph,
+    values: Values,
+    bucket: Callable[[int], int] = power_of_two,
+    transfer: bool = True,
+    accept: Callable[[FactorGraph, Values], bool] | None = None,
+) -> PaddedGraph | None:
+    """[`eqsmooth.solve.pad_graph`][]`(graph, values, bucket)` for concrete
+    leaves, from a plan learnt once per structure (the treedef, the leaves'
+    shapes and dtypes, the boolean leaves' contents, the bucket); `None`
+    when the structure cannot be padded by gathers (then pad with
+    `pad_graph`, which also names any error). `transfer=False` leaves the
+    padded leaves as numpy arrays, for a `jax.jit` call that transfers its
+    arguments itself (cheaper than `jax.device_put` from Python). `accept`,
+    asked once per structure, can refuse it (`None` then, from the cache)."""
+    leaves, treedef = jax.tree_util.tree_flatten((graph, values))
+    if not all(isinstance(x, (np.ndarray, jax.Array)) for x in leaves):
+        return None
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return None
+    host = jax.device_get(leaves)
+    host = [np.asarray(h) for h in host]
+    key = (
+        treedef,
+        tuple((h.shape, h.dtype.str) for h in host),
+        tuple(h.tobytes() for h in host if h.dtype == np.bool_),
+        bucket,
+        accept,
+    )
+    try:
+        plan = _PLANS[key]
+    except KeyError:
+        plan = None
+        if accept is None or accept(graph, values):
+            plan = _learn_plan(graph, values, treedef, host, bucket)
+        if len(_PLANS) >= _MAX_PLANS:
+            _PLANS.pop(next(iter(_PLANS)))
+        _PLANS[key] = plan
+    except TypeError:  # an unhashable static field
+        return None
+    if plan is None:
+        return None
+    out = [_apply(recipe, host) for recipe in plan.recipes]
+    return jax.tree_util.tree_unflatten(
+        plan.treedef, jax.device_put(out) if transfer else out
+    )
+
+
+def _apply(recipe, host):
+    j, rows = recipe
+    if j is None:
+        return rows
+    return host[j] if rows is None else host[j][rows]
+
+
+def _learn_plan(graph, values, treedef, host, bucket) -> _Plan | None:
+    coded, ranges, offset = [], [], _CODE_BASE
+    for h in host:
+        if h.dtype == np.bool_:
+            coded.append(h)
+            ranges.append(None)
+            continue
+        exact = {np.dtype(np.float64): 2**53, np.dtype(np.int64): 2**62}
+        exact |= {np.dtype(np.float32): 2**24, np.dtype(np.int32): 2**31 - 1}
+        if h.dtype not in exact or offset + h.size >= exact[h.dtype]:
+            return None
+        coded.append((offset + np.arange(h.size)).reshape(h.shape).astype(h.dtype))
+        ranges.append((offset, h.size))
+        offset += h.size
+    try:
+        g, v = jax.tree_util.tree_unflatten(treedef, coded)
+        padded = pad_graph(g, v, bucket)
+    except Exception:  # a check the codes fail: pad with pad_graph instead
+        return None
+    out_leaves, out_treedef = jax.tree_util.tree_flatten(padded)
+    recipes = []
+    for leaf in out_leaves:
+        recipe = _recipe(np.asarray(jax.device_get(leaf)), coded, ranges)
+        if recipe is None:
+            return None
+        recipes.append(recipe)
+    return _Plan(out_treedef, tuple(recipes))
+
+
+def _recipe(out: np.ndarray, coded, ranges):
+    """How `out` (a leaf of the coded padding) comes from the coded inputs:
+    a gather of one input's rows, or a constant of the structure; `None` if
+    neither (the plan is then not used)."""
+    if out.dtype == np.bool_:
+        return (None, out)
+    flat = out.reshape(-1)
+    for j, r in enumerate(ranges):
+        if r is None or flat.size == 0:
+            continue
+        start, size = r
+        inside = (flat >= start) & (flat < start + size)
+        if not inside.any():
+            continue
+        if not inside.all():
+            return None
+        src = coded[j]
+        if out.shape == src.shape and np.array_equal(out, src):
+            return (j, None)
+        if out.ndim == 0 or out.shape[1:] != src.shape[1:]:
+            return None
+        per_row = int(np.prod(src.shape[1:], dtype=np.int64))
+        rows = (flat[:: max(per_row, 1)] - start).astype(np.int64) // max(per_row, 1)
+        if rows.size != out.shape[0] or not np.array_equal(src[rows], out):
+            return None
+        return (j, rows)
+    if flat.size and np.issubdtype(out.dtype, np.number):
+        if np.any(np.abs(flat) >= _CODE_BASE):
+            return None  # a constant that could be a code: do not guess
+    return (None, out)

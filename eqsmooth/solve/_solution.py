@@ -94,6 +94,10 @@ class Solution(eqx.Module):
         [`eqsmooth.solve.joint_marginal_covariance`][] use), differentiable
         with every adjoint. Its other fields are diagnostics, not
         differentiable.
+    - `padding`: `None`, or the real variable counts `((group, count), …)`
+        when the solve ran on a padded copy of the graph (see
+        [`eqsmooth.solve.least_squares`][]): `state` then belongs to the
+        padded graph, whose groups hold the real variables first.
 
     Derivatives: `value`, `stats["final_cost"]`, `stats["initial_cost"]` and
     `state.lin` are differentiable with every adjoint;
@@ -105,6 +109,7 @@ class Solution(eqx.Module):
     result: RESULTS
     stats: dict[str, Any]
     state: PyTree
+    padding: tuple[tuple[str, int], ...] | None = eqx.field(static=True, default=None)
 
 
 def raise_unless_successful(

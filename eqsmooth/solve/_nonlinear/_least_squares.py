@@ -7,6 +7,7 @@ in tangent coordinates) and adds cost statistics.
 """
 
 import functools as ft
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -17,8 +18,10 @@ import optimistix as optx
 
 from ...factors import FactorGraph
 from ...factors._graph import graph_cost, Values
+from ...factors._padding import pad_concrete, PaddedGraph, power_of_two
 from .._derivatives import recomputed, refuse_derivative
 from .._linear._default_solver import default_linear_solver
+from .._linear._dense import DenseCholesky
 from .._solution import raise_unless_successful, RESULTS, Solution
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._diagnose import failure_detail
@@ -36,6 +39,7 @@ def least_squares(
     throw: bool = True,
     verbose: bool = False,
     options: dict[str, Any] | None = None,
+    pad_to: Callable[[int], int] | None = power_of_two,
 ) -> Solution:
     """Minimise the cost of `graph` starting from `values`.
 
@@ -60,8 +64,28 @@ def least_squares(
     - `verbose`: print cost, damping and step norm at every iteration.
     - `options`: the solver's per-call options (see
         [`eqsmooth.solve.AbstractGraphSolver`][]).
+    - `pad_to`: the capacity buckets of graphs solved with dense Cholesky
+        (see below): the padded size for a real size, by default
+        [`eqsmooth.solve.power_of_two`][]; `None` solves every graph as
+        built.
 
     **Returns:** a [`eqsmooth.solve.Solution`][].
+
+    **Graphs of other sizes compile nothing new.** A graph whose linear
+    solve is dense Cholesky (the default for a graph that is not a chain, up
+    to `DENSE_LIMIT` tangent coordinates, or `DenseCholesky()` given), called
+    with concrete arrays (not under `jit`, `grad` or `vmap`), is solved as
+    [`eqsmooth.solve.pad_graph`][]`(graph, values, pad_to)` pads it: each
+    factor stack and variable group padded to its bucket on the host, so
+    every graph with the same factor and noise types whose sizes fall in
+    the same buckets runs one compiled program. The answer is the unpadded
+    graph's (the padding adds decoupled identity blocks), `value` holds the
+    real variables only, and `state.lin` is the padded graph's linearisation
+    (real variables first in each group), which
+    [`eqsmooth.solve.marginal_covariances`][] and
+    [`eqsmooth.solve.joint_marginal_covariance`][] read through the
+    `Solution` for the real variables. Chains, large graphs, other linear
+    solvers and traced calls are solved as built.
     """
     if not isinstance(solver, AbstractGraphSolver):
         hint = (
@@ -80,13 +104,19 @@ def least_squares(
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
     _check_arguments(values, max_steps)
-    if not options and _all_arrays((graph, values, solver, adjoint)):
-        sol = _least_squares_of_arrays(
-            graph, values, solver, adjoint, max_steps=max_steps, verbose=verbose
-        )
+    padded = _padded(graph, values, solver, pad_to)
+    if padded is None:
+        sol = _dispatch(graph, values, solver, max_steps, adjoint, verbose, options)
     else:
-        sol = _least_squares(
-            graph, values, solver, max_steps, adjoint, verbose, options or {}
+        sol = _dispatch(
+            padded.graph, padded.values, solver, max_steps, adjoint, verbose, options
+        )
+        sol = Solution(
+            value=padded.unpad(sol.value),
+            result=sol.result,
+            stats=sol.stats,
+            state=sol.state,
+            padding=padded.counts,
         )
     if throw:
         sol = raise_unless_successful(
@@ -121,7 +151,47 @@ def _check_arguments(values: Values, max_steps: int) -> None:
 
 
 def _all_arrays(tree) -> bool:
-    return all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(tree))
+    # numpy arrays too: `jax.jit` and `eqx.filter_jit` both trace them.
+    return all(
+        isinstance(x, (jax.Array, np.ndarray)) for x in jax.tree_util.tree_leaves(tree)
+    )
+
+
+def _dispatch(graph, values, solver, max_steps, adjoint, verbose, options):
+    if not options and _all_arrays((graph, values, solver, adjoint)):
+        return _least_squares_of_arrays(
+            graph, values, solver, adjoint, max_steps=max_steps, verbose=verbose
+        )
+    return _least_squares(
+        graph, values, solver, max_steps, adjoint, verbose, options or {}
+    )
+
+
+def _padded(graph, values, solver, pad_to) -> PaddedGraph | None:
+    """The graph padded to `pad_to`'s buckets when that keeps the solve's
+    linear solver (dense Cholesky) and needs no traced operation; else
+    `None` (solve the graph as built)."""
+    if pad_to is None:
+        return None
+    linear_solver = solver.linear_solver
+    if linear_solver is not None and type(linear_solver) is not DenseCholesky:
+        return None
+    return pad_concrete(graph, values, pad_to, transfer=False, accept=_dense_graph)
+
+
+def _dense_graph(graph: FactorGraph, values: Values) -> bool:
+    """Whether padding keeps `graph`'s default linear solver: dense Cholesky
+    (not a chain, not large), static indices and rows in every stack."""
+    variables = tuple(f.variables for f in graph.factors)
+    if any(v.is_dynamic for vs in variables for v in vs):
+        return False  # padded already, or the user's own dynamic indices
+    if any(f.num_rows == 0 for f in graph.factors):
+        return False
+    try:
+        layout = graph.validate(values)
+    except (TypeError, ValueError):
+        return False  # the solve as built reports it
+    return type(default_linear_solver(layout, variables)) is DenseCholesky
 
 
 def _solve(graph, values, solver, max_steps, adjoint, verbose, options):

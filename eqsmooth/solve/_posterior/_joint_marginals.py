@@ -14,10 +14,17 @@ from .._linear._default_solver import linear_solver_for
 from .._linear._linear_solver import solve_normal
 from .._linearization import Linearization
 from .._solution import RESULTS, Solution
-from ._posterior import as_linearization, raise_unless_ok, singular_message
+from ._posterior import (
+    as_linearization,
+    raise_unless_ok,
+    real_counts,
+    singular_message,
+)
 
 
-def _selection(lin: Linearization, variables) -> list[tuple[str, int]]:
+def _selection(
+    lin: Linearization, variables, real: dict[str, int] | None = None
+) -> list[tuple[str, int]]:
     out = []
     for v in variables:
         if isinstance(v, Var):
@@ -25,7 +32,7 @@ def _selection(lin: Linearization, variables) -> list[tuple[str, int]]:
         else:
             group, index = v
             out.append((str(group), int(index)))
-    counts = {g.name: g.count for g in lin.layout}
+    counts = real or {g.name: g.count for g in lin.layout}
     for group, index in out:
         if group not in counts:
             raise ValueError(
@@ -77,8 +84,9 @@ def joint_marginal_covariance(
     ill-conditioned in float32) raises an `EquinoxRuntimeError` that says
     which.
     """
+    real = real_counts(lin)
     lin = as_linearization(lin, "joint_marginal_covariance")
-    chosen = _selection(lin, variables)
+    chosen = _selection(lin, variables, real)
     cov, ok = _joint(lin, tuple(chosen), solver)
     return raise_unless_ok(
         ok, cov, singular_message("joint_marginal_covariance", lin.dtype)

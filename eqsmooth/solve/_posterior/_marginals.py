@@ -10,7 +10,13 @@ from jaxtyping import Array, Float
 from .._linear._default_solver import factorize
 from .._linearization import Linearization
 from .._solution import Solution
-from ._posterior import as_linearization, raise_unless_ok, singular_message
+from ._posterior import (
+    as_linearization,
+    raise_unless_ok,
+    real_counts,
+    singular_message,
+    take_real,
+)
 
 
 def marginal_covariances(
@@ -49,8 +55,7 @@ def marginal_covariances(
     that cannot be factorised (singular, or too ill-conditioned in float32)
     raises an `EquinoxRuntimeError` that says which.
     """
-    lin = as_linearization(lin, "marginal_covariances")
-    names = [g.name for g in lin.layout]
+    names = [g.name for g in as_linearization(lin, "marginal_covariances").layout]
     if groups is None:
         groups = names
     unknown = [g for g in groups if g not in names]
@@ -58,8 +63,11 @@ def marginal_covariances(
         raise ValueError(
             f"marginal_covariances: unknown groups {unknown}; the graph has {names}"
         )
+    counts = real_counts(lin)
+    lin = as_linearization(lin, "marginal_covariances")
     cov, ok = _marginal_covariances(lin, solver, tuple(groups))
-    return raise_unless_ok(ok, cov, singular_message("marginal_covariances", lin.dtype))
+    cov = raise_unless_ok(ok, cov, singular_message("marginal_covariances", lin.dtype))
+    return take_real(cov, counts)
 
 
 @eqx.filter_jit

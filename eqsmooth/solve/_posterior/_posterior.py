@@ -31,6 +31,28 @@ def as_linearization(
     )
 
 
+def real_counts(lin_or_solution: Linearization | Solution) -> dict[str, int] | None:
+    """`{group: real variables}` of a `Solution` solved on a padded copy of
+    its graph (its linearisation's groups hold them first), else `None`."""
+    if isinstance(lin_or_solution, Solution) and lin_or_solution.padding:
+        return dict(lin_or_solution.padding)
+    return None
+
+
+def take_real(blocks: dict, counts: dict[str, int] | None) -> dict:
+    """The real variables' rows of per-variable `blocks` (host slicing of
+    concrete arrays: compiles nothing)."""
+    if counts is None:
+        return blocks
+    out = {}
+    for name, a in blocks.items():
+        if isinstance(a, jax.core.Tracer):
+            out[name] = a[: counts[name]]
+        else:
+            out[name] = jax.device_put(np.asarray(a)[: counts[name]])
+    return out
+
+
 def singular_message(who: str, dtype) -> str:
     """What a failed factorisation of `JᵀJ` means, for the marginal routes."""
     message = (
