@@ -141,3 +141,110 @@ def test_updates_refuse_what_they_cannot_add():
     # (the jaxtyping hook or the method's own check names the parameter)
     with pytest.raises(TypeError, match="state"):
         SMOOTHER.update(values, new, guess)
+
+
+K = 2  # rows per update_rows block: the odometry and room for one closure
+
+
+def _rows(new):
+    """An update's factors as `update_rows`' arguments: a block of K rows,
+    the absent closure masked (a copy of the odometry)."""
+    fs = list(new) + [new[0]] * (K - len(new))
+    measured = eqs.SE2(np.concatenate([f.measurement.unit_complex_xy for f in fs]))
+    ids = tuple(np.concatenate([f.variables[i].ids for f in fs]) for i in range(2))
+    return (
+        [None, {"measurement": measured}],
+        [None, ids],
+        [None, np.arange(K) < len(new)],
+    )
+
+
+def test_update_rows_gives_update_s_estimates_and_compiles_once_per_capacity():
+    # A fixed number of Gauss-Newton steps, so that both runs take the same
+    # iterations (LM's stopping tests may stop one step apart on rounding).
+    smoother = eqs.solve.IncrementalSmoother(eqs.FixedStepGaussNewton(num_steps=4))
+    first, values, steps = _replay()
+    a = smoother.init(eqs.FactorGraph(first), values)
+    b = smoother.init(eqs.FactorGraph(first), values)
+    factors, compiles = list(first), []
+    for j, (new, new_values) in enumerate(steps, start=2):
+        a = smoother.update(a, new, new_values)
+        capacity, rows = b.capacity, _rows(new)
+        with compiled_programs() as names:
+            b = smoother.update_rows(b, *rows, new_values)
+            jax.block_until_ready(b.values)
+        # The first call compiles the program, a growth one more; no other
+        # program (no eager operations around it).
+        assert names in ([], ["jit(_rows_step)"]), (j, names)
+        if names:
+            compiles.append((j, b.capacity != capacity))
+        factors += new
+        np.testing.assert_allclose(
+            b.estimate()["pose"].unit_complex_xy,
+            a.estimate()["pose"].unit_complex_xy,
+            rtol=0,
+            atol=1e-10,
+        )
+    assert [grew for _, grew in compiles] == [False, True], compiles
+    est = b.estimate()["pose"]
+    ref, _ = _batch(factors, {"pose": eqs.SE2(jnp.asarray(est.unit_complex_xy))})
+    np.testing.assert_allclose(est.unit_complex_xy, ref, atol=1e-7)
+    # Masked rows at the end of a block are written over by the next one.
+    assert b.num_rows == (1, len(factors) - 1)
+    assert b.result == eqs.solve.RESULTS.successful
+
+
+def test_update_rows_refuses_what_it_cannot_add():
+    first, values, steps = _replay()
+    state = SMOOTHER.init(eqs.FactorGraph(first), values)
+    new, guess = steps[0]
+    rows, ids, active = _rows(new)
+    measured = rows[1]["measurement"]
+    bad_ids = [None, (ids[1][0], np.array([2, 9]))]
+    cases = [
+        (dict(rows=rows[1:]), "rows must be a sequence of one entry per stack"),
+        (dict(rows=[None, {"measured": measured}]), "has field 'measured'"),
+        (
+            dict(rows=[None, {"measurement": measured[np.array([0])]}]),
+            r"rows\[1\]\['measurement'\] for stack 1 \(BetweenFactor\) has shape",
+        ),
+        (dict(ids=bad_ids), "refers to index 9, but the group has 3 variables"),
+        (dict(active=[None, np.ones(3, bool)]), r"active\[1\] .* shape \(3,\)"),
+        (dict(new_values={"landmark": guess["pose"]}), "group 'landmark'"),
+        (
+            dict(new_values={"pose": jnp.zeros((1, 3))}),
+            r"new_values\['pose'\] has leaves",
+        ),
+    ]
+    for change, message in cases:
+        kw = dict(rows=rows, ids=ids, active=active, new_values=guess) | change
+        with pytest.raises((ValueError, TypeError), match=message):
+            SMOOTHER.update_rows(state, **kw)
+
+
+@pytest.mark.slow  # compiles the implicit adjoint of two buffer sizes (~60 s)
+def test_update_rows_is_differentiable():
+    # As test_the_estimate_is_differentiable_through_updates, through
+    # update_rows: d(final estimate)/d(closure measurement).
+    first, values, steps = _replay()
+    (odo, closure), guess = steps[4]
+
+    def final(u):
+        moved = eqx.tree_at(
+            lambda f: f.measurement, closure, closure.measurement @ eqs.SE2.exp(u)
+        )
+        state = SMOOTHER.init(eqs.FactorGraph(first), values)
+        for new, new_values in steps[:4]:
+            state = SMOOTHER.update_rows(state, *_rows(new), new_values)
+        state = SMOOTHER.update_rows(state, *_rows([odo, moved]), guess)
+        return state.values["pose"][np.arange(7)].log().sum()
+
+    u0 = jnp.zeros((1, 3))
+    grad = jax.grad(final)(u0)
+    eps = 1e-6
+    fd = np.zeros(3)
+    for k in range(3):
+        e = jnp.zeros((1, 3)).at[0, k].set(eps)
+        fd[k] = (final(u0 + e) - final(u0 - e)) / (2 * eps)
+    np.testing.assert_allclose(np.asarray(grad)[0], fd, rtol=1e-5, atol=1e-7)
+    assert np.abs(fd).max() > 1e-3

@@ -11,13 +11,14 @@ the last estimate, so updates compile nothing new until a buffer is full;
 then that buffer doubles (one new program, `log2` of the growth in all).
 """
 
+import functools as ft
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import PyTree
+from jaxtyping import ArrayLike, Bool, Int, PyTree
 
 from ..factors import (
     AbstractFactor,
@@ -34,7 +35,10 @@ from ..factors._padding import _PaddingNoise, pad_graph, power_of_two
 from ._nonlinear._gauss_newton import LevenbergMarquardt
 from ._nonlinear._graph_solver import AbstractGraphSolver
 from ._nonlinear._least_squares import least_squares
-from ._solution import RESULTS
+from ._solution import result_index, RESULTS
+
+
+_SUCCESS = result_index(RESULTS.successful)
 
 
 class IncrementalState(eqx.Module):
@@ -230,6 +234,124 @@ class IncrementalSmoother(eqx.Module):
                     )
             by_stack.setdefault(kinds.index(_kind(f)), []).append(f)
         return self._advance(state, by_stack, new_values)
+
+    def update_rows(
+        self,
+        state: IncrementalState,
+        rows: Sequence[dict[str, PyTree[ArrayLike]] | None],
+        ids: Sequence[Sequence[Int[ArrayLike, " k"]] | None],
+        active: Sequence[Bool[ArrayLike, " k"] | None] | None = None,
+        new_values: Values | None = None,
+    ) -> IncrementalState:
+        """`update` with the new rows as arrays: one compiled call per update,
+        no factor objects built.
+
+        The new rows of each of `init`'s stacks are that stack's first row
+        with its per-row data replaced by these arrays, so their noise and
+        shared fields are `init`'s (a row with other noise takes `update`).
+        A sequence of updates whose arrays keep their shapes runs one
+        compiled program until a buffer doubles; give a fixed number of rows
+        per stack and mask the absent ones with `active` (e.g. room for one
+        loop closure every update). On the same rows it gives `update`'s
+        estimates (tested to 1e-10). Shapes, dtypes and fields are checked
+        when the program is traced (a new shape traces again), the indices
+        on the host: give them as NumPy arrays (JAX arrays are read back).
+
+        **Arguments:**
+
+        - `state`: from `init` or the previous update.
+        - `rows`: one entry per stack of `init`'s graph, in order: `None`
+            (nothing new) or a dict `{field: value with a leading axis of k
+            rows}` of that stack's per-row fields as
+            [`eqsmooth.factors.per_row_fields`][] gives them (e.g.
+            `{"measured": SE2}` for a `BetweenFactor`); a field left out
+            copies the stack's first row.
+        - `ids`: per stack, `None` or one `(k,)` integer array per variable
+            of the factor (static indices into the grown graph, as `Var`'s
+            `ids`).
+        - `active`: `None` (every row counts) or, per stack, `None` or a
+            `(k,)` boolean array, false for a row that adds nothing (its data
+            must still be finite; a masked row at the end of the block frees
+            its slot for the next update when the mask is a NumPy array).
+        - `new_values`: `{group: stacked initial values}` of the new
+            variables, which take the next indices of their groups.
+
+        **Returns:** the new state, as `update` returns it. With
+        `throw=True` a failed solve raises after the call (the result code
+        is read back, which waits for the solve); with `throw=False` nothing
+        is read and `state.result` says.
+        """
+        who = "IncrementalSmoother.update_rows"
+        if not isinstance(state, IncrementalState):
+            raise TypeError(f"{who}: state must be an IncrementalState from init")
+        n = len(state.num_rows)
+        if active is None:
+            active = (None,) * n
+        for name, arg in (("rows", rows), ("ids", ids), ("active", active)):
+            if not isinstance(arg, (tuple, list)) or len(arg) != n:
+                raise TypeError(
+                    f"{who}: {name} must be a sequence of one entry per stack of "
+                    f"init's graph ({n}), got {type(arg).__name__}"
+                    + (f" of {len(arg)}" if isinstance(arg, (tuple, list)) else "")
+                )
+        new_values = new_values or {}
+        counts = dict(state.num_variables)
+        unknown = sorted(set(new_values) - set(counts))
+        if unknown:
+            raise ValueError(
+                f"{who}: new_values has group {unknown[0]!r}, which init's graph "
+                f"does not have (groups: {sorted(counts)})"
+            )
+        added = {g: group_count(g, v) for g, v in new_values.items()}
+        grown = {g: counts[g] + added.get(g, 0) for g in counts}
+        factors = state.graph.factors
+        blocks, used, ends, offsets = [], list(state.num_rows), [], []
+        for s in range(n):
+            offsets.append(used[s])
+            if rows[s] is None:
+                if ids[s] is not None or active[s] is not None:
+                    raise ValueError(
+                        f"{who}: stack {s} has ids or active but no rows (give "
+                        "rows[s], or None in all three)"
+                    )
+                blocks.append(None)
+                ends.append(used[s])
+                continue
+            block, k, advance = _host_rows(
+                who, s, factors[s], rows[s], ids[s], active[s], grown
+            )
+            blocks.append(block)
+            ends.append(used[s] + k)
+            used[s] += advance
+        for g in sorted(counts):
+            offsets.append(counts[g])
+        real = [*used, *(grown[g] for g in sorted(counts))]
+        value_ends = dict(grown)
+        state = self._grown(state, ends, value_ends, real)
+        graph, values, result = _rows_step(
+            self.solver,
+            state.graph,
+            state.values,
+            tuple(blocks),
+            {g: new_values[g] for g in sorted(new_values)},
+            np.asarray(offsets, np.int32),
+            max_steps=self.max_steps,
+            row_leaves=state.row_leaves,
+        )
+        if self.throw:
+            if _is_traced(jax.tree_util.tree_leaves(result)):  # a caller's jit/grad
+                values = result.error_if(values, result != RESULTS.successful)
+            elif np.asarray(result_index(result)) != _SUCCESS:
+                raise eqx.EquinoxRuntimeError(f"{who}: {RESULTS[result]}")
+        return IncrementalState(
+            graph,
+            values,
+            result,
+            tuple(used),
+            tuple(sorted(grown.items())),
+            state.row_leaves,
+            state.templates,
+        )
 
     def _advance(self, state, by_stack, new_values) -> IncrementalState:
         """Write each stack's new rows and each group's new variables as one
@@ -571,3 +693,168 @@ def _value_block(group: PyTree, m: int, size: int):
     of the real ones."""
     padded = jax.tree_util.tree_map(lambda a: _rows_of([a], size), group)
     return padded, jax.device_put(np.arange(size) < m)
+
+
+def _host_rows(who, s, buffer, rows, ids, active, grown):
+    """Stack `s`'s new rows checked on the host (cheap: lengths, index
+    bounds), as the compiled update takes them: `((rows, ids, active), k,
+    rows to advance)`."""
+    name = f"stack {s} ({type(buffer).__name__})"
+    if not isinstance(rows, dict):
+        raise TypeError(
+            f"{who}: rows[{s}] for {name} must be a dict of per-row fields, got "
+            f"{type(rows).__name__}"
+        )
+    variables = buffer.variables
+    if not isinstance(ids, (tuple, list)) or len(ids) != len(variables):
+        raise TypeError(
+            f"{who}: ids[{s}] for {name} must be a sequence of {len(variables)} "
+            "index arrays (one per variable of the factor)"
+        )
+    k = None
+    checked = []
+    for i, (v, a) in enumerate(zip(variables, ids)):
+        if isinstance(a, jax.core.Tracer):
+            shape = a.shape
+        else:
+            a = np.asarray(a)
+            shape = a.shape
+            if not np.issubdtype(a.dtype, np.integer):
+                raise TypeError(
+                    f"{who}: ids[{s}][{i}] for {name} must be integers, got "
+                    f"dtype {a.dtype}"
+                )
+            if a.size and (a.min() < 0 or a.max() >= grown[v.group]):
+                bad = int(a.max()) if a.max() >= grown[v.group] else int(a.min())
+                raise ValueError(
+                    f"{who}: {name} variable {i} (group {v.group!r}) refers to "
+                    f"index {bad}, but the group has {grown[v.group]} variables "
+                    "after this update (give new variables in new_values)"
+                )
+        if len(shape) != 1 or (k is not None and shape[0] != k):
+            raise ValueError(
+                f"{who}: ids[{s}][{i}] for {name} has shape {shape}; every index "
+                f"array of a stack must be 1-D of the same length"
+                + (f" ({k})" if k is not None else "")
+            )
+        k = shape[0]
+        checked.append(a)
+    advance = k
+    if active is not None:
+        shape = np.shape(active)
+        if shape != (k,):
+            raise ValueError(
+                f"{who}: active[{s}] for {name} has shape {shape}, expected ({k},)"
+            )
+        if isinstance(active, np.ndarray):
+            # Masked rows at the end of the block: the next update writes
+            # over them (they count for nothing until then).
+            on = np.flatnonzero(active)
+            advance = int(on[-1]) + 1 if on.size else 0
+    return (rows, tuple(checked), active), k, advance
+
+
+def _set_active(noise, active):
+    """`noise` (a buffer stack's: a `MaskedNoise`, perhaps inside a robust
+    kernel) with its row mask replaced by `active`."""
+    if isinstance(noise, MaskedNoise):
+        return eqx.tree_at(lambda m: m.active, noise, active)
+    return eqx.tree_at(lambda m: m.base, noise, _set_active(noise.base, active))
+
+
+# The arrays-in update: one `jax.jit` program (its static arguments hashed
+# by the C++ dispatch; every other leaf an array), which writes the rows and
+# variables into the buffers and solves, without error checks inside (the
+# result code is returned; `throw` is applied on the host after the call).
+@ft.partial(jax.jit, static_argnames=("max_steps", "row_leaves"))
+def _rows_step(
+    solver, graph, values, blocks, new_values, offsets, *, max_steps, row_leaves
+):
+    who = "IncrementalSmoother.update_rows"
+    factors = list(graph.factors)
+    for s, block in enumerate(blocks):
+        if block is None:
+            continue
+        rows, ids, active = block
+        buf = factors[s]
+        name = f"stack {s} ({type(buf).__name__})"
+        k = ids[0].shape[0]
+        template = _take(buf, 1, k)  # k copies of the stack's first row
+        fields = per_row_fields(template)
+        unknown = sorted(set(rows) - set(fields))
+        if unknown:
+            raise ValueError(
+                f"{who}: rows[{s}] for {name} has field {unknown[0]!r}; its per-row "
+                f"fields are {sorted(fields)}"
+            )
+        for field, value in rows.items():
+            ref = fields[field]
+            a, ta = jax.tree_util.tree_flatten(value)
+            b, tb = jax.tree_util.tree_flatten(ref)
+            if ta != tb:
+                raise TypeError(
+                    f"{who}: rows[{s}][{field!r}] for {name} is {ta}, the stack's "
+                    f"field is {tb}"
+                )
+            for x, y in zip(a, b):
+                if jnp.shape(x) != y.shape:
+                    raise ValueError(
+                        f"{who}: rows[{s}][{field!r}] for {name} has shape "
+                        f"{jnp.shape(x)}, expected {y.shape} ({k} rows, as ids)"
+                    )
+            fields[field] = jax.tree_util.tree_map(
+                lambda x, y: jnp.asarray(x, y.dtype), value, ref
+            )
+        new = with_rows(template, fields)
+        variables = tuple(
+            Var.dynamic(v.group, jnp.asarray(i, v.index.dtype))
+            for v, i in zip(buf.variables, ids)
+        )
+        object.__setattr__(new, "variables", variables)
+        mask = jnp.ones(k, bool) if active is None else jnp.asarray(active, bool)
+        object.__setattr__(new, "noise", _set_active(new.noise, mask))
+        arrays, rest = eqx.partition(buf, eqx.is_array)
+        leaves, treedef = jax.tree_util.tree_flatten(arrays)
+        new_leaves = jax.tree_util.tree_leaves(eqx.filter(new, eqx.is_array))
+        out = [
+            jax.lax.dynamic_update_slice_in_dim(
+                leaf, b.astype(leaf.dtype), offsets[s], 0
+            )
+            if per_row
+            else leaf
+            for leaf, b, per_row in zip(leaves, new_leaves, row_leaves[s])
+        ]
+        factors[s] = eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
+    values = dict(values)
+    n = len(blocks)
+    for g, name in enumerate(sorted(values)):
+        if name not in new_values:
+            continue
+        start = offsets[n + g]
+        a, ta = jax.tree_util.tree_flatten(new_values[name])
+        b, tb = jax.tree_util.tree_flatten(values[name])
+        if ta != tb or any(jnp.shape(x)[1:] != y.shape[1:] for x, y in zip(a, b)):
+            raise ValueError(
+                f"{who}: new_values[{name!r}] has leaves "
+                f"{[jnp.shape(x) for x in a]} ({ta}); the group's values have "
+                f"{[y.shape[1:] for y in b]} after the leading axis ({tb})"
+            )
+        m = jnp.shape(a[0])[0]
+        values[name] = jax.tree_util.tree_map(
+            lambda x, y: jax.lax.dynamic_update_slice_in_dim(
+                y, jnp.asarray(x, y.dtype), start, 0
+            ),
+            new_values[name],
+            values[name],
+        )
+        prior = factors[n + g]
+        held = jax.lax.dynamic_update_slice_in_dim(
+            prior.noise.active, jnp.zeros(m, bool), start, 0
+        )
+        factors[n + g] = eqx.tree_at(
+            lambda p: (p.noise, p.value), prior, (_PaddingNoise(held), values[name])
+        )
+    sol = least_squares(
+        FactorGraph(factors), values, solver, max_steps=max_steps, throw=False
+    )
+    return FactorGraph(factors), sol.value, sol.result
