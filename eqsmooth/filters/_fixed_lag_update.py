@@ -28,6 +28,7 @@ from ..solve import (
     LevenbergMarquardt,
     RESULTS,
 )
+from ..solve._misc import all_arrays
 from ._chain import check_smoother_noise, checked_covariance, residual_dim
 from ._rows import check_rows, row_whitening
 from ._window import ChainRows, floor_of, initial_prior, kept_links, window_step
@@ -756,7 +757,7 @@ class FixedLagSmoother(eqx.Module):
                 closure_active = jnp.asarray(closure_active)
             closure = (closure_rows, closure_back, closure_active)
         args = (self, state, transition_rows, measurement_rows, active, closure)
-        if not self.throw and _all_arrays(args):
+        if not self.throw and all_arrays(args):
             return _advance_rows_of_arrays(*args)
         return _advance_rows(*args)
 
@@ -768,10 +769,6 @@ class FixedLagSmoother(eqx.Module):
 def _advance(smoother, state, transition, measurements, step, closure):
     who = "FixedLagSmoother.init/update"
     return _solve_step(smoother, state, transition, measurements, step, closure, who)
-
-
-def _all_arrays(tree) -> bool:
-    return all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(tree))
 
 
 def _update_rows(

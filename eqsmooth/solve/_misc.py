@@ -5,9 +5,20 @@ from collections.abc import Callable
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._linearization import gradient, Linearization, Tangent
+
+
+def all_arrays(tree) -> bool:
+    """Whether every leaf is an array (JAX or numpy): arguments that a
+    `jax.jit` entry point takes as they are (it traces both kinds and
+    transfers numpy ones in C++), where `eqx.filter_jit` would be needed for
+    Python scalars and other non-array leaves."""
+    return all(
+        isinstance(x, (jax.Array, np.ndarray)) for x in jax.tree_util.tree_leaves(tree)
+    )
 
 
 def tree_where(pred, a, b):

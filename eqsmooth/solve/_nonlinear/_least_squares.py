@@ -22,6 +22,7 @@ from ...factors._padding import pad_concrete, PaddedGraph, power_of_two
 from .._derivatives import recomputed, refuse_derivative
 from .._linear._default_solver import default_linear_solver
 from .._linear._dense import DenseCholesky
+from .._misc import all_arrays
 from .._solution import raise_unless_successful, RESULTS, Solution
 from ._adjoint import AbstractAdjoint, ImplicitAdjoint
 from ._diagnose import failure_detail
@@ -150,15 +151,8 @@ def _check_arguments(values: Values, max_steps: int) -> None:
                 )
 
 
-def _all_arrays(tree) -> bool:
-    # numpy arrays too: `jax.jit` and `eqx.filter_jit` both trace them.
-    return all(
-        isinstance(x, (jax.Array, np.ndarray)) for x in jax.tree_util.tree_leaves(tree)
-    )
-
-
 def _dispatch(graph, values, solver, max_steps, adjoint, verbose, options):
-    if not options and _all_arrays((graph, values, solver, adjoint)):
+    if not options and all_arrays((graph, values, solver, adjoint)):
         return _least_squares_of_arrays(
             graph, values, solver, adjoint, max_steps=max_steps, verbose=verbose
         )
