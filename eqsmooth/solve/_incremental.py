@@ -407,18 +407,22 @@ class IncrementalSmoother(eqx.Module):
 
     def _grown(self, state, rows, grown, real) -> IncrementalState:
         """`state` with every buffer that `rows`/`grown` overflow doubled;
-        when one grows, so does every buffer more than half full (they tend
-        to fill together), so that a growth costs one compile, not one per
-        buffer. Built on the host (numpy), so growing compiles nothing but
-        the next update's program."""
+        when one grows, so does every factor stack more than half full and
+        every variable group more than three quarters full (they tend to
+        fill together), so that a growth costs one compile, not one per
+        buffer. Groups wait longer: their capacity sets the dense
+        factorisation's size (`O(N³)` in every update), a stack's only a
+        linear cost. Built on the host (numpy), so growing compiles nothing
+        but the next update's program."""
         (stacks, groups), n = state.capacity, len(state.num_rows)
         needed = [*rows, *(grown[g] for g in sorted(dict(groups)))]
         have = [*stacks, *(c for _, c in groups)]
         if all(a <= c for a, c in zip(needed, have)):
             return state
+        full = [2] * n + [4 / 3] * len(groups)  # co-grow above 1/2 and 3/4
         sizes = [
-            _doubled(c, a) if a > c else (2 * c if 2 * r > c else c)
-            for a, c, r in zip(needed, have, real)
+            _doubled(c, a) if a > c else (2 * c if f * r > c else c)
+            for a, c, r, f in zip(needed, have, real, full)
         ]
         factors = list(state.graph.factors)
         values = dict(state.values)
