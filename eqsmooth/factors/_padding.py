@@ -345,17 +345,22 @@ def pad_concrete(
         return None
     if plan is None:
         return None
-    out = [_apply(recipe, host) for recipe in plan.recipes]
-    return jax.tree_util.tree_unflatten(
-        plan.treedef, jax.device_put(out) if transfer else out
-    )
+    out = [_apply(recipe, leaves, host) for recipe in plan.recipes]
+    if transfer:
+        gathered = [k for k, x in enumerate(out) if isinstance(x, np.ndarray)]
+        moved = jax.device_put([out[k] for k in gathered])
+        for k, x in zip(gathered, moved):
+            out[k] = x
+    return jax.tree_util.tree_unflatten(plan.treedef, out)
 
 
-def _apply(recipe, host):
+def _apply(recipe, leaves, host):
+    """An output leaf: a constant (on the device since the plan was learnt),
+    an input leaf as it is, or a numpy gather of its rows."""
     j, rows = recipe
     if j is None:
         return rows
-    return host[j] if rows is None else host[j][rows]
+    return leaves[j] if rows is None else host[j][rows]
 
 
 def _learn_plan(graph, values, treedef, host, bucket) -> _Plan | None:
@@ -384,6 +389,8 @@ def _learn_plan(graph, values, treedef, host, bucket) -> _Plan | None:
         if recipe is None:
             return None
         recipes.append(recipe)
+    # Constants go to the device once, here, not on every call.
+    recipes = [(None, jax.device_put(r)) if j is None else (j, r) for j, r in recipes]
     return _Plan(out_treedef, tuple(recipes))
 
 
