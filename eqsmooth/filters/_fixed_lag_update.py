@@ -29,6 +29,7 @@ from ..solve import (
     RESULTS,
 )
 from ..solve._misc import all_arrays
+from ..solve._solution import result_index
 from ._chain import check_smoother_noise, checked_covariance, residual_dim
 from ._rows import check_rows, row_whitening
 from ._window import ChainRows, floor_of, initial_prior, kept_links, window_step
@@ -757,9 +758,18 @@ class FixedLagSmoother(eqx.Module):
                 closure_active = jnp.asarray(closure_active)
             closure = (closure_rows, closure_back, closure_active)
         args = (self, state, transition_rows, measurement_rows, active, closure)
-        if not self.throw and all_arrays(args):
+        if not all_arrays(args):
+            return _advance_rows(*args)
+        if not self.throw:
             return _advance_rows_of_arrays(*args)
-        return _advance_rows(*args)
+        leaves = jax.tree_util.tree_leaves(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return _advance_rows(*args)  # under the caller's jit: error_if
+        # Concrete: the program without error checks, through `jax.jit`'s
+        # C++ dispatch, and the checks on the host after it.
+        new, newest = _advance_rows_of_arrays(*args, quiet=True)
+        _raise_on_host(new, "FixedLagSmoother.update_rows")
+        return new, newest
 
 
 # One compiled program for `init` and every `update` of a smoother (the state
@@ -772,7 +782,13 @@ def _advance(smoother, state, transition, measurements, step, closure):
 
 
 def _update_rows(
-    smoother, state, transition_rows, measurement_rows, active, closure=None
+    smoother,
+    state,
+    transition_rows,
+    measurement_rows,
+    active,
+    closure=None,
+    quiet=False,
 ):
     who = "FixedLagSmoother.update_rows"
     transition, measurements = _step_factors(
@@ -782,7 +798,37 @@ def _update_rows(
         closure = _step_closures(who, state, *closure)
     mean = jax.tree_util.tree_map(lambda a: a[0], state.window)
     step = _step_rows(transition, measurements, mean, state.prior[1].dtype)
-    return _solve_step(smoother, state, transition, measurements, step, closure, who)
+    throw = smoother.throw and not quiet
+    return _solve_step(
+        smoother, state, transition, measurements, step, closure, who, throw
+    )
+
+
+_NONFINITE_STEP = (
+    "non-finite factor data or noise in this step's rows, or non-finite "
+    "residuals in the window's solve"
+)
+_REFUSED_CLOSURE = (
+    "a closure reaches outside the window: closure_back must be in 1..max_back "
+    "(init's) and not reach before x_0 (at most the new state's time); mask an "
+    "absent closure with closure_active"
+)
+
+
+def _raise_on_host(state: "FixedLagState", who: str) -> None:
+    """`throw=True` of an update run without error checks: raise an
+    `EquinoxRuntimeError` naming the failure, read from the new state's
+    result code and refused closures (concrete arrays, read on the host)."""
+    if state.closure_refused is not None and np.any(np.asarray(state.closure_refused)):
+        rows = np.flatnonzero(np.asarray(state.closure_refused)).tolist()
+        raise eqx.EquinoxRuntimeError(f"{who}: {_REFUSED_CLOSURE} (rows {rows})")
+    code = np.asarray(result_index(state.result))
+    if code != result_index(RESULTS.successful):
+        if code == result_index(RESULTS.nonfinite_problem):
+            message = _NONFINITE_STEP
+        else:
+            message = RESULTS[state.result]
+        raise eqx.EquinoxRuntimeError(f"{who}: {message}")
 
 
 # `update_rows`: the step's factors are built while tracing, so a call is
@@ -795,7 +841,7 @@ def _update_rows(
 # anything else goes through `eqx.filter_jit`, which treats non-array leaves
 # as static and turns a failed check into an `EquinoxRuntimeError`.
 _advance_rows = eqx.filter_jit(_update_rows)
-_advance_rows_of_arrays = jax.jit(_update_rows)
+_advance_rows_of_arrays = jax.jit(_update_rows, static_argnames=("quiet",))
 
 
 def _closure_step(state, closure, t):
@@ -814,8 +860,12 @@ def _closure_step(state, closure, t):
     return (fields, R, jnp.where(keep, back, jnp.zeros((), back.dtype))), refused
 
 
-def _solve_step(smoother, state, transition, measurements, step, closure, who):
-    """Write the step's rows into the state, and solve the new window."""
+def _solve_step(
+    smoother, state, transition, measurements, step, closure, who, throw=None
+):
+    """Write the step's rows into the state, and solve the new window (with
+    error checks in the program when `throw`, by default the smoother's)."""
+    throw = smoother.throw if throw is None else throw
     lag = smoother.lag
     t = state.t + 1
     kept, refused, links = state.closure_rows, state.closure_refused, ()
@@ -823,16 +873,10 @@ def _solve_step(smoother, state, transition, measurements, step, closure, who):
     if closure is not None:
         entry, refused = _closure_step(state, closure, t)
         new = (step, entry)
-    if smoother.throw:
+    if throw:
         t, bad = _finite(new, t, who), jnp.array(False)
         if closure is not None:
-            t = eqx.error_if(
-                t,
-                jnp.any(refused),
-                f"{who}: a closure reaches outside the window: closure_back must be "
-                "in 1..max_back (init's) and not reach before x_0 (at most the new "
-                "state's time); mask an absent closure with closure_active",
-            )
+            t = eqx.error_if(t, jnp.any(refused), f"{who}: {_REFUSED_CLOSURE}")
     else:
         bad = _nonfinite(new)
     vt = jnp.minimum(t, lag)  # the new state's slot among the kept steps
@@ -867,7 +911,7 @@ def _solve_step(smoother, state, transition, measurements, step, closure, who):
         (state.window, state.prior),
         vt,
         smoother.max_steps,
-        smoother.throw,
+        throw,
     )
     newest = jax.tree_util.tree_map(lambda a: a[vt - start], window)
     result = RESULTS.where(bad, RESULTS.nonfinite_problem, result)
