@@ -148,3 +148,28 @@ def test_float32_graphs_pad_too(dtype):
     assert sol.padding is not None
     assert sol.value["pose"].unit_complex_xy.dtype == dtype
     assert _pose_error(sol.value["pose"], ref.value["pose"]) < 1e-4
+
+
+def test_a_padding_that_computes_from_the_data_is_not_planned():
+    # A noise model whose take_rows does arithmetic on its parameter (not a
+    # gather): the learnt plan would replay a wrong constant, so none is kept.
+    import equinox as eqx
+
+    class _Rescaled(eqs.IsotropicNoise):
+        def take_rows(self, index):
+            taken = super().take_rows(index)
+            return eqx.tree_at(
+                lambda m: m.sqrt_precision, taken, taken.sqrt_precision**0.5
+            )
+
+    graph, values, _ = se2_loop(16, N=5)
+    odd = eqs.PriorFactor(
+        eqs.Var("pose", [0]),
+        values["pose"][np.array([0])],
+        _Rescaled(sqrt_precision=jnp.full((1,), 4.0)),
+    )
+    graph = eqs.FactorGraph(graph.factors + (odd,))
+    assert pad_concrete(graph, values) is None
+    # least_squares then solves it as built, with the right answer.
+    sol = eqs.least_squares(graph, values, SOLVER)
+    assert sol.padding is None

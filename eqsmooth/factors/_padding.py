@@ -364,34 +364,64 @@ def _apply(recipe, leaves, host):
 
 
 def _learn_plan(graph, values, treedef, host, bucket) -> _Plan | None:
-    coded, ranges, offset = [], [], _CODE_BASE
-    for h in host:
-        if h.dtype == np.bool_:
-            coded.append(h)
-            ranges.append(None)
-            continue
-        exact = {np.dtype(np.float64): 2**53, np.dtype(np.int64): 2**62}
-        exact |= {np.dtype(np.float32): 2**24, np.dtype(np.int32): 2**31 - 1}
-        if h.dtype not in exact or offset + h.size >= exact[h.dtype]:
-            return None
-        coded.append((offset + np.arange(h.size)).reshape(h.shape).astype(h.dtype))
-        ranges.append((offset, h.size))
-        offset += h.size
-    try:
-        g, v = jax.tree_util.tree_unflatten(treedef, coded)
-        padded = pad_graph(g, v, bucket)
-    except Exception:  # a check the codes fail: pad with pad_graph instead
+    """The plan of one structure, learnt by padding a coded copy, then
+    checked on a second coding (other codes, rows reversed): a leaf that
+    any arithmetic of a padding routine made from the data (not a gather)
+    differs between the two, and the structure is then not planned."""
+    first = _padded_codes(treedef, host, bucket, _CODE_BASE, reverse=False)
+    second = _padded_codes(treedef, host, bucket, 2 * _CODE_BASE, reverse=True)
+    if first is None or second is None:
         return None
-    out_leaves, out_treedef = jax.tree_util.tree_flatten(padded)
+    (coded, ranges, (out_leaves, out_treedef)) = first
+    (coded2, _, (out_leaves2, out_treedef2)) = second
+    if out_treedef2 != out_treedef:
+        return None
     recipes = []
-    for leaf in out_leaves:
+    for leaf, leaf2 in zip(out_leaves, out_leaves2):
         recipe = _recipe(np.asarray(jax.device_get(leaf)), coded, ranges)
         if recipe is None:
+            return None
+        again = _apply(recipe, coded2, coded2)
+        if not np.array_equal(np.asarray(again), np.asarray(jax.device_get(leaf2))):
             return None
         recipes.append(recipe)
     # Constants go to the device once, here, not on every call.
     recipes = [(None, jax.device_put(r)) if j is None else (j, r) for j, r in recipes]
     return _Plan(out_treedef, tuple(recipes))
+
+
+_EXACT = {  # integers each dtype holds exactly
+    np.dtype(np.float64): 2**53,
+    np.dtype(np.int64): 2**62,
+    np.dtype(np.float32): 2**24,
+    np.dtype(np.int32): 2**31 - 1,
+}
+
+
+def _padded_codes(treedef, host, bucket, offset, reverse):
+    """`pad_graph` of a copy whose numeric leaves hold distinct codes from
+    `offset` (booleans kept): `(coded leaves, code ranges, (padded leaves,
+    treedef))`, or `None` if a dtype cannot hold them or padding fails."""
+    coded, ranges = [], []
+    for h in host:
+        if h.dtype == np.bool_:
+            coded.append(h)
+            ranges.append(None)
+            continue
+        if h.dtype not in _EXACT or offset + h.size >= _EXACT[h.dtype]:
+            return None
+        codes = offset + np.arange(h.size)
+        if reverse and h.ndim:
+            codes = codes.reshape(h.shape)[::-1].reshape(-1)
+        coded.append(codes.reshape(h.shape).astype(h.dtype))
+        ranges.append((offset, h.size))
+        offset += h.size
+    try:
+        g, v = jax.tree_util.tree_unflatten(treedef, coded)
+        padded = pad_graph(g, v, bucket)
+    except Exception:  # a check the codes fail: the caller pads otherwise
+        return None
+    return coded, ranges, jax.tree_util.tree_flatten(padded)
 
 
 def _recipe(out: np.ndarray, coded, ranges):
