@@ -102,6 +102,10 @@ class IncrementalSmoother(eqx.Module):
     program per capacity). The answer after each update is the batch
     solution of the graph so far (the solve runs to convergence; tested
     against [`eqsmooth.solve.least_squares`][] on the unpadded graph).
+    `update_rows` takes an update's rows as arrays instead of factor
+    objects: one `jax.jit` call per update and little Python around it
+    (2.4-4x faster than `update` on GTSAM's Pose2ISAM2Example shape, where
+    `update`'s factor objects and host blocks cost more than its solve).
 
     Unlike iSAM2 it relinearises and refactors the whole graph at every
     update (a dense Cholesky factorisation of the padded normal matrix, the
