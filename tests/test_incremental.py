@@ -146,11 +146,11 @@ def test_updates_refuse_what_they_cannot_add():
 K = 2  # rows per update_rows block: the odometry and room for one closure
 
 
-def _rows(new):
+def _rows(new, xnp=np):
     """An update's factors as `update_rows`' arguments: a block of K rows,
     the absent closure masked (a copy of the odometry)."""
     fs = list(new) + [new[0]] * (K - len(new))
-    measured = eqs.SE2(np.concatenate([f.measurement.unit_complex_xy for f in fs]))
+    measured = eqs.SE2(xnp.concatenate([f.measurement.unit_complex_xy for f in fs]))
     ids = tuple(np.concatenate([f.variables[i].ids for f in fs]) for i in range(2))
     return (
         [None, {"measurement": measured}],
@@ -236,7 +236,7 @@ def test_update_rows_is_differentiable():
         state = SMOOTHER.init(eqs.FactorGraph(first), values)
         for new, new_values in steps[:4]:
             state = SMOOTHER.update_rows(state, *_rows(new), new_values)
-        state = SMOOTHER.update_rows(state, *_rows([odo, moved]), guess)
+        state = SMOOTHER.update_rows(state, *_rows([odo, moved], jnp), guess)
         return state.values["pose"][np.arange(7)].log().sum()
 
     u0 = jnp.zeros((1, 3))
