@@ -1,41 +1,28 @@
 """Time per Gauss-Newton iteration on smoothing chains, per linear solver.
 
-Problems: `disk` (the paper's disk dynamics with drag, 4-D Euclidean
-state, position measurements), `se2vel` (a planar car: SE(2) pose and 2-D
-body velocity as two variable groups, constant-velocity dynamics written as
-a `FunctionFactor`, velocity and GPS-like position measurements, a prior on
-the first pose; block size 5), and `vehicle` (the library's
-`VehicleState` with `VehicleDynamicsFactor`, whose Jacobians are in closed
-form, and the same measurements; block size 5). `vehicle_autodiff` is
-`vehicle` with the same dynamics residual as a `FunctionFactor`, linearised
-by forward-mode autodiff: run both in one command to compare the two
-linearisations. The default is `disk` and `se2vel`.
+Problems: `disk` (the paper's disk dynamics with drag, 4-D Euclidean state,
+position measurements), `se2vel` (SE(2) pose and 2-D body velocity as two
+groups, constant-velocity dynamics as a `FunctionFactor`, velocity and
+GPS-like measurements, a prior; block size 5), `vehicle` (`VehicleState` with
+the closed-form `VehicleDynamicsFactor`, same measurements; block size 5) and
+`vehicle_autodiff` (its residual as a `FunctionFactor`). Default: `disk`, `se2vel`.
 
-One "iteration" = linearise every factor + solve the normal equations +
-retract, jitted. `median_s` is the median over repeats after warm-up,
-`compile_s` the first call minus the median, `temp_MiB` XLA's scratch buffer
-estimate for the compiled iteration, `page_faults` / `sys_ms` the minor page
-faults and system CPU time per call (XLA:CPU allocates its scratch buffer
-per call, and the kernel zero-fills fresh pages: time that grows with T but
-is not the solver's work). A user's solve runs all its iterations inside one
-call, so the script also times `least_squares(..., FixedStepGaussNewton(
-solver, num_steps=N))` (N = `--solve-steps`) and reports
-`solve_ms_per_step` = its median / N and `solve_compile_s`.
+One iteration = linearise + solve the normal equations + retract, jitted:
+`median_s` over repeats, `compile_s` = first call minus median, `temp_MiB`
+XLA's scratch estimate, `page_faults` / `sys_ms` per call (XLA:CPU allocates
+its scratch per call and the kernel zero-fills the pages). `solve_ms_per_step`
+times `least_squares(..., FixedStepGaussNewton(solver, num_steps=N))` / N
+(`--solve-steps`), as a user's solve runs, with `solve_compile_s`.
 
     python -m benchmarks.chain                 # T = 1e2 .. 1e5
     python -m benchmarks.chain --quick         # T = 1e2, 1e3
     python -m benchmarks.chain --json benchmarks/results/chain.json
 
-`--stages` splits one BlockTridiagonal iteration into its parts, each jitted
-on its own through the public API: `linearize` (`eqs.linearize`),
-`factorize` (assembling and factorising the block-tridiagonal normal matrix,
-`eqs.solve.factorize`), `solve` (the factorisation's back substitution,
-`BlockTridiagonal().compute`), `retract` and `cost` (`graph.cost`). Per part:
-the median time, XLA's flop and byte counts (its cost analysis of the
-compiled part) and the rates they imply; beside them, the rate this core
-reaches on a large matrix product (`peak_gflops`, the compute limit) and
-on summing a 128 MiB array (`read_GBps`, the memory limit), measured in the
-same process.
+`--stages` splits a BlockTridiagonal iteration into `linearize`, `factorize`
+(assembly + factorisation), `solve` (back substitution), `retract` and `cost`,
+each jitted through the public API: median time, XLA's flop and byte counts
+and the rates they imply, beside this core's `peak_gflops` (a large matrix
+product) and `read_GBps` (summing 128 MiB), measured in the same process.
 
     python -m benchmarks.chain --stages --problems se2vel --sizes 10000 100000 \\
         --json benchmarks/results/chain_stages.json
