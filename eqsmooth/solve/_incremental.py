@@ -199,15 +199,7 @@ class IncrementalSmoother(eqx.Module):
             new_factors = (new_factors,)
         new_factors = tuple(new_factors)
         new_values = dict(new_values or {})
-        counts = dict(state.num_variables)
-        unknown = sorted(set(new_values) - set(counts))
-        if unknown:
-            raise ValueError(
-                f"{who}: new_values has group {unknown[0]!r}, which init's graph "
-                f"does not have (groups: {sorted(counts)})"
-            )
-        added = {g: group_count(g, v) for g, v in new_values.items()}
-        grown = {g: counts[g] + added.get(g, 0) for g in counts}
+        counts, grown = _grown_counts(who, state, new_values)
         kinds = [_kind(f) for f in state.graph.factors[: len(state.num_rows)]]
         by_stack: dict[int, list[AbstractFactor]] = {}
         for j, f in enumerate(new_factors):
@@ -299,15 +291,7 @@ class IncrementalSmoother(eqx.Module):
                     + (f" of {len(arg)}" if isinstance(arg, (tuple, list)) else "")
                 )
         new_values = new_values or {}
-        counts = dict(state.num_variables)
-        unknown = sorted(set(new_values) - set(counts))
-        if unknown:
-            raise ValueError(
-                f"{who}: new_values has group {unknown[0]!r}, which init's graph "
-                f"does not have (groups: {sorted(counts)})"
-            )
-        added = {g: group_count(g, v) for g, v in new_values.items()}
-        grown = {g: counts[g] + added.get(g, 0) for g in counts}
+        counts, grown = _grown_counts(who, state, new_values)
         factors = state.graph.factors
         blocks, used, ends, offsets = [], list(state.num_rows), [], []
         for s in range(n):
@@ -866,3 +850,19 @@ def _rows_step(
         FactorGraph(factors), values, solver, max_steps=max_steps, throw=False
     )
     return FactorGraph(factors), sol.value, sol.result
+
+
+def _grown_counts(
+    who: str, state: IncrementalState, new_values: dict
+) -> tuple[dict[str, int], dict[str, int]]:
+    """`({group: variables before}, {group: variables after})` of an update
+    adding `new_values`; a group that init's graph lacks is refused."""
+    counts = dict(state.num_variables)
+    unknown = sorted(set(new_values) - set(counts))
+    if unknown:
+        raise ValueError(
+            f"{who}: new_values has group {unknown[0]!r}, which init's graph "
+            f"does not have (groups: {sorted(counts)})"
+        )
+    added = {g: group_count(g, v) for g, v in new_values.items()}
+    return counts, {g: counts[g] + added.get(g, 0) for g in counts}
