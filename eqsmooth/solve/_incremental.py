@@ -543,8 +543,7 @@ def _write(graph, values, blocks, value_blocks, offsets, targets, row_leaves):
         padded = _take(f, k, k)  # the buffer's form: masked noise
         padded = eqx.tree_at(lambda p: p.noise, padded, padded.noise.mask_rows(active))
         buf = factors[s]
-        arrays, rest = eqx.partition(buf, eqx.is_array)
-        leaves, treedef = jax.tree_util.tree_flatten(arrays)
+        treedef = jax.tree_util.tree_structure(eqx.filter(buf, eqx.is_array))
         new_leaves, new_def = jax.tree_util.tree_flatten(
             eqx.filter(padded, eqx.is_array)
         )
@@ -554,13 +553,7 @@ def _write(graph, values, blocks, value_blocks, offsets, targets, row_leaves):
                 f"in structure from init's stack {s} (fields or noise parameters "
                 "of another form)"
             )
-        out = []
-        for leaf, new, per_row in zip(leaves, new_leaves, row_leaves[s]):
-            if per_row:
-                new = jnp.asarray(new, leaf.dtype)
-                leaf = jax.lax.dynamic_update_slice_in_dim(leaf, new, offsets[j], 0)
-            out.append(leaf)
-        factors[s] = eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
+        factors[s] = _write_rows(buf, new_leaves, row_leaves[s], offsets[j])
     values = dict(values)
     base = len(blocks)
     for k, name in enumerate(sorted(values)):
@@ -805,18 +798,8 @@ def _rows_step(
         object.__setattr__(new, "variables", variables)
         mask = jnp.ones(k, bool) if active is None else jnp.asarray(active, bool)
         object.__setattr__(new, "noise", _set_active(new.noise, mask))
-        arrays, rest = eqx.partition(buf, eqx.is_array)
-        leaves, treedef = jax.tree_util.tree_flatten(arrays)
         new_leaves = jax.tree_util.tree_leaves(eqx.filter(new, eqx.is_array))
-        out = [
-            jax.lax.dynamic_update_slice_in_dim(
-                leaf, b.astype(leaf.dtype), offsets[s], 0
-            )
-            if per_row
-            else leaf
-            for leaf, b, per_row in zip(leaves, new_leaves, row_leaves[s])
-        ]
-        factors[s] = eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
+        factors[s] = _write_rows(buf, new_leaves, row_leaves[s], offsets[s])
     values = dict(values)
     n = len(blocks)
     for g, name in enumerate(sorted(values)):
@@ -866,3 +849,19 @@ def _grown_counts(
         )
     added = {g: group_count(g, v) for g, v in new_values.items()}
     return counts, {g: counts[g] + added.get(g, 0) for g in counts}
+
+
+def _write_rows(buf, new_leaves, per_row, offset):
+    """The factor stack `buf` with the per-row array leaves of new rows
+    (`new_leaves`, in `buf`'s array-leaf order) written at row `offset`."""
+    arrays, rest = eqx.partition(buf, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(arrays)
+    out = [
+        jax.lax.dynamic_update_slice_in_dim(
+            leaf, jnp.asarray(new, leaf.dtype), offset, 0
+        )
+        if row
+        else leaf
+        for leaf, new, row in zip(leaves, new_leaves, per_row)
+    ]
+    return eqx.combine(jax.tree_util.tree_unflatten(treedef, out), rest)
