@@ -3,8 +3,8 @@
 Each file is read by `eqsmooth.io.load_g2o` (gauge prior on the first pose,
 σ = 1e-6) and solved from its initial values by `LevenbergMarquardt(linear)`,
 `--solver` `sparse` (`SparseLU()`, the default), `cholmod` (`SparseCholesky()`,
-scikit-sparse), `sparsax` (`SparsaxCholesky()`), `pcg` (`PCG()`, block-Jacobi
-or `--preconditioner chain`) or `dense`, and by GTSAM's
+scikit-sparse), `sparsax` (`SparsaxCholesky()`), `pcg` (`PCG()`, block-Jacobi,
+`--preconditioner chain` or `twolevel`) or `dense`, and by GTSAM's
 `LevenbergMarquardtOptimizer` on the same factors (`eqsmooth.io.to_gtsam`;
 initial costs checked equal), both stopping at a relative cost decrease of
 1e-8 (GTSAM's absoluteErrorTol 0). `median_s`: median of `repeats` full
@@ -193,8 +193,9 @@ def write_markdown(path, records, m: dict, solver_name: str, args):
 def make_solver(args):
     """The LevenbergMarquardt solver `--solver` names, and its name."""
     pre = eqs.solve.BlockJacobi()
-    if args.preconditioner == "chain":
-        pre = eqs.solve.ChainPreconditioner()
+    if args.preconditioner in ("chain", "twolevel"):
+        pre = {"chain": eqs.ChainPreconditioner, "twolevel": eqs.TwoLevelPreconditioner}
+        pre = pre[args.preconditioner]()
     linear = {
         "sparse": eqs.solve.SparseLU,
         "cholmod": eqs.solve.SparseCholesky,
@@ -239,7 +240,7 @@ def main(argv=None):
     solvers = "sparse cholmod sparsax pcg dense default".split()
     parser.add_argument("--solver", choices=solvers)
     parser.add_argument("--gtsam-files", action="store_true", help="see above")
-    parser.add_argument("--preconditioner", choices=["jacobi", "chain"])
+    parser.add_argument("--preconditioner", choices=["jacobi", "chain", "twolevel"])
     parser.add_argument("--damping-update", choices=["nielsen", "fixed"])
     parser.add_argument("--max-steps", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=5)

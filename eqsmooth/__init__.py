@@ -91,6 +91,7 @@ from .solve import (
     SparseCholesky as SparseCholesky,
     SparseLU as SparseLU,
     TruncatedAdjoint as TruncatedAdjoint,
+    TwoLevelPreconditioner as TwoLevelPreconditioner,
     UnrolledAdjoint as UnrolledAdjoint,
 )
 

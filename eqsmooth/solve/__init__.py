@@ -37,6 +37,7 @@ from ._linear._sparsax import (
     SparsaxFactorization as SparsaxFactorization,
 )
 from ._linear._sparse import SparseCholesky as SparseCholesky, SparseLU as SparseLU
+from ._linear._two_level import TwoLevelPreconditioner as TwoLevelPreconditioner
 from ._linearization import (
     FactorLinearization as FactorLinearization,
     Linearization as Linearization,
