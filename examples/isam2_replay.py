@@ -136,7 +136,9 @@ def eqsmooth_replay(edges, poses: int, solver, rows: bool) -> tuple[dict, eqs.SE
         else:
             times.append(dt)
     est = eqs.SE2(jnp.asarray(state.estimate()["pose"].unit_complex_xy))
-    full = eqs.FactorGraph([prior] + [between(*e) for e in edges])
+    full = eqs.FactorGraph(
+        eqs.factors.merge_stacks([prior] + [between(*e) for e in edges])
+    )
     batch = eqs.least_squares(full, {"pose": est}, eqs.LevenbergMarquardt()).value[
         "pose"
     ]

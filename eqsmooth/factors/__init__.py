@@ -44,6 +44,7 @@ from ._landmark import (
     TranslationPriorFactor as TranslationPriorFactor,
 )
 from ._masked_noise import MaskedNoise as MaskedNoise
+from ._merge import merge_stacks as merge_stacks
 from ._noise import (
     AbstractNoiseModel as AbstractNoiseModel,
     AbstractRobustNoise as AbstractRobustNoise,

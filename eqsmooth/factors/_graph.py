@@ -8,6 +8,7 @@ from jaxtyping import Array, Float, PyTree
 
 from ..manifold import tangent_dim
 from ._factor import AbstractFactor, check_row_leaves, evaluate_rows
+from ._merge import warn_if_unstacked
 from ._variables import Var
 
 
@@ -96,6 +97,7 @@ class FactorGraph(eqx.Module):
                 )
         if not factors:
             raise ValueError("FactorGraph needs at least one factor")
+        warn_if_unstacked(factors)
         self.factors = factors
 
     def validate(self, values: Values) -> tuple[GroupLayout, ...]:
