@@ -140,6 +140,11 @@ class TwoLevelPreconditioner(AbstractPreconditioner):
     iterations (on `w10000.graph`, 10 instead of 20: 124 instead of 199 to a
     relative residual of 10⁻⁶) at that price.
 
+    The coarse factorisation is a LAPACK Cholesky on CPU: call
+    [`eqsmooth.set_xla_cpu_flags`][]`()` (its serial scheduler) before the
+    first JAX computation there, or a large solve may hang in jaxlib 0.10
+    (it did on `w10000.graph` and `sphere_smallnoise.graph`, 2026-11-29).
+
     **Arguments:**
 
     - `aggregate_size`: poses per coarse block (`>= 1`).
