@@ -60,8 +60,8 @@ def merge_stacks(factors: Sequence[AbstractFactor]) -> tuple[AbstractFactor, ...
     for position, factor in enumerate(factors):
         if not isinstance(factor, AbstractFactor):
             raise TypeError(
-                f"merge_stacks: factor {position} is a {type(factor).__name__}, "
-                "not an eqsmooth.factors.AbstractFactor"
+                f"merge_stacks: factors[{position}] is of type "
+                f"{type(factor).__name__}, not an eqsmooth.factors.AbstractFactor"
             )
         key = _key(factor)
         for members in buckets.get(key, []) if key is not None else []:
