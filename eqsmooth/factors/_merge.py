@@ -57,6 +57,7 @@ def merge_stacks(factors: Sequence[AbstractFactor]) -> tuple[AbstractFactor, ...
     """
     buckets: dict[tuple, list[list[AbstractFactor]]] = {}
     order: list[list[AbstractFactor]] = []
+    rows: dict[int, list[bool] | None] = {}  # per noise object, probed once
     for position, factor in enumerate(factors):
         if not isinstance(factor, AbstractFactor):
             raise TypeError(
@@ -65,7 +66,7 @@ def merge_stacks(factors: Sequence[AbstractFactor]) -> tuple[AbstractFactor, ...
             )
         key = _key(factor)
         for members in buckets.get(key, []) if key is not None else []:
-            if _compatible(members[0], factor):
+            if _compatible(members[0], factor, rows):
                 members.append(factor)
                 break
         else:
@@ -73,7 +74,7 @@ def merge_stacks(factors: Sequence[AbstractFactor]) -> tuple[AbstractFactor, ...
             order.append(members)
             if key is not None:
                 buckets.setdefault(key, []).append(members)
-    return tuple(_concatenate(m) if len(m) > 1 else m[0] for m in order)
+    return tuple(_concatenate(m, rows) if len(m) > 1 else m[0] for m in order)
 
 
 def warn_if_unstacked(factors: tuple[AbstractFactor, ...]) -> None:
@@ -136,24 +137,29 @@ def _rows_alike(a, b) -> bool:
     return True
 
 
-def _noise_rows(noise: AbstractNoiseModel) -> list[bool] | None:
+def _noise_rows(noise: AbstractNoiseModel, cache: dict) -> list[bool] | None:
     """Which leaves of `noise` are per row (indexed by `take_rows`); `None`
-    if taking rows changes the model's structure."""
-    leaves, tree = jax.tree_util.tree_flatten(noise)
+    if taking rows changes the model's structure. Kept in `cache` by object,
+    as a stack's noise is compared with every candidate."""
+    if id(noise) in cache:
+        return cache[id(noise)]
+    tree = jax.tree_util.tree_structure(noise)
     one, tree1 = jax.tree_util.tree_flatten(noise.take_rows(np.zeros(1, np.int32)))
     two, tree2 = jax.tree_util.tree_flatten(noise.take_rows(np.zeros(2, np.int32)))
-    if not tree == tree1 == tree2:
-        return None
-    return [jnp.shape(x) != jnp.shape(y) for x, y in zip(one, two)]
+    rows = None
+    if tree == tree1 == tree2:
+        rows = [jnp.shape(x) != jnp.shape(y) for x, y in zip(one, two)]
+    cache[id(noise)] = rows
+    return rows
 
 
-def _noise_compatible(a: AbstractNoiseModel, b: AbstractNoiseModel) -> bool:
+def _noise_compatible(a: AbstractNoiseModel, b: AbstractNoiseModel, cache) -> bool:
     if type(a) is not type(b):
         return False
     la, ta = jax.tree_util.tree_flatten(a)
     lb, tb = jax.tree_util.tree_flatten(b)
-    rows = _noise_rows(a)
-    if ta != tb or rows is None or rows != _noise_rows(b):
+    rows = _noise_rows(a, cache)
+    if ta != tb or rows is None or rows != _noise_rows(b, cache):
         return False
     for x, y, per_row in zip(la, lb, rows):
         if per_row:
@@ -166,13 +172,13 @@ def _noise_compatible(a: AbstractNoiseModel, b: AbstractNoiseModel) -> bool:
     return True
 
 
-def _compatible(a: AbstractFactor, b: AbstractFactor) -> bool:
+def _compatible(a: AbstractFactor, b: AbstractFactor, cache: dict) -> bool:
     for f in dataclasses.fields(a):
         x, y = getattr(a, f.name), getattr(b, f.name)
         if f.name == "variables":
             continue  # groups compared by the key
         if f.name == "noise":
-            if not _noise_compatible(x, y):
+            if not _noise_compatible(x, y, cache):
                 return False
         elif _is_per_row(f):
             if not _rows_alike(x, y):
@@ -189,7 +195,7 @@ def _join(leaves: list):
     return jnp.concatenate([jnp.asarray(x) for x in leaves])
 
 
-def _concatenate(members: list[AbstractFactor]) -> AbstractFactor:
+def _concatenate(members: list[AbstractFactor], cache: dict) -> AbstractFactor:
     first = members[0]
     merged = object.__new__(type(first))
     for f in dataclasses.fields(first):
@@ -200,7 +206,7 @@ def _concatenate(members: list[AbstractFactor]) -> AbstractFactor:
                 for k, v in enumerate(value)
             )
         elif f.name == "noise":
-            rows = _noise_rows(value)
+            rows = _noise_rows(value, cache)
             parts = [jax.tree_util.tree_leaves(m.noise) for m in members]
             tree = jax.tree_util.tree_structure(value)
             value = jax.tree_util.tree_unflatten(
